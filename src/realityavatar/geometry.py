@@ -1,0 +1,106 @@
+"""Rotation and rigid-transform helpers shared by the body model, the avatar model and the renderer.
+
+Quaternions are (w, x, y, z), like gsplat. Axis-angle vectors follow SMPL (angle = norm, axis = direction).
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+
+def axis_angle_to_matrix(aa: torch.Tensor) -> torch.Tensor:
+    """aa: [...,3] -> [...,3,3] (Rodrigues, stable and differentiable near zero)."""
+    theta2 = (aa * aa).sum(-1, keepdim=True)  # [...,1]
+    theta = torch.sqrt(theta2.clamp_min(1e-24))
+    small = theta2 < 1e-8
+    # Taylor series near zero keeps gradients finite.
+    a = torch.where(small, 1 - theta2 / 6, torch.sin(theta) / theta)
+    b = torch.where(small, 0.5 - theta2 / 24, (1 - torch.cos(theta)) / theta2.clamp_min(1e-24))
+    x, y, z = aa.unbind(-1)
+    zero = torch.zeros_like(x)
+    k = torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], -1).reshape(aa.shape[:-1] + (3, 3))
+    eye = torch.eye(3, dtype=aa.dtype, device=aa.device).expand_as(k)
+    return eye + a[..., None] * k + b[..., None] * (k @ k)
+
+
+def matrix_to_quat(R: torch.Tensor) -> torch.Tensor:
+    """R: [...,3,3] -> unit quaternion [...,4] (wxyz, w >= 0)."""
+    m = R
+    t = torch.stack(
+        [
+            1 + m[..., 0, 0] + m[..., 1, 1] + m[..., 2, 2],
+            1 + m[..., 0, 0] - m[..., 1, 1] - m[..., 2, 2],
+            1 - m[..., 0, 0] + m[..., 1, 1] - m[..., 2, 2],
+            1 - m[..., 0, 0] - m[..., 1, 1] + m[..., 2, 2],
+        ],
+        -1,
+    )
+    q_abs = torch.sqrt(t.clamp_min(1e-12))  # [...,4], 2*|component|
+    cands = torch.stack(
+        [
+            torch.stack([q_abs[..., 0] ** 2, m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]], -1),
+            torch.stack([m[..., 2, 1] - m[..., 1, 2], q_abs[..., 1] ** 2, m[..., 1, 0] + m[..., 0, 1], m[..., 0, 2] + m[..., 2, 0]], -1),
+            torch.stack([m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] + m[..., 0, 1], q_abs[..., 2] ** 2, m[..., 2, 1] + m[..., 1, 2]], -1),
+            torch.stack([m[..., 1, 0] - m[..., 0, 1], m[..., 2, 0] + m[..., 0, 2], m[..., 2, 1] + m[..., 1, 2], q_abs[..., 3] ** 2], -1),
+        ],
+        -2,
+    )  # [...,4,4]
+    cands = cands / (2 * q_abs[..., None].clamp_min(0.1))
+    idx = q_abs.argmax(-1)
+    q = torch.gather(cands, -2, idx[..., None, None].expand(idx.shape + (1, 4))).squeeze(-2)
+    q = F.normalize(q, dim=-1)
+    return torch.where(q[..., :1] < 0, -q, q)
+
+
+def quat_to_matrix(q: torch.Tensor) -> torch.Tensor:
+    """q: [...,4] wxyz (normalised here) -> [...,3,3]."""
+    q = F.normalize(q, dim=-1)
+    w, x, y, z = q.unbind(-1)
+    return torch.stack(
+        [
+            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+        ],
+        -1,
+    ).reshape(q.shape[:-1] + (3, 3))
+
+
+def quat_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Hamilton product a*b of wxyz quaternions [...,4] (rotation b first, then a)."""
+    aw, ax, ay, az = a.unbind(-1)
+    bw, bx, by, bz = b.unbind(-1)
+    return torch.stack(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ],
+        -1,
+    )
+
+
+def matrix_to_axis_angle(R: torch.Tensor) -> torch.Tensor:
+    """R: [...,3,3] -> axis-angle [...,3] (angle in [0, pi])."""
+    q = matrix_to_quat(R)
+    xyz = q[..., 1:]
+    s = xyz.norm(dim=-1, keepdim=True)
+    angle = 2 * torch.atan2(s, q[..., :1])
+    scale = torch.where(s > 1e-8, angle / s.clamp_min(1e-12), 2.0 / q[..., :1].clamp_min(1e-12))
+    return xyz * scale
+
+
+def rigid(R: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+    """R: [...,3,3], t: [...,3] -> homogeneous [...,4,4]."""
+    T = torch.zeros(R.shape[:-2] + (4, 4), dtype=R.dtype, device=R.device)
+    T[..., :3, :3] = R
+    T[..., :3, 3] = t
+    T[..., 3, 3] = 1
+    return T
+
+
+def transform_points(T: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """T: [...,4,4], x: [...,3] -> [...,3]."""
+    return (T[..., :3, :3] @ x[..., None]).squeeze(-1) + T[..., :3, 3]

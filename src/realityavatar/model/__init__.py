@@ -1,0 +1,1 @@
+"""Avatar components (Gaussians, pose encoder, temporal module, deformer, skinning, colour) and the LightningModule."""
