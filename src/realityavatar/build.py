@@ -1,0 +1,109 @@
+"""Builds a run's components from a composed config (hydra instantiate) and restores them from a run folder."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+from pathlib import Path
+
+import torch
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
+
+import realityavatar.config  # noqa: F401  (registers resolvers)
+from realityavatar.model.module import AvatarModule, Schedule
+
+CKPT_NAME = "last.ckpt"
+
+
+def build_lpips(cfg: DictConfig):
+    """LPIPS network when weights are configured, else None and the reason (reported in metrics.json)."""
+    from realityavatar.metrics import LPIPS, lpips_status
+
+    m = cfg.get("metrics", {}) or {}
+    if not m.get("lpips_weights"):
+        return None, lpips_status()
+    net = LPIPS.from_paths(m["lpips_weights"], m.get("lpips_backbone_weights"))
+    return net, "computed"
+
+
+def build_module(cfg: DictConfig, body, num_train_frames: int, scene_extent: float) -> AvatarModule:
+    """Instantiate every component from its config group and hand them to the LightningModule."""
+    gaussians = instantiate(cfg.gaussians, body=body)
+    encoder = instantiate(cfg.encoder)
+    temporal = instantiate(cfg.temporal)
+    deformer = instantiate(cfg.deformer)
+    skinning = instantiate(cfg.skinning)
+    color = instantiate(cfg.color, num_frames=max(int(num_train_frames), 1))
+    density = instantiate(cfg.density)
+    loss = instantiate(cfg.loss)
+    lpips, _ = build_lpips(cfg)
+    render = OmegaConf.to_container(cfg.render, resolve=True)
+    return AvatarModule(
+        body=body,
+        gaussians=gaussians,
+        encoder=encoder,
+        temporal=temporal,
+        deformer=deformer,
+        skinning=skinning,
+        color=color,
+        density=density,
+        loss=loss,
+        optimizer=instantiate(cfg.optim.optimizer),
+        lr=OmegaConf.to_container(cfg.optim.lr, resolve=True),
+        final_factor=OmegaConf.to_container(cfg.optim.final_factor, resolve=True),
+        render=render,
+        schedule=Schedule(**OmegaConf.to_container(cfg.schedule, resolve=True)),
+        grad_clip=cfg.optim.get("grad_clip"),
+        max_steps=int(cfg.iterations),
+        scene_extent=scene_extent,
+        lpips=lpips,
+    )
+
+
+def build_data(cfg: DictConfig, body):
+    dm = instantiate(cfg.data, body=body)
+    dm.prepare_data()
+    dm.setup("fit")
+    return dm
+
+
+def load_run(run_dir: str | Path, overrides: list[str] | None = None, ckpt: str | Path | None = None):
+    """Rebuild (cfg, module, run_info) from a run folder written by `realityavatar-train`."""
+    run_dir = Path(run_dir)
+    cfg_path = run_dir / ".hydra" / "config.yaml"
+    if not cfg_path.is_file():
+        raise FileNotFoundError(f"{cfg_path} not found: expected a run folder written by realityavatar-train")
+    cfg = OmegaConf.load(cfg_path)
+    if overrides:
+        cfg.merge_with_dotlist(list(overrides))
+    ckpt = Path(ckpt) if ckpt else run_dir / CKPT_NAME
+    if not ckpt.is_file():
+        raise FileNotFoundError(f"checkpoint {ckpt} not found in run folder {run_dir}")
+    state = torch.load(ckpt, map_location="cpu", weights_only=False)
+    info = state.get("realityavatar", {})
+    if not info:
+        raise KeyError(f"{ckpt}: checkpoint has no 'realityavatar' block (not written by realityavatar-train)")
+    body = instantiate(cfg.body)
+    module = build_module(cfg, body, info["num_train_frames"], info["scene_extent"])
+    module.load_state_dict(state["state_dict"])
+    module.eval()
+    return cfg, module, info
+
+
+def git_commit() -> str:
+    try:
+        root = Path(__file__).resolve().parents[2]
+        out = subprocess.run(["git", "-C", str(root), "rev-parse", "--short", "HEAD"], capture_output=True, text=True, timeout=5)
+        dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"], capture_output=True, text=True, timeout=5)
+        sha = out.stdout.strip() or "unknown"
+        return sha + ("-dirty" if dirty.stdout.strip() else "")
+    except Exception:
+        return "unknown"
+
+
+def write_json(path: Path, data: dict) -> None:
+    """Write through a temporary file so an interrupted write never leaves a truncated metrics file."""
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json.dumps(data, indent=2, sort_keys=True, default=float))
+    tmp.replace(path)

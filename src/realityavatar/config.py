@@ -1,0 +1,41 @@
+"""Hydra/OmegaConf helpers shared by the entry points and the tests (resolvers, config root, choices)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from omegaconf import DictConfig, OmegaConf
+
+CONFIG_DIR = Path(__file__).resolve().parents[2] / "conf"
+AXES = (
+    "data", "body", "gaussians", "encoder", "temporal", "deformer", "skinning", "color", "density", "loss",
+    "render", "optim", "trainer", "variant", "ablation",
+)
+
+
+def _register() -> None:
+    if not OmegaConf.has_resolver("int_mul"):
+        OmegaConf.register_new_resolver("int_mul", lambda a, b: int(float(a) * float(b)))
+
+
+_register()
+
+
+def config_dir() -> str:
+    if not (CONFIG_DIR / "train.yaml").is_file():
+        raise FileNotFoundError(
+            f"config folder {CONFIG_DIR} with train.yaml not found: install the project editable "
+            "(`pip install -e .` from the repository) so the conf/ folder beside src/ is used"
+        )
+    return str(CONFIG_DIR)
+
+
+def choices_of(cfg: DictConfig) -> dict:
+    """The chosen option of every config group (from hydra's runtime choices when available)."""
+    try:
+        from hydra.core.hydra_config import HydraConfig
+
+        ch = dict(HydraConfig.get().runtime.choices)
+    except Exception:  # composed outside @hydra.main (tests)
+        ch = dict(cfg.get("_choices", {}) or {})
+    return {k: v for k, v in ch.items() if not k.startswith("hydra") and v is not None}

@@ -1,0 +1,140 @@
+"""Export canonical or posed Gaussians to PLY in the standard 3DGS layout that common splat viewers read.
+
+Command: `realityavatar-export run_dir=<run> [frame=<global frame id>] [out=<file.ply>]` (no frame: canonical space).
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+SH_C0 = 0.28209479177387814
+
+
+def write_ply(path: str | Path, means, quats, scales, opacities, sh: np.ndarray | None = None, rgb: np.ndarray | None = None) -> Path:
+    """Write a 3DGS PLY. means [N,3], quats [N,4] wxyz, scales [N,3] (linear), opacities [N] in (0,1),
+    either sh [N,K,3] (K = (d+1)^2) or rgb [N,3] in [0,1] (stored as the degree-0 SH term)."""
+    means, quats, scales, opacities = (np.asarray(x, dtype=np.float32) for x in (means, quats, scales, opacities))
+    N = means.shape[0]
+    for name, arr, shape in (("means", means, (N, 3)), ("quats", quats, (N, 4)), ("scales", scales, (N, 3)), ("opacities", opacities, (N,))):
+        if arr.shape != shape:
+            raise ValueError(f"write_ply: {name} must have shape {shape}, got {arr.shape}")
+        if not np.isfinite(arr).all():
+            raise ValueError(f"write_ply: {name} has non-finite values")
+    if sh is None:
+        if rgb is None:
+            raise ValueError("write_ply: give either sh [N,K,3] or rgb [N,3]")
+        sh = ((np.asarray(rgb, np.float32) - 0.5) / SH_C0)[:, None, :]
+    sh = np.asarray(sh, np.float32)
+    K = sh.shape[1]
+    eps = 1e-7
+    fields = [("x", means[:, 0]), ("y", means[:, 1]), ("z", means[:, 2])]
+    fields += [(n, np.zeros(N, np.float32)) for n in ("nx", "ny", "nz")]
+    fields += [(f"f_dc_{i}", sh[:, 0, i]) for i in range(3)]
+    # 3DGS stores the rest coefficients channel-major: all R, then all G, then all B.
+    rest = sh[:, 1:, :].transpose(0, 2, 1).reshape(N, -1) if K > 1 else np.zeros((N, 0), np.float32)
+    fields += [(f"f_rest_{i}", rest[:, i]) for i in range(rest.shape[1])]
+    op = np.clip(opacities, eps, 1 - eps)
+    fields += [("opacity", np.log(op / (1 - op)))]
+    fields += [(f"scale_{i}", np.log(np.maximum(scales[:, i], eps))) for i in range(3)]
+    q = quats / np.linalg.norm(quats, axis=1, keepdims=True).clip(eps)
+    fields += [(f"rot_{i}", q[:, i]) for i in range(4)]
+    arr = np.empty(N, dtype=[(n, "<f4") for n, _ in fields])
+    for n, v in fields:
+        arr[n] = v
+    header = "ply\nformat binary_little_endian 1.0\nelement vertex %d\n" % N
+    header += "".join(f"property float {n}\n" for n, _ in fields) + "end_header\n"
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".ply.tmp")
+    with open(tmp, "wb") as f:
+        f.write(header.encode("ascii"))
+        f.write(arr.tobytes())
+    tmp.replace(path)
+    return path
+
+
+def read_ply(path: str | Path) -> dict:
+    """Read a 3DGS PLY back: means, quats, scales (linear), opacities (0..1), sh [N,K,3]."""
+    path = Path(path)
+    data = path.read_bytes()
+    end = data.find(b"end_header\n")
+    if not data.startswith(b"ply") or end < 0:
+        raise ValueError(f"{path}: not a PLY file")
+    header = data[:end].decode("ascii").splitlines()
+    if "format binary_little_endian 1.0" not in header:
+        raise ValueError(f"{path}: only binary little-endian PLY is supported")
+    n = int(next(h.split()[2] for h in header if h.startswith("element vertex")))
+    names = [h.split()[2] for h in header if h.startswith("property float")]
+    arr = np.frombuffer(data[end + len(b"end_header\n") :], dtype=[(nm, "<f4") for nm in names], count=n)
+    rest = sorted([nm for nm in names if nm.startswith("f_rest_")], key=lambda s: int(s.split("_")[-1]))
+    K = 1 + len(rest) // 3
+    sh = np.zeros((n, K, 3), np.float32)
+    sh[:, 0] = np.stack([arr[f"f_dc_{i}"] for i in range(3)], 1)
+    if rest:
+        sh[:, 1:] = np.stack([arr[r] for r in rest], 1).reshape(n, 3, K - 1).transpose(0, 2, 1)
+    return {
+        "means": np.stack([arr["x"], arr["y"], arr["z"]], 1),
+        "quats": np.stack([arr[f"rot_{i}"] for i in range(4)], 1),
+        "scales": np.exp(np.stack([arr[f"scale_{i}"] for i in range(3)], 1)),
+        "opacities": 1 / (1 + np.exp(-arr["opacity"])),
+        "sh": sh,
+    }
+
+
+@torch.no_grad()
+def export_gaussians(module, out: Path, poses: torch.Tensor | None = None, transl: torch.Tensor | None = None) -> Path:
+    """Canonical Gaussians (poses None) or the Gaussians posed by a pose window poses [T,24,3], transl [T,3].
+
+    View-dependent colour is baked to its average over six axis-aligned view directions (degree-0 SH),
+    except for the SH colour model, whose coefficients are written as they are.
+    """
+    g = module.gaussians
+    dev = g.means.device
+    if poses is None:
+        means, quats, scales = g.means, g.quats, torch.exp(g.log_scales)
+        rot = torch.eye(3, device=dev).expand(g.num_points, 3, 3)[None]
+        f_mt = None
+        frame_idx = torch.full((1,), -1, dtype=torch.long, device=dev)
+    else:
+        frame_idx = torch.full((1,), -1, dtype=torch.long, device=dev)
+        posed = module.deform(poses[None].to(dev), transl[None].to(dev), frame_idx)
+        means, quats, scales, rot, f_mt = posed["means"][0], posed["quats"][0], posed["scales"][0], posed["rot"], posed["f_mt"]
+    sh_coeffs = getattr(module.color, "sh_coefficients", None)
+    if callable(sh_coeffs) and poses is None:
+        return write_ply(out, means.cpu(), quats.cpu(), scales.cpu(), g.opacities().cpu(), sh=sh_coeffs(g.features).cpu().numpy())
+    dirs = torch.tensor([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], dtype=torch.float32, device=dev)
+    rgb = 0
+    for d in dirs:
+        d_c = (rot.transpose(-1, -2) @ d[:, None]).squeeze(-1)  # canonical view dir per Gaussian
+        d_c = torch.nn.functional.normalize(d_c.expand(1, g.num_points, 3), dim=-1)
+        rgb = rgb + module.color(g.features, d_c, f_mt, frame_idx)[0]
+    rgb = (rgb / len(dirs)).clamp(0, 1)
+    return write_ply(out, means.cpu(), quats.cpu(), scales.cpu(), g.opacities().cpu(), rgb=rgb.cpu().numpy())
+
+
+def main(argv: list[str] | None = None) -> int:
+    from realityavatar.build import build_data, load_run
+
+    args = dict(a.split("=", 1) for a in (sys.argv[1:] if argv is None else argv) if "=" in a)
+    if "run_dir" not in args:
+        print("usage: realityavatar-export run_dir=<run> [frame=<global frame id>] [out=<file.ply>]", file=sys.stderr)
+        return 2
+    cfg, module, info = load_run(args["run_dir"])
+    frame = args.get("frame")
+    out = Path(args.get("out", Path(args["run_dir"]) / "export" / (f"posed_{frame}.ply" if frame else "canonical.ply")))
+    if frame is None:
+        export_gaussians(module, out)
+    else:
+        dm = build_data(cfg, module.body)
+        poses, transl = dm.window(int(frame))
+        export_gaussians(module, out, poses, transl)
+    print(f"wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

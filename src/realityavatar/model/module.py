@@ -1,0 +1,272 @@
+"""The LightningModule: wires the built components along the data path, trains with density control, evaluates."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import pytorch_lightning as pl
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from realityavatar.body.base import BodyModel
+from realityavatar.model.deform import apply_deformation
+from realityavatar.model.skinning import lbs_gaussians, sample_surface
+from realityavatar.render import rasterize
+
+# Per-Gaussian parameter groups; component groups use the component's name.
+GAUSSIAN_GROUPS = ("means", "log_scales", "quats", "opacity_logits", "features")
+COMPONENTS = ("encoder", "temporal", "deformer", "skinning", "color")
+
+
+@dataclass
+class Schedule:
+    """Every step-dependent switch of a run, in one place."""
+
+    deform_start: int = 0
+    skin_switch: int = 0
+
+    def deform_on(self, step: int) -> bool:
+        return step >= self.deform_start
+
+
+class AvatarModule(pl.LightningModule):
+    """Canonical Gaussians -> pose encoder -> temporal -> motion-trend decoder -> skinning -> colour -> splats."""
+
+    def __init__(
+        self,
+        body: BodyModel,
+        gaussians: nn.Module,
+        encoder: nn.Module,
+        temporal: nn.Module,
+        deformer: nn.Module,
+        skinning: nn.Module,
+        color: nn.Module,
+        density: Any,
+        loss: nn.Module,
+        optimizer: Callable[..., torch.optim.Optimizer],
+        lr: dict,
+        final_factor: dict,
+        render: dict,
+        schedule: Schedule | dict | None = None,
+        grad_clip: float | None = None,
+        max_steps: int = 1000,
+        scene_extent: float = 1.0,
+        skin_samples: int = 1024,
+        lpips: nn.Module | None = None,
+    ):
+        super().__init__()
+        self.automatic_optimization = False  # density control edits parameters between optimizer steps
+        self.body = body
+        self.gaussians = gaussians
+        self.encoder = encoder
+        self.temporal = temporal
+        self.deformer = deformer
+        self.skinning = skinning
+        self.color = color
+        self.density = density
+        self.loss_fn = loss
+        self.optimizer_factory = optimizer
+        self.lr = dict(lr)
+        self.final_factor = dict(final_factor)
+        self.render_cfg = dict(render)
+        self.background = list(self.render_cfg.pop("background", [0.0, 0.0, 0.0]))
+        self.schedule = schedule if isinstance(schedule, Schedule) else Schedule(**(schedule or {}))
+        self.grad_clip = grad_clip
+        self.max_steps = max(int(max_steps), 1)
+        self.scene_extent = float(scene_extent)
+        self.skin_samples = int(skin_samples)
+        self.lpips = lpips
+        self.test_records: list[dict] = []
+        self._surface = None
+        # Facts needed to rebuild the run from its checkpoint (num_train_frames, scene_extent, ...).
+        self.run_info: dict = {"scene_extent": self.scene_extent}
+
+    # ------------------------------------------------------------------ forward
+    def deform(self, poses: torch.Tensor, transl: torch.Tensor, frame_idx: torch.Tensor, deform: bool = True):
+        """poses [B,T,24,3], transl [B,T,3], frame_idx [B] -> posed Gaussians of the current (last) frame.
+
+        Returns dict: means [B,N,3], quats [B,N,4], scales [B,N,3], opacities [N], rot [B,N,3,3]
+        (canonical-to-posed rotation per Gaussian, for canonical view directions) and the decoder output.
+        """
+        g = self.gaussians
+        B = poses.shape[0]
+        f_p = self.encoder(poses, transl)  # [B,T,D]
+        h_t = self.temporal(f_p)  # [B,H]
+        # Canonical warm-up: before deform_start the decoder is skipped and the offsets are the identity.
+        out = self.deformer(g.means, h_t) if deform else identity_deformation(B, g.means, self.deformer.feature_dim)
+        x_e, log_s_e, q_e = apply_deformation(g.means, g.log_scales, g.quats, out)  # [B,N,3],[B,N,3],[B,N,4]
+        w = self.skinning(x_e)  # [B,N,24]
+        A = self.body.canonical_transforms(poses[:, -1], transl[:, -1])  # [B,24,4,4]
+        means_o, quats_o, rot = lbs_gaussians(x_e, q_e, w, A)
+        return {
+            "means": means_o,
+            "quats": quats_o,
+            "scales": torch.exp(log_s_e),
+            "opacities": g.opacities(),
+            "rot": rot,
+            "f_mt": out.get("f_mt"),
+            "weights": w,
+            "x_e": x_e,
+            "B": B,
+        }
+
+    def shade(self, posed: dict, viewmats: torch.Tensor, frame_idx: torch.Tensor) -> torch.Tensor:
+        """View-dependent colour of every Gaussian for each sample's camera: [B,N,3]."""
+        cam_centre = -(viewmats[:, :3, :3].transpose(-1, -2) @ viewmats[:, :3, 3:]).squeeze(-1)  # [B,3]
+        d = F.normalize(posed["means"] - cam_centre[:, None, :], dim=-1)  # [B,N,3] posed view dir
+        # Canonicalise: undo each Gaussian's blended skinning rotation.
+        d_c = (posed["rot"].transpose(-1, -2) @ d[..., None]).squeeze(-1)
+        return self.color(self.gaussians.features, F.normalize(d_c, dim=-1), posed["f_mt"], frame_idx)
+
+    def render_batch(self, batch: dict, deform: bool = True):
+        """Render every sample of a batch from its own camera. Returns rgb [B,H,W,3], alpha [B,H,W,1], metas, posed."""
+        poses, transl = batch["poses"], batch["transl"]
+        frame_idx = batch["frame_idx"]
+        viewmats, Ks = batch["viewmat"], batch["K"]
+        W, H = int(batch["width"][0]), int(batch["height"][0])
+        posed = self.deform(poses, transl, frame_idx, deform=deform)
+        rgb = self.shade(posed, viewmats, frame_idx)  # [B,N,3]
+        bg = torch.tensor(self.background, dtype=rgb.dtype, device=rgb.device)[None]
+        images, alphas, metas = [], [], []
+        for b in range(posed["B"]):
+            img, alpha, meta = rasterize(
+                posed["means"][b], posed["quats"][b], posed["scales"][b], posed["opacities"], rgb[b],
+                viewmats[b : b + 1], Ks[b : b + 1], W, H, backgrounds=bg, **self.render_cfg,
+            )
+            images.append(img[0])
+            alphas.append(alpha[0])
+            metas.append(meta)
+        return torch.stack(images), torch.stack(alphas), metas, posed
+
+    # ------------------------------------------------------------------ training
+    def _skin_targets(self):
+        if self._surface is None:
+            gen = torch.Generator().manual_seed(1234)
+            verts = self.body.canonical_vertices().detach()
+            self._surface = sample_surface(verts, self.body.faces, self.body.skin_weights, 20 * self.skin_samples, gen)
+        pts, w = self._surface
+        idx = torch.randint(0, pts.shape[0], (self.skin_samples,))
+        return pts[idx].to(self.device), w[idx].to(self.device)
+
+    def training_step(self, batch, batch_idx):
+        step = self.global_step
+        opt = self.optimizers()
+        sched = self.lr_schedulers()
+        opt.zero_grad(set_to_none=True)
+        rgb, alpha, metas, posed = self.render_batch(batch, deform=self.schedule.deform_on(step))
+        skin_pts, skin_w = self._skin_targets()
+        total, terms = self.loss_fn(
+            rgb, alpha, batch["image"], batch["mask"], skinning=self.skinning, skin_points=skin_pts,
+            skin_weights=skin_w, step=step,
+        )
+        if not torch.isfinite(total):
+            raise FloatingPointError(f"training loss became non-finite at step {step}: {terms}")
+        self.manual_backward(total)
+        if self.grad_clip:
+            nets = [p for n in COMPONENTS for p in getattr(self, n).parameters() if p.grad is not None]
+            torch.nn.utils.clip_grad_norm_(nets, self.grad_clip)
+        opt.step()
+        sched.step()
+        H, W = rgb.shape[1:3]
+        stats = self.density.step_post_backward(self.gaussians, opt.optimizer if hasattr(opt, "optimizer") else opt, metas, step, (W, H))
+        bs = rgb.shape[0]
+        self.log("train/loss", total.detach(), prog_bar=True, batch_size=bs)
+        for k, v in terms.items():
+            self.log(f"train/{k}", float(v), batch_size=bs)
+        self.log("train/num_gaussians", float(self.gaussians.num_points), prog_bar=True, batch_size=bs)
+        if stats:
+            for k, v in stats.items():
+                if isinstance(v, (int, float)):
+                    self.log(f"train/density_{k}", float(v), batch_size=bs)
+        return total.detach()
+
+    def param_groups(self) -> list[dict]:
+        groups = []
+        for name in GAUSSIAN_GROUPS:
+            p = getattr(self.gaussians, name)
+            lr = self.lr[name] * (self.scene_extent if name == "means" else 1.0)
+            groups.append({"params": [p], "lr": lr, "name": name})
+        for name in COMPONENTS:
+            params = [p for p in getattr(self, name).parameters() if p.requires_grad]
+            if params:  # an ablated component (e.g. temporal none without weights) contributes no group
+                groups.append({"params": params, "lr": self.lr[name], "name": name})
+        return groups
+
+    def configure_optimizers(self):
+        opt = self.optimizer_factory(self.param_groups())
+        T = self.max_steps
+
+        def decay(name):
+            f = self.final_factor.get(name, self.final_factor.get("default", 1.0))
+            return lambda s: f ** min(s / T, 1.0)
+
+        sched = torch.optim.lr_scheduler.LambdaLR(opt, [decay(g["name"]) for g in opt.param_groups])
+        return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step"}}
+
+    def on_save_checkpoint(self, checkpoint: dict) -> None:
+        checkpoint["density_state"] = self.density.state_dict() if hasattr(self.density, "state_dict") else {}
+        checkpoint["num_gaussians"] = self.gaussians.num_points
+        checkpoint["realityavatar"] = dict(self.run_info)
+
+    def on_load_checkpoint(self, checkpoint: dict) -> None:
+        if checkpoint.get("density_state") and hasattr(self.density, "load_state_dict"):
+            self.density.load_state_dict(checkpoint["density_state"])
+
+    # ------------------------------------------------------------------ evaluation
+    def test_step(self, batch, batch_idx, dataloader_idx: int = 0):
+        from realityavatar.metrics import masked_bbox, psnr, ssim
+
+        split = batch["split"][0]
+        with torch.no_grad():
+            rgb, alpha, _, _ = self.render_batch(batch)
+        rgb = rgb.clamp(0, 1)
+        for b in range(rgb.shape[0]):
+            pred, gt, mask = rgb[b], batch["image"][b], batch["mask"][b]
+            rec = {
+                "split": split,
+                "frame": int(batch["frame"][b]),
+                "view": int(batch["view"][b]),
+                "psnr": float(psnr(pred, gt)),
+                "ssim": float(ssim(pred, gt)),
+            }
+            pb, gb = masked_bbox(pred, gt, mask)
+            rec["psnr_masked"] = float(psnr(pb, gb))
+            rec["ssim_masked"] = float(ssim(pb, gb))
+            if self.lpips is not None:
+                rec["lpips"] = float(self.lpips(pred, gt)) * 1000.0
+                rec["lpips_masked"] = float(self.lpips(pb, gb)) * 1000.0
+            self.test_records.append({**rec, "_pred": pred.cpu(), "_gt": gt.cpu()})
+            for k in ("psnr", "ssim", "psnr_masked", "ssim_masked", "lpips", "lpips_masked"):
+                if k in rec:
+                    self.log(f"test/{split}/{k}", rec[k], add_dataloader_idx=False, batch_size=1)
+
+    @torch.no_grad()
+    def measure_fps(self, batch: dict, warmup: int = 3, repeats: int = 20) -> float:
+        """Frames per second of the full path (encoder .. rasterize) for one camera, synchronised on CUDA."""
+        one = {k: (v[:1] if torch.is_tensor(v) else v[:1] if isinstance(v, list) else v) for k, v in batch.items()}
+        for _ in range(warmup):
+            self.render_batch(one)
+        if self.device.type == "cuda":
+            torch.cuda.synchronize()
+        t0 = time.perf_counter()
+        for _ in range(repeats):
+            self.render_batch(one)
+        if self.device.type == "cuda":
+            torch.cuda.synchronize()
+        return repeats / (time.perf_counter() - t0)
+
+    def num_parameters(self) -> int:
+        """Learnable parameters of the avatar: Gaussians and every network (the body model has none)."""
+        return int(sum(p.numel() for p in self.parameters() if p.requires_grad))
+
+
+def identity_deformation(B: int, means: torch.Tensor, feature_dim: int) -> dict:
+    """Decoder output that leaves the canonical Gaussians unchanged: dx, ds [B,N,3], dq [B,N,4], f_mt [B,N,F]."""
+    N = means.shape[0]
+    zeros = means.new_zeros(B, N, 3)
+    dq = means.new_zeros(B, N, 4)
+    dq[..., 0] = 1.0
+    return {"dx": zeros, "ds": zeros, "dq": dq, "f_mt": means.new_zeros(B, N, feature_dim)}

@@ -1,0 +1,86 @@
+"""Training entry point: `realityavatar-train [group=option ...] [key=value ...]` fits, tests, writes metrics.json."""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+import hydra
+import pytorch_lightning as pl
+from omegaconf import DictConfig, OmegaConf
+
+from realityavatar.config import choices_of, config_dir
+
+
+def run(cfg: DictConfig, choices: dict | None = None) -> dict:
+    """Fit one avatar and evaluate it; returns the metrics that were written to <out_dir>/metrics.json."""
+    from hydra.utils import instantiate
+    from pytorch_lightning.callbacks import ModelCheckpoint
+    from pytorch_lightning.loggers import CSVLogger, TensorBoardLogger
+
+    from realityavatar.build import CKPT_NAME, build_data, build_lpips, build_module, git_commit, write_json
+    from realityavatar.evaluate import evaluate_module, format_table
+
+    pl.seed_everything(int(cfg.seed), workers=True)
+    out_dir = Path(cfg.out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    body = instantiate(cfg.body)
+    dm = build_data(cfg, body)
+    module = build_module(cfg, body, dm.num_train_frames, dm.scene_extent)
+    module.run_info.update(num_train_frames=dm.num_train_frames, train_frame_ids=list(map(int, dm.train_frame_ids)))
+    ckpt_cb = ModelCheckpoint(dirpath=out_dir, filename=Path(CKPT_NAME).stem, save_last=False, every_n_train_steps=max(int(cfg.iterations) // 4, 1), save_top_k=1, enable_version_counter=False)
+    loggers = [CSVLogger(out_dir / "logs", name="csv", version=""), TensorBoardLogger(out_dir / "logs", name="tb", version="")]
+    trainer = instantiate(cfg.trainer, callbacks=[ckpt_cb], logger=loggers)
+    t0 = time.perf_counter()
+    trainer.fit(module, datamodule=dm, ckpt_path=cfg.get("ckpt_path"))
+    train_seconds = time.perf_counter() - t0
+    trainer.save_checkpoint(out_dir / CKPT_NAME)
+    choices = choices if choices is not None else choices_of(cfg)
+    header = {
+        "config": choices,
+        "overrides": list(cfg.get("_overrides", []) or []),
+        "seed": int(cfg.seed),
+        "commit": git_commit(),
+        "scene": getattr(dm, "sequence", None),
+        "train_seconds": train_seconds,
+        "iterations": int(trainer.global_step),
+        "num_gaussians": int(module.gaussians.num_points),
+        "num_parameters": module.num_parameters(),
+        "perceptual": getattr(module.loss_fn, "perceptual_kind", "unknown"),
+        "lpips": build_lpips(cfg)[1],
+        "device": str(module.device),
+        "backend": cfg.render.get("backend", "auto"),
+    }
+    module.run_info["metrics_header"] = header
+    trainer.save_checkpoint(out_dir / CKPT_NAME)
+    metrics = dict(header)
+    if cfg.get("test_after_fit", True):
+        metrics.update(evaluate_module(module, dm, trainer, cfg, out_dir))
+    write_json(out_dir / "metrics.json", metrics)
+    print(format_table(metrics))
+    print(f"run folder: {out_dir}  (metrics.json, {CKPT_NAME}, per_frame.csv, images/, videos/, logs/)")
+    return metrics
+
+
+@hydra.main(config_path=config_dir(), config_name="train", version_base="1.3")
+def _hydra_main(cfg: DictConfig) -> float | None:
+    from hydra.core.hydra_config import HydraConfig
+
+    hc = HydraConfig.get()
+    OmegaConf.set_struct(cfg, False)
+    cfg._overrides = list(hc.overrides.task)
+    metrics = run(cfg, choices_of(cfg))
+    return metrics.get("test/novel_view/psnr")
+
+
+def main() -> None:
+    try:
+        _hydra_main()
+    except KeyboardInterrupt:
+        print("interrupted; the last checkpoint and logs are kept", file=sys.stderr)
+        raise SystemExit(130)
+
+
+if __name__ == "__main__":
+    main()
