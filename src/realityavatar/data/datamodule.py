@@ -1,0 +1,314 @@
+"""The LightningDataModule over the scene readers (I3D-Human/synthetic layout, ZJU-MoCap) and its sample Dataset.
+
+Samples follow docs/CONTRACTS.md ("Samples"): image, mask, K, viewmat, width, height, poses [T,24,3], transl [T,3],
+frame, frame_idx, view, split.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import pytorch_lightning as pl
+import torch
+from torch.utils.data import DataLoader, Dataset
+
+from realityavatar.data.poses import PoseTable
+from realityavatar.data.records import SPLITS, ImageRecord, SceneData, image_size, load_record
+
+log = logging.getLogger(__name__)
+READERS = ("i3d", "zju")
+
+
+class AvatarDataset(Dataset):
+    """Image records of one split -> sample dicts. Images decode lazily; `cache_images` keeps decoded uint8 copies."""
+
+    def __init__(
+        self,
+        records: Sequence[ImageRecord],
+        poses: PoseTable,
+        split: str,
+        train_frame_index: dict[int, int],
+        window_len: int,
+        window_step: int,
+        background: Sequence[float] = (0.0, 0.0, 0.0),
+        image_scale: float = 1.0,
+        undistort: bool = True,
+        cache_images: bool = False,
+    ) -> None:
+        self.records = list(records)
+        self.poses = poses
+        self.split = split
+        self.train_frame_index = train_frame_index
+        self.window_len, self.window_step = int(window_len), int(window_step)
+        self.background = torch.as_tensor(background, dtype=torch.float32).reshape(3)
+        self.image_scale = float(image_scale)
+        self.undistort = undistort
+        self.cache_images = cache_images
+        self._cache: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+
+    def __len__(self) -> int:
+        return len(self.records)
+
+    def _decoded(self, i: int):
+        hit = self._cache.get(i)
+        if hit is None:
+            hit = load_record(self.records[i], self.image_scale, self.undistort)
+            if self.cache_images:
+                self._cache[i] = hit
+        return hit
+
+    def __getitem__(self, i: int) -> dict:
+        rec = self.records[i]
+        img_u8, mask_b, K = self._decoded(i)
+        mask = torch.from_numpy(mask_b).float()[..., None]  # [H,W,1]
+        image = torch.from_numpy(img_u8).float() / 255.0  # [H,W,3]
+        image = image * mask + self.background * (1.0 - mask)
+        poses, transl = self.poses.window(rec.frame, self.window_len, self.window_step)  # [T,24,3], [T,3]
+        return {
+            "image": image,
+            "mask": mask,
+            "K": torch.as_tensor(K, dtype=torch.float32),
+            "viewmat": torch.as_tensor(rec.viewmat, dtype=torch.float32),
+            "width": int(image.shape[1]),
+            "height": int(image.shape[0]),
+            "poses": poses,
+            "transl": transl,
+            "frame": int(rec.frame),
+            "frame_idx": int(self.train_frame_index.get(rec.frame, -1)),
+            "view": int(rec.view),
+            "split": self.split,
+        }
+
+
+class AvatarDataModule(pl.LightningDataModule):
+    """Train / val (a few novel-view images) / test ([novel_view, novel_pose]) loaders over one sequence.
+
+    reader "i3d": <root>/<sequence>-train|-novelview|-novelpose (I3D-Human, synthetic scenes, converted captures);
+    train_views / test_views filter the cameras of the -train and of the -novelview/-novelpose folders.
+    reader "zju": <root>/<sequence> in the ARAH layout; splits come from train_views/test_views and the frame ranges
+    zju_train_frames / zju_novel_view_frames / zju_novel_pose_frames ([start, end, step], end 0 = to the last frame).
+    body: the BodyModel in use; its rest pelvis converts Rh/Th placement to the SMPL convention (`pelvis` overrides;
+    with neither, canonical_joints.pkl's pelvis is used). build_preset: build the synthetic scene in prepare_data()
+    when its folder is missing (realityavatar.data.synthetic.build_scene(build_preset, root, build_seed)).
+    """
+
+    def __init__(
+        self,
+        root: str,
+        sequence: str,
+        reader: str = "i3d",
+        train_views: Sequence[int] | None = None,
+        test_views: Sequence[int] | None = None,
+        window_len: int = 6,
+        window_step: int = 1,
+        batch_size: int = 1,
+        num_workers: int = 0,
+        background: Sequence[float] = (0.0, 0.0, 0.0),
+        image_scale: float = 1.0,
+        max_train_frames: int | None = None,
+        train_frame_subsample: int = 1,
+        frame_subsample: int = 1,
+        val_items: int = 4,
+        undistort: bool = True,
+        cache_images: bool = True,
+        body=None,
+        pelvis: Sequence[float] | None = None,
+        build_preset: str | None = None,
+        build_seed: int = 0,
+        zju_train_frames: Sequence[int] = (0, 0, 1),
+        zju_novel_view_frames: Sequence[int] | None = None,
+        zju_novel_pose_frames: Sequence[int] | None = None,
+    ) -> None:
+        super().__init__()
+        if reader not in READERS:
+            raise ValueError(f"data.reader: unknown reader {reader!r}; expected one of {READERS}")
+        if window_len < 1 or window_step < 0:
+            raise ValueError(f"data.window_len must be >= 1 and data.window_step >= 0, got {window_len}, {window_step}")
+        if frame_subsample < 1 or train_frame_subsample < 1:
+            raise ValueError("data.frame_subsample and data.train_frame_subsample must be >= 1")
+        self.root, self.sequence, self.reader = str(root), str(sequence), reader
+        self.train_views = None if train_views is None else [int(v) for v in train_views]
+        self.test_views = None if test_views is None else [int(v) for v in test_views]
+        self.window_len, self.window_step = int(window_len), int(window_step)
+        self.batch_size, self.num_workers = int(batch_size), int(num_workers)
+        self.background = [float(c) for c in background]
+        if len(self.background) != 3:
+            raise ValueError(f"data.background: expected 3 values in [0,1], got {background}")
+        self.image_scale = float(image_scale)
+        self.max_train_frames = max_train_frames
+        self.train_frame_subsample, self.frame_subsample = int(train_frame_subsample), int(frame_subsample)
+        self.val_items = int(val_items)
+        self.undistort, self.cache_images = undistort, cache_images
+        self.body = body
+        self.pelvis = pelvis
+        self.build_preset, self.build_seed = build_preset, int(build_seed)
+        self.zju_frames = {
+            "train": list(zju_train_frames),
+            "novel_view": None if zju_novel_view_frames is None else list(zju_novel_view_frames),
+            "novel_pose": None if zju_novel_pose_frames is None else list(zju_novel_pose_frames),
+        }
+        self.scene: SceneData | None = None
+        self.datasets: dict[str, AvatarDataset] = {}
+        self.test_split_names: list[str] = []
+
+    # ------------------------------------------------------------------ set-up
+
+    def _pelvis(self) -> torch.Tensor | None:
+        if self.pelvis is not None:
+            return torch.as_tensor([float(x) for x in self.pelvis], dtype=torch.float64).reshape(3)
+        if self.body is not None:
+            return self.body.rest_joints[0].detach().to("cpu", torch.float64)
+        return None
+
+    def _scene_missing(self) -> bool:
+        from realityavatar.data.i3d import split_folder
+
+        return self.reader == "i3d" and not split_folder(Path(self.root), self.sequence, "train").is_dir()
+
+    def prepare_data(self) -> None:
+        """Build the synthetic scene when it is missing and `build_preset` is set (runs on one process only)."""
+        if self.build_preset and self._scene_missing():
+            from realityavatar.data.synthetic import build_scene
+
+            log.info("building scene preset %r under %s (seed %d)", self.build_preset, self.root, self.build_seed)
+            build_scene(self.build_preset, self.root, self.build_seed)
+            if self._scene_missing():
+                raise FileNotFoundError(
+                    f"build_scene({self.build_preset!r}) did not produce {self.root}/{self.sequence}-train; "
+                    f"check data.sequence against the preset's scene name"
+                )
+
+    def read_scene(self) -> SceneData:
+        if self.reader == "i3d":
+            from realityavatar.data.i3d import read_i3d
+
+            hint = (f"build it with realityavatar-make-scene (preset {self.build_preset!r})" if self.build_preset
+                    else "check data.root and data.sequence (expected <root>/<sequence>-train)")
+            return read_i3d(self.root, self.sequence, self._pelvis(), build_hint=hint)
+        from realityavatar.data.zju import read_zju
+
+        return read_zju(
+            Path(self.root) / self.sequence, self.train_views, self.test_views, self.zju_frames["train"],
+            self.zju_frames["novel_view"], self.zju_frames["novel_pose"],
+        )
+
+    def _select(self, scene: SceneData) -> dict[str, list[ImageRecord]]:
+        out = {}
+        for split, records in scene.splits.items():
+            views = self.train_views if split == "train" else self.test_views
+            if views is not None and self.reader == "i3d":
+                records = [r for r in records if r.view in views]
+            frames = np.unique([r.frame for r in records])
+            if split == "train":
+                frames = frames[:: self.train_frame_subsample]
+                if self.max_train_frames is not None:
+                    frames = frames[: int(self.max_train_frames)]
+            else:
+                frames = frames[:: self.frame_subsample]
+            keep = set(frames.tolist())
+            out[split] = [r for r in records if r.frame in keep]
+        if not out.get("train"):
+            raise ValueError(
+                f"{scene.source}: no training images left after selecting views {self.train_views} "
+                f"(available {scene.views('train')})"
+            )
+        return out
+
+    def setup(self, stage: str | None = None) -> None:
+        if self.scene is not None:
+            return
+        if self.build_preset and self._scene_missing():
+            self.prepare_data()
+        scene = self.read_scene()
+        selected = self._select(scene)
+        self.scene = scene
+        self.records = selected
+        self.train_frame_ids = sorted({r.frame for r in selected["train"]})
+        self.num_train_frames = len(self.train_frame_ids)
+        frame_index = {f: i for i, f in enumerate(self.train_frame_ids)}
+        first = selected["train"][0]
+        w0, h0 = image_size(first.image_path)
+        self.width, self.height = max(1, round(w0 * self.image_scale)), max(1, round(h0 * self.image_scale))
+        self.image_size = (self.height, self.width)
+        self.scene_extent = self._extent(selected["train"], scene.poses)
+        kw = dict(train_frame_index=frame_index, window_len=self.window_len, window_step=self.window_step,
+                  background=self.background, image_scale=self.image_scale, undistort=self.undistort,
+                  cache_images=self.cache_images)
+        self.datasets = {s: AvatarDataset(recs, scene.poses, s, **kw) for s, recs in selected.items() if recs}
+        self.test_split_names = [s for s in ("novel_view", "novel_pose") if s in self.datasets]
+        if not self.test_split_names:
+            log.warning("%s: no novel_view or novel_pose images; testing is skipped", scene.source)
+        log.info(
+            "%s: %s; %d training frames, image %dx%d, extent %.3f", scene.source,
+            ", ".join(f"{s} {len(d)} images" for s, d in self.datasets.items()), self.num_train_frames,
+            self.width, self.height, self.scene_extent,
+        )
+
+    @staticmethod
+    def _extent(train: list[ImageRecord], poses: PoseTable) -> float:
+        """1.1 x the largest distance of a training camera centre from the mean body position (LR/threshold scale)."""
+        E = np.stack([r.viewmat for r in {r.view: r for r in train}.values()])  # [C,4,4]
+        centres = -np.einsum("cji,cj->ci", E[:, :3, :3], E[:, :3, 3])  # [C,3] = -R^T t
+        body = poses.transl.double().mean(0).numpy()
+        return float(1.1 * np.linalg.norm(centres - body, axis=-1).max())
+
+    # ------------------------------------------------------------------ loaders
+
+    def _loader(self, ds: Dataset, shuffle: bool) -> DataLoader:
+        return DataLoader(ds, batch_size=self.batch_size, shuffle=shuffle, num_workers=self.num_workers,
+                          persistent_workers=self.num_workers > 0, drop_last=False)
+
+    def _require(self, split: str) -> AvatarDataset:
+        if not self.datasets:
+            raise RuntimeError("AvatarDataModule: call setup() first")
+        if split not in self.datasets:
+            raise KeyError(f"{self.scene.source}: split {split!r} has no images (have {sorted(self.datasets)})")
+        return self.datasets[split]
+
+    def train_dataloader(self) -> DataLoader:
+        return self._loader(self._require("train"), shuffle=True)
+
+    def val_dataloader(self) -> DataLoader:
+        """A few novel-view images (evenly spaced), or training images when there is no novel-view split."""
+        ds = self.datasets.get("novel_view") or self._require("train")
+        n = min(self.val_items, len(ds))
+        idx = np.unique(np.linspace(0, len(ds) - 1, n).round().astype(int)).tolist() if n > 0 else []
+        return self._loader(torch.utils.data.Subset(ds, idx), shuffle=False)
+
+    def test_dataloader(self) -> list[DataLoader]:
+        """[novel_view, novel_pose] loaders; dataloader_idx i is test_split_names[i]."""
+        return [self._loader(self._require(s), shuffle=False) for s in self.test_split_names]
+
+    def predict_dataloader(self) -> list[DataLoader]:
+        return self.test_dataloader()
+
+    # ------------------------------------------------------------------ poses for rollouts and animation
+
+    def pose_sequence(self, split: str = "all") -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Frame ids [F] (long), poses [F,24,3], transl [F,3] of a split ("train", "novel_view", "novel_pose", "all")."""
+        if self.scene is None:
+            raise RuntimeError("AvatarDataModule: call setup() first")
+        table = self.scene.poses
+        if split == "all":
+            frames = table.frames
+        elif split in SPLITS:
+            frames = np.unique([r.frame for r in self.records.get(split, [])]).astype(np.int64)
+        else:
+            raise ValueError(f"pose_sequence: unknown split {split!r}; expected 'all' or one of {SPLITS}")
+        rows = torch.as_tensor(np.searchsorted(table.frames, frames))
+        return torch.as_tensor(frames), table.poses[rows], table.transl[rows]
+
+    def window_for(self, poses_table: PoseTable | tuple, frame_id: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Pose window [T,24,3] and transl window [T,3] of `frame_id` in an arbitrary sequence, with this module's
+        window_len/window_step and the same clamping. poses_table: a PoseTable or (poses [F,24,3], transl [F,3]) or
+        (frame_ids [F], poses, transl)."""
+        if not isinstance(poses_table, PoseTable):
+            if len(poses_table) == 2:
+                poses_table = PoseTable.from_sequence(*poses_table)
+            else:
+                frames, poses, transl = poses_table
+                poses_table = PoseTable.from_sequence(poses, transl, frames)
+        return poses_table.window(frame_id, self.window_len, self.window_step)

@@ -1,0 +1,163 @@
+"""Reader for the HumanNeRF-style layout of I3D-Human (Dyco) and of our synthetic scenes: <seq>-train/-novelview/-novelpose.
+
+Each folder holds images/ and masks/ (frame_XXXXXX_view_YY.png), cameras.pkl and mesh_infos.pkl keyed by frame name,
+and (in -train) canonical_joints.pkl. Poses use EasyMocap placement (Rh, Th) and are converted to the SMPL convention.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from realityavatar.body.base import rh_th_to_smpl
+from realityavatar.data.poses import PoseTable
+from realityavatar.data.records import (
+    ImageRecord,
+    SceneData,
+    SceneFormatError,
+    check_shape,
+    load_pickle,
+    require_key,
+)
+
+FOLDERS = {"train": "train", "novel_view": "novelview", "novel_pose": "novelpose"}
+FRAME_NAME = re.compile(r"^frame_(\d+)(?:_view_(\d+))?$")
+
+
+def parse_frame_name(name: str, where: str = "") -> tuple[int, int]:
+    """'frame_000123_view_04' -> (123, 4); 'frame_000123' -> (123, 0) (single-camera HumanNeRF data)."""
+    m = FRAME_NAME.match(name)
+    if not m:
+        raise SceneFormatError(f"{where}: name {name!r} is not frame_XXXXXX_view_YY")
+    return int(m.group(1)), int(m.group(2) or 0)
+
+
+def frame_name(frame: int, view: int) -> str:
+    return f"frame_{frame:06d}_view_{view:02d}"
+
+
+def split_folder(root: Path, sequence: str, split: str) -> Path:
+    return Path(root) / f"{sequence}-{FOLDERS[split]}"
+
+
+def read_cameras(folder: Path) -> dict[str, dict[str, np.ndarray]]:
+    """cameras.pkl -> {frame_name: {"K": [3,3], "viewmat": [4,4], "dist": [5] | None}} with shapes checked."""
+    path = folder / "cameras.pkl"
+    raw = load_pickle(path, "every split folder needs cameras.pkl {frame_name: {intrinsics, extrinsics, distortions}}")
+    if not isinstance(raw, dict) or not raw:
+        raise SceneFormatError(f"{path}: expected a non-empty dict keyed by frame name, got {type(raw).__name__}")
+    out = {}
+    for name, cam in raw.items():
+        where = f"entry {name!r}"
+        K = check_shape(require_key(cam, "intrinsics", path, where, "[3,3] pixel intrinsics"), (3, 3), path,
+                        f"{where}['intrinsics']")
+        E = check_shape(require_key(cam, "extrinsics", path, where, "[4,4] world-to-camera"), (4, 4), path,
+                        f"{where}['extrinsics']")
+        dist = None
+        if isinstance(cam, dict) and cam.get("distortions") is not None:
+            dist = np.asarray(cam["distortions"], dtype=np.float64).reshape(-1)
+            if not np.isfinite(dist).all():
+                raise SceneFormatError(f"{path}: {where}['distortions'] has non-finite values")
+        out[str(name)] = {"K": K, "viewmat": E, "dist": dist}
+    return out
+
+
+def read_mesh_infos(folder: Path, pelvis: torch.Tensor) -> PoseTable:
+    """mesh_infos.pkl -> PoseTable in the SMPL convention (pose[0] about the pelvis, transl), via rh_th_to_smpl.
+
+    Keys may be per image (frame_XXXXXX_view_YY, as in I3D-Human) or per frame; a frame keeps its first entry.
+    """
+    path = folder / "mesh_infos.pkl"
+    raw = load_pickle(path, "every split folder needs mesh_infos.pkl {frame_name: {poses, Rh, Th, joints, tpose_joints}}")
+    if not isinstance(raw, dict) or not raw:
+        raise SceneFormatError(f"{path}: expected a non-empty dict keyed by frame name, got {type(raw).__name__}")
+    frames, poses, Rh, Th = [], [], [], []
+    seen = set()
+    for name, info in raw.items():
+        frame, _ = parse_frame_name(str(name), str(path))
+        where = f"entry {name!r}"
+        p = require_key(info, "poses", path, where, "[72] axis-angle SMPL pose")
+        rh = require_key(info, "Rh", path, where, "[3] global rotation (axis-angle)")
+        th = require_key(info, "Th", path, where, "[3] global translation")
+        if frame in seen:
+            continue
+        seen.add(frame)
+        if p.size != 72 or rh.size != 3 or th.size != 3:
+            raise SceneFormatError(
+                f"{path}: {where} has poses {p.shape}, Rh {rh.shape}, Th {th.shape}; expected [72], [3], [3]"
+            )
+        frames.append(frame)
+        poses.append(p.reshape(24, 3))
+        Rh.append(rh.reshape(3))
+        Th.append(th.reshape(3))
+    poses_t = torch.as_tensor(np.stack(poses))  # [F,24,3] float64
+    Rh_t, Th_t = torch.as_tensor(np.stack(Rh)), torch.as_tensor(np.stack(Th))  # [F,3]
+    finite = torch.isfinite(poses_t).flatten(1).all(1) & torch.isfinite(Rh_t).all(1) & torch.isfinite(Th_t).all(1)
+    if not finite.all():
+        bad = [frames[i] for i in (~finite).nonzero().flatten().tolist()][:10]
+        raise SceneFormatError(f"{path}: non-finite (NaN/inf) poses/Rh/Th at frames {bad}")
+    pose_smpl, transl = rh_th_to_smpl(poses_t, Rh_t, Th_t, pelvis.to(torch.float64))
+    return PoseTable(frames, pose_smpl.float(), transl.float(), source=str(path))
+
+
+def read_canonical_pelvis(folder: Path) -> np.ndarray:
+    """canonical_joints.pkl['joints'][0]: the rest pelvis of the body that produced the data (fallback without a body)."""
+    path = folder / "canonical_joints.pkl"
+    raw = load_pickle(path, "the -train folder needs canonical_joints.pkl {'joints': [24,3]}")
+    return check_shape(require_key(raw, "joints", path, "the pickle", "[24,3] rest joints"), (24, 3), path, "joints")[0]
+
+
+def read_split(folder: Path, split: str, pelvis: torch.Tensor) -> tuple[list[ImageRecord], PoseTable]:
+    """One split folder -> image records (sorted by frame, view) and its pose table."""
+    img_dir, mask_dir = folder / "images", folder / "masks"
+    if not img_dir.is_dir():
+        raise FileNotFoundError(f"{img_dir} not found (expected images/frame_XXXXXX_view_YY.png)")
+    cams = read_cameras(folder)
+    table = read_mesh_infos(folder, pelvis)
+    records = []
+    for img in sorted(img_dir.glob("*.png")) + sorted(img_dir.glob("*.jpg")):
+        frame, view = parse_frame_name(img.stem, str(img_dir))
+        cam = cams.get(img.stem)
+        if cam is None:
+            cam = cams.get(f"frame_{frame:06d}")  # single-camera HumanNeRF data keys cameras per frame
+        if cam is None:
+            raise SceneFormatError(f"{folder / 'cameras.pkl'}: no entry {img.stem!r} for image {img}")
+        if frame not in table:
+            raise SceneFormatError(f"{folder / 'mesh_infos.pkl'}: no entry for frame {frame} (image {img})")
+        mask = mask_dir / f"{img.stem}.png"
+        if not mask.is_file():
+            raise FileNotFoundError(f"mask {mask} not found for image {img}")
+        records.append(ImageRecord(frame, view, img, mask, cam["K"], cam["viewmat"], cam["dist"], "threshold"))
+    if not records:
+        raise SceneFormatError(f"{img_dir}: no images (expected frame_XXXXXX_view_YY.png)")
+    records.sort(key=lambda r: (r.frame, r.view))
+    return records, table
+
+
+def read_i3d(root: str | Path, sequence: str, pelvis: torch.Tensor | None = None, build_hint: str = "") -> SceneData:
+    """Read all splits of `sequence` under `root`. The -train folder is required; -novelview/-novelpose are optional.
+
+    pelvis: [3] rest pelvis of the body model in use (for Rh/Th -> SMPL); None takes it from canonical_joints.pkl.
+    """
+    root = Path(root)
+    train = split_folder(root, sequence, "train")
+    if not train.is_dir():
+        hint = f"; {build_hint}" if build_hint else ""
+        raise FileNotFoundError(f"scene folder {train} not found{hint}")
+    if pelvis is None:
+        pelvis = torch.as_tensor(read_canonical_pelvis(train))
+    else:
+        pelvis = torch.as_tensor(pelvis, dtype=torch.float64).reshape(3)
+    splits, tables = {}, []
+    for split in FOLDERS:
+        folder = split_folder(root, sequence, split)
+        if split != "train" and not folder.is_dir():
+            continue
+        records, table = read_split(folder, split, pelvis)
+        splits[split] = records
+        tables.append(table)
+    return SceneData(splits=splits, poses=PoseTable.union(tables), source=str(root / sequence),
+                     meta={"reader": "i3d", "pelvis": pelvis.float().tolist()})

@@ -1,0 +1,88 @@
+"""Per-frame pose tables and the clamped pose-window lookup t-(T-1)s, ..., t-s, t used by datasets and `animate`."""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+import torch
+
+from realityavatar.body.base import NUM_JOINTS
+
+
+class PoseTable:
+    """Body poses indexed by global frame id (SMPL convention: pose[0] = global orientation about the pelvis).
+
+    frames: [F] int (any order, unique), poses: [F,24,3] axis-angle, transl: [F,3]. Stored sorted by frame id.
+    """
+
+    def __init__(self, frames, poses, transl, source: str = "pose table") -> None:
+        frames = np.asarray(frames, dtype=np.int64).reshape(-1)
+        poses = torch.as_tensor(np.asarray(poses), dtype=torch.float32)
+        transl = torch.as_tensor(np.asarray(transl), dtype=torch.float32)
+        if poses.shape != (len(frames), NUM_JOINTS, 3):
+            raise ValueError(f"{source}: expected poses of shape [{len(frames)},24,3], got {tuple(poses.shape)}")
+        if transl.shape != (len(frames), 3):
+            raise ValueError(f"{source}: expected transl of shape [{len(frames)},3], got {tuple(transl.shape)}")
+        if len(frames) == 0:
+            raise ValueError(f"{source}: no frames")
+        if len(np.unique(frames)) != len(frames):
+            raise ValueError(f"{source}: duplicate frame ids")
+        bad = (~torch.isfinite(poses).reshape(len(frames), -1).all(1)) | (~torch.isfinite(transl).all(1))
+        if bad.any():
+            raise ValueError(f"{source}: non-finite (NaN/inf) pose or translation at frames {frames[bad.numpy()][:10].tolist()}")
+        order = np.argsort(frames)
+        self.frames = frames[order]  # [F] sorted
+        self.poses = poses[torch.as_tensor(order)]  # [F,24,3]
+        self.transl = transl[torch.as_tensor(order)]  # [F,3]
+        self._row = {int(f): i for i, f in enumerate(self.frames)}
+
+    @classmethod
+    def from_sequence(cls, poses, transl, frame_ids: Sequence[int] | None = None) -> "PoseTable":
+        """A table for an arbitrary sequence (e.g. an animation): frame ids default to 0..F-1."""
+        n = len(poses)
+        return cls(np.arange(n) if frame_ids is None else frame_ids, poses, transl, source="pose sequence")
+
+    @classmethod
+    def union(cls, tables: Sequence["PoseTable"]) -> "PoseTable":
+        """Merge tables (e.g. all splits of one sequence); a frame present in several keeps its first occurrence."""
+        rows: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
+        for t in tables:
+            for i, f in enumerate(t.frames):
+                rows.setdefault(int(f), (t.poses[i], t.transl[i]))
+        frames = sorted(rows)
+        return cls(frames, torch.stack([rows[f][0] for f in frames]), torch.stack([rows[f][1] for f in frames]))
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def __contains__(self, frame: int) -> bool:
+        return int(frame) in self._row
+
+    def get(self, frame: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Exact lookup: pose [24,3], transl [3]."""
+        i = self._row.get(int(frame))
+        if i is None:
+            raise KeyError(f"frame {frame} has no pose (available {self.frames[0]}..{self.frames[-1]})")
+        return self.poses[i], self.transl[i]
+
+    def window_rows(self, frame: int, window_len: int, window_step: int) -> np.ndarray:
+        """Row indices [T] for frames t-(T-1)s .. t. A target before the first frame clamps to the first frame;
+        a target between stored frames takes the latest stored frame at or before it (tables may be subsampled)."""
+        if window_len < 1 or window_step < 0:
+            raise ValueError(f"pose window: window_len must be >= 1 and window_step >= 0, got {window_len}, {window_step}")
+        if int(frame) not in self._row:
+            raise KeyError(f"frame {frame} has no pose (available {self.frames[0]}..{self.frames[-1]})")
+        targets = int(frame) - window_step * np.arange(window_len - 1, -1, -1)  # [T], oldest first
+        rows = np.searchsorted(self.frames, targets, side="right") - 1
+        return np.clip(rows, 0, len(self.frames) - 1)
+
+    def window(self, frame: int, window_len: int, window_step: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Pose window [T,24,3] and translation window [T,3]; the last entry is `frame` itself."""
+        rows = torch.as_tensor(self.window_rows(frame, window_len, window_step))
+        return self.poses[rows], self.transl[rows]
+
+    def windows(self, frames: Sequence[int], window_len: int, window_step: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Batched windows: poses [N,T,24,3], transl [N,T,3]."""
+        rows = torch.as_tensor(np.stack([self.window_rows(f, window_len, window_step) for f in frames]))
+        return self.poses[rows], self.transl[rows]

@@ -1,0 +1,163 @@
+"""Writers for tiny fixture datasets in the exact on-disk layouts (I3D-Human/HumanNeRF, ZJU-MoCap ARAH) for reader tests.
+
+Each image shows a filled disc around the projected pelvis joint; the mask is the same disc, so tests can check that a
+joint projects inside its mask.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import math
+import pickle
+from pathlib import Path
+
+import numpy as np
+import torch
+from PIL import Image
+
+from realityavatar.body.base import SMPL_PARENTS, BodyModel, rh_th_to_smpl
+
+SIZE = 48  # image width = height
+FOCAL = 60.0
+DISC = 5  # disc radius in pixels
+
+
+class TinyBody(BodyModel):
+    """A 24-joint stick body with made-up rest joints (vertices = joints) for tests that need only FK."""
+
+    name = "tiny"
+
+    def __init__(self) -> None:
+        super().__init__()
+        rng = np.random.default_rng(7)
+        J = np.zeros((24, 3))
+        J[0] = [0.0, 0.9, 0.02]  # pelvis off the origin, so Rh/Th -> SMPL conversion matters
+        for j in range(1, 24):
+            J[j] = J[SMPL_PARENTS[j]] + rng.normal(0, 0.1, 3)
+        self._set_buffers(J, np.array([[0, 1, 2]]), np.eye(24), J)
+
+
+def look_at(eye, target=(0.0, 0.9, 0.0), up=(0.0, 1.0, 0.0)) -> np.ndarray:
+    """World-to-camera [4,4], OpenCV axes (x right, y down, z forward)."""
+    eye, target, up = (np.asarray(v, dtype=np.float64) for v in (eye, target, up))
+    z = target - eye
+    z /= np.linalg.norm(z)
+    x = np.cross(z, -up)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    R = np.stack([x, y, z])
+    E = np.eye(4)
+    E[:3, :3] = R
+    E[:3, 3] = -R @ eye
+    return E
+
+
+def camera(view: int, n_views: int = 12, dist: float = 3.0):
+    a = 2 * math.pi * view / n_views
+    E = look_at([dist * math.sin(a), 1.0, dist * math.cos(a)])
+    K = np.array([[FOCAL, 0, SIZE / 2], [0, FOCAL, SIZE / 2], [0, 0, 1.0]])
+    return K, E
+
+
+def project(K, E, X) -> np.ndarray:
+    """X [3] world -> pixel [2] (gsplat/pixel-area convention is irrelevant at this tolerance)."""
+    x = E[:3, :3] @ X + E[:3, 3]
+    return (K @ x)[:2] / x[2]
+
+
+def draw(uv, color, size: int = SIZE):
+    yy, xx = np.mgrid[0:size, 0:size] + 0.5
+    disc = (xx - uv[0]) ** 2 + (yy - uv[1]) ** 2 <= DISC**2
+    img = np.zeros((size, size, 3), np.uint8)
+    img[disc] = color
+    return img, (disc * 255).astype(np.uint8)
+
+
+def motion(frames, seed: int = 0):
+    """EasyMocap-style per-frame poses [F,72] (poses[:3] = 0), Rh [F,3], Th [F,3]."""
+    rng = np.random.default_rng(seed)
+    F = len(frames)
+    poses = rng.normal(0, 0.2, (F, 72))
+    poses[:, :3] = 0
+    t = np.asarray(frames, dtype=np.float64)
+    Rh = np.stack([0.1 * np.sin(t / 7), 0.3 * t / max(t.max(), 1), 0.05 * np.ones_like(t)], -1)
+    Th = np.stack([0.02 * t, 0.01 * np.ones_like(t), -0.01 * t], -1)
+    return poses, Rh, Th
+
+
+def world_pelvis(body: BodyModel, poses, Rh, Th) -> np.ndarray:
+    """World pelvis [F,3] under EasyMocap placement, computed through the body's FK after rh_th_to_smpl."""
+    p, tr = rh_th_to_smpl(torch.as_tensor(poses).reshape(-1, 24, 3), torch.as_tensor(Rh), torch.as_tensor(Th),
+                          body.rest_joints[0].double())
+    return copy.deepcopy(body).double().joints(p, tr)[:, 0].numpy()
+
+
+def write_i3d(root, sequence, body, train_frames=(0, 1, 2, 3), pose_frames=(4, 5), train_views=(0, 1),
+              test_views=(2,), seed=0, distortions=None):
+    """Write <root>/<sequence>-train/-novelview/-novelpose. Returns a dict with what was written."""
+    root = Path(root)
+    frames = sorted(set(train_frames) | set(pose_frames))
+    poses, Rh, Th = motion(frames, seed)
+    by_frame = {f: i for i, f in enumerate(frames)}
+    pelvis_w = world_pelvis(body, poses, Rh, Th)
+    layout = {"train": (train_frames, train_views), "novelview": (train_frames, test_views),
+              "novelpose": (pose_frames, test_views)}
+    written = {"frames": frames, "poses": poses, "Rh": Rh, "Th": Th, "pelvis_world": pelvis_w, "cameras": {}}
+    for folder, (fr, views) in layout.items():
+        d = root / f"{sequence}-{folder}"
+        (d / "images").mkdir(parents=True, exist_ok=True)
+        (d / "masks").mkdir(parents=True, exist_ok=True)
+        cams, infos = {}, {}
+        for f in fr:
+            i = by_frame[f]
+            for v in views:
+                name = f"frame_{f:06d}_view_{v:02d}"
+                K, E = camera(v)
+                written["cameras"][v] = (K, E)
+                cams[name] = {"intrinsics": K, "extrinsics": E,
+                              "distortions": np.zeros(5) if distortions is None else np.asarray(distortions)}
+                infos[name] = {"poses": poses[i], "Rh": Rh[i], "Th": Th[i], "joints": np.zeros((24, 3)),
+                               "tpose_joints": body.rest_joints.numpy()}
+                img, mask = draw(project(K, E, pelvis_w[i]), (200, 100 + 20 * v, 50))
+                Image.fromarray(img).save(d / "images" / f"{name}.png")
+                Image.fromarray(mask).save(d / "masks" / f"{name}.png")
+        with open(d / "cameras.pkl", "wb") as fh:
+            pickle.dump(cams, fh)
+        with open(d / "mesh_infos.pkl", "wb") as fh:
+            pickle.dump(infos, fh)
+        if folder == "train":
+            with open(d / "canonical_joints.pkl", "wb") as fh:
+                pickle.dump({"joints": body.rest_joints.numpy()}, fh)
+    return written
+
+
+def write_zju(root, subject="CoreView_377", body=None, n_frames=6, cams=("1", "2", "3"), seed=0, size=SIZE):
+    """Write <root>/<subject> in the ARAH layout: cam_params.json, <cam>/<idx:06d>.jpg|.png, models/<idx:06d>.npz."""
+    d = Path(root) / subject
+    (d / "models").mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(seed)
+    params = {"all_cam_names": list(cams)}
+    root_orient = rng.normal(0, 0.2, (n_frames, 3))
+    pose_body = rng.normal(0, 0.2, (n_frames, 63))
+    pose_hand = rng.normal(0, 0.1, (n_frames, 6))
+    trans = np.stack([np.linspace(0, 0.2, n_frames), np.full(n_frames, 0.05), np.zeros(n_frames)], -1)
+    pose = np.concatenate([root_orient, pose_body, pose_hand], -1).reshape(n_frames, 24, 3)
+    pelvis_w = copy.deepcopy(body).double().joints(torch.as_tensor(pose), torch.as_tensor(trans))[:, 0].numpy()
+    for c in cams:
+        K, E = camera(int(c))
+        params[c] = {"K": K.tolist(), "D": [[0.0]] * 5, "R": E[:3, :3].tolist(), "T": E[:3, 3:].tolist()}
+        (d / c).mkdir(exist_ok=True)
+        for f in range(n_frames):
+            img, mask = draw(project(K, E, pelvis_w[f]), (90, 180, 40), size)
+            bgimg = img.copy()
+            bgimg[mask == 0] = (30, 60, 90)  # ZJU images have a real background; the reader must composite it away
+            Image.fromarray(bgimg).save(d / c / f"{f:06d}.jpg", quality=95)
+            Image.fromarray((mask > 0).astype(np.uint8)).save(d / c / f"{f:06d}.png")  # ZJU masks are 0/1 labels
+    for f in range(n_frames):
+        np.savez(d / "models" / f"{f:06d}.npz", minimal_shape=np.zeros((10, 3)), betas=np.zeros((1, 10)),
+                 Jtr_posed=np.zeros((24, 3)), bone_transforms=np.tile(np.eye(4), (24, 1, 1)), trans=trans[f],
+                 root_orient=root_orient[f], pose_body=pose_body[f], pose_hand=pose_hand[f])
+    with open(d / "cam_params.json", "w") as fh:
+        json.dump(params, fh)
+    return {"pose": pose, "trans": trans, "pelvis_world": pelvis_w}
