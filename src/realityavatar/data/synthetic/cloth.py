@@ -1,0 +1,312 @@
+"""Loose garments (flared skirt, dress) simulated with MuJoCo flex cloth, driven kinematically by a 24-joint skeleton.
+
+The waist ring follows the pelvis; legs, hips and torso are kinematic capsules; the hem's shape depends on history.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import mujoco
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+GARMENTS = ("skirt", "dress")
+
+# SMPL joint indices used here.
+_PELVIS, _LHIP, _RHIP, _LKNEE, _RKNEE, _SPINE2, _LANKLE, _RANKLE, _NECK = 0, 1, 2, 4, 5, 6, 7, 8, 12
+
+# Defaults shared by both garments; lengths in metres, masses in kg, times in seconds.
+_COMMON = {
+    "n_around": 20,  # vertices per ring (the simulated tube; output adds one seam column)
+    "n_rings": 10,  # rings from waist (pinned) to hem
+    "waist_offset": 0.06,  # waist ring above the pelvis joint, along the body axis
+    "waist_radius": None,  # None: max(hip_sep/2 + 0.08, torso_radius + 0.02)
+    "length_scale": 1.0,  # cloth length (waist to hem along the surface) relative to the hem level below
+    "young": 3.0e4,  # Pa; with thickness 1 mm: 30 N/m membrane stiffness, soft and slightly stretchy fabric
+    "poisson": 0.2,
+    "thickness": 1.0e-3,
+    "elastic_damping": 1.0e-3,  # flex elasticity damping (internal, relative motion)
+    "drag_tau": 1.0,  # air drag: per-vertex force -m v / drag_tau (relative to the world, why motion decays)
+    "cloth_radius": 0.006,  # collision half-thickness of the cloth
+    "friction": 0.3,
+    "thigh_radius": 0.075,
+    "shin_radius": 0.055,
+    "hip_radius": 0.09,  # capsule between the two hip joints (buttocks / pelvis)
+    "torso_radius": 0.11,  # capsule pelvis -> spine2
+    "dt_max": 2.0e-3,  # largest physics step; substeps per frame = ceil(1 / (fps * dt_max))
+    "preroll": 1.0,  # seconds of settling holding the first frame before recording
+    "init_noise": 1.0e-3,  # seeded jitter of the initial free vertices (breaks the cone's symmetry so it can fold)
+}
+_GARMENT_DEFAULTS = {
+    # hem_level: where the hem hangs, as a blend knee (0) -> ankle (1); flare: initial cone angle from the body axis.
+    "skirt": {"hem_level": 0.0, "flare_deg": 40.0, "mass": 0.15},
+    "dress": {"hem_level": 0.5, "flare_deg": 30.0, "mass": 0.25},
+}
+
+
+@dataclass
+class GarmentSequence:
+    name: str
+    vertices: np.ndarray  # [F,Vg,3] float32, world coordinates (metres), per frame
+    faces: np.ndarray  # [Fg,3] int32 triangles (consistently oriented, outward normals)
+    uv: np.ndarray  # [Vg,2] float32 texture coordinates in [0,1] (u around the waist, v from waist to hem)
+    params: dict  # the parameters actually used (for the scene metadata)
+
+
+def garment_params(garment: str = "skirt", params: dict | None = None) -> dict:
+    """Defaults for `garment` updated with `params`; unknown keys or bad values -> ValueError naming the key."""
+    if garment not in GARMENTS:
+        raise ValueError(f"garment: expected one of {GARMENTS}, got {garment!r}")
+    p = {**_COMMON, **_GARMENT_DEFAULTS[garment]}
+    for k, v in (params or {}).items():
+        if k not in p:
+            raise ValueError(f"params: unknown key {k!r} for garment {garment!r}; known: {sorted(p)}")
+        p[k] = v
+    for k in ("n_around", "n_rings"):
+        if not isinstance(p[k], (int, np.integer)) or p[k] < (6 if k == "n_around" else 3):
+            raise ValueError(f"params[{k!r}]: expected an int >= {6 if k == 'n_around' else 3}, got {p[k]!r}")
+        p[k] = int(p[k])
+    positive = ("length_scale", "young", "thickness", "drag_tau", "cloth_radius", "thigh_radius", "shin_radius",
+                "hip_radius", "torso_radius", "dt_max", "mass")
+    for k in positive:
+        if not (isinstance(p[k], (int, float)) and math.isfinite(p[k]) and p[k] > 0):
+            raise ValueError(f"params[{k!r}]: expected a finite number > 0, got {p[k]!r}")
+        p[k] = float(p[k])
+    for k in ("waist_offset", "poisson", "elastic_damping", "friction", "preroll", "init_noise", "hem_level",
+              "flare_deg"):
+        if not (isinstance(p[k], (int, float)) and math.isfinite(p[k])) or (k != "waist_offset" and p[k] < 0):
+            raise ValueError(f"params[{k!r}]: expected a finite number{'' if k == 'waist_offset' else ' >= 0'}, got {p[k]!r}")
+        p[k] = float(p[k])
+    if not 0.0 <= p["flare_deg"] < 80.0:
+        raise ValueError(f"params['flare_deg']: expected 0 <= flare_deg < 80, got {p['flare_deg']}")
+    if p["waist_radius"] is not None:
+        if not (isinstance(p["waist_radius"], (int, float)) and math.isfinite(p["waist_radius"]) and p["waist_radius"] > 0):
+            raise ValueError(f"params['waist_radius']: expected None or a number > 0, got {p['waist_radius']!r}")
+        p["waist_radius"] = float(p["waist_radius"])
+    return p
+
+
+def tube_topology(n_around: int, n_rings: int) -> tuple[np.ndarray, np.ndarray]:
+    """Triangles [2*n_around*(n_rings-1),3] over the simulated vertices (index ring*n_around + i, seam shared) and
+    the same triangles over output vertices (index ring*(n_around+1) + i, column n_around duplicates column 0)."""
+    sim, out = [], []
+    for j in range(n_rings - 1):
+        for i in range(n_around):
+            a, b = j * n_around + i, j * n_around + (i + 1) % n_around
+            sim += [[a, a + n_around, b], [b, a + n_around, b + n_around]]
+            w = n_around + 1
+            a, b = j * w + i, j * w + i + 1
+            out += [[a, a + w, b], [b, a + w, b + w]]
+    return np.asarray(sim, np.int64), np.asarray(out, np.int32)
+
+
+def _validate(joints, joint_rots, fps) -> tuple[np.ndarray, np.ndarray, float]:
+    joints = np.asarray(joints, dtype=np.float64)
+    joint_rots = np.asarray(joint_rots, dtype=np.float64)
+    if joints.ndim != 3 or joints.shape[1:] != (24, 3) or joints.shape[0] < 1:
+        raise ValueError(f"joints: expected shape [F,24,3] with F >= 1, got {joints.shape}")
+    if joint_rots.shape != (joints.shape[0], 24, 3, 3):
+        raise ValueError(f"joint_rots: expected shape [{joints.shape[0]},24,3,3] (matching joints), got {joint_rots.shape}")
+    if not np.isfinite(joints).all():
+        raise ValueError("joints: contains non-finite values")
+    if not np.isfinite(joint_rots).all():
+        raise ValueError("joint_rots: contains non-finite values")
+    R0 = joint_rots[:, _PELVIS]  # [F,3,3]
+    ortho = np.abs(np.einsum("fji,fjk->fik", R0, R0) - np.eye(3)).max()
+    if ortho > 1e-3 or (np.linalg.det(R0) < 0).any():
+        raise ValueError(f"joint_rots: pelvis orientations must be rotation matrices (max |R^T R - I| = {ortho:.2g})")
+    if isinstance(fps, bool) or not isinstance(fps, (int, float, np.integer, np.floating)) or not math.isfinite(fps) or fps <= 0:
+        raise ValueError(f"fps: expected a finite number > 0, got {fps!r}")
+    return joints, joint_rots, float(fps)
+
+
+def _quat_wxyz(R: np.ndarray) -> np.ndarray:
+    """R: [...,3,3] -> [...,4] wxyz."""
+    q = Rotation.from_matrix(R.reshape(-1, 3, 3)).as_quat()  # xyzw
+    return q[:, [3, 0, 1, 2]].reshape(R.shape[:-2] + (4,))
+
+
+def _z_to_dir_quat(d: np.ndarray) -> np.ndarray:
+    """Unit directions d: [N,3] -> wxyz quaternions [N,4] rotating +z onto d (a capsule's axis)."""
+    z = np.array([0.0, 0.0, 1.0])
+    c = d @ z  # [N]
+    axis = np.cross(np.broadcast_to(z, d.shape), d)  # [N,3]
+    q = np.concatenate([1.0 + c[:, None], axis], 1)
+    flip = c < -1 + 1e-9  # antiparallel: rotate pi about x
+    q[flip] = [0.0, 1.0, 0.0, 0.0]
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
+def _rest_geometry(j0: np.ndarray, R0: np.ndarray, p: dict, rng: np.random.Generator):
+    """Cone of cloth in the pelvis frame of the first pose: points [n_rings*n_around,3] (local), and sizes."""
+    axis_w = j0[_NECK] - j0[_PELVIS]
+    axis_w /= np.linalg.norm(axis_w)  # body up axis, world
+    hip_sep = float(np.linalg.norm(j0[_LHIP] - j0[_RHIP]))
+    waist_r = p["waist_radius"] or max(0.5 * hip_sep + 0.08, p["torso_radius"] + 0.02)
+    waist_w = j0[_PELVIS] + p["waist_offset"] * axis_w
+    knee = 0.5 * (j0[_LKNEE] + j0[_RKNEE])
+    ankle = 0.5 * (j0[_LANKLE] + j0[_RANKLE])
+    hem_w = (1 - p["hem_level"]) * knee + p["hem_level"] * ankle
+    length = p["length_scale"] * float((waist_w - hem_w) @ axis_w)
+    if length < 0.1:
+        raise ValueError(f"joints: garment length from waist to hem level is {length:.3f} m (< 0.1 m); "
+                         "expected a standing body with knees/ankles below the pelvis along pelvis->neck")
+    # Local frame: up = body axis in pelvis coordinates; e1 towards the left hip; e2 = e1 x up.
+    up = R0.T @ axis_w
+    e1 = R0.T @ (j0[_LHIP] - j0[_RHIP])
+    e1 -= (e1 @ up) * up
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(e1, up)
+    centre = p["waist_offset"] * up  # waist centre relative to the pelvis joint, local
+    n_a, n_r = p["n_around"], p["n_rings"]
+    s = np.linspace(0.0, 1.0, n_r)[:, None]  # [n_r,1]
+    phi = 2 * np.pi * np.arange(n_a)[None, :] / n_a  # [1,n_a]
+    flare = math.radians(p["flare_deg"])
+    r = waist_r + s * length * math.sin(flare)  # [n_r,1]
+    h = -s * length * math.cos(flare)
+    pts = centre + r[..., None] * (np.cos(phi)[..., None] * e1 + np.sin(phi)[..., None] * e2) + h[..., None] * up
+    pts = pts.reshape(-1, 3)  # [n_r*n_a,3]
+    if p["init_noise"] > 0:
+        pts[n_a:] += rng.normal(scale=p["init_noise"], size=pts[n_a:].shape)
+    return pts, {"waist_radius": float(waist_r), "length": float(length), "hip_sep": hip_sep}
+
+
+def _capsule_segments(joints: np.ndarray) -> tuple[list[str], np.ndarray, np.ndarray]:
+    """Collider names, endpoints a,b: [F,C,3] (thighs, shins, hips, torso)."""
+    pairs = [("thigh_l", _LHIP, _LKNEE), ("thigh_r", _RHIP, _RKNEE), ("shin_l", _LKNEE, _LANKLE),
+             ("shin_r", _RKNEE, _RANKLE), ("hips", _LHIP, _RHIP), ("torso", _PELVIS, _SPINE2)]
+    names = [n for n, _, _ in pairs]
+    a = joints[:, [i for _, i, _ in pairs]]
+    b = joints[:, [k for _, _, k in pairs]]
+    return names, a, b
+
+
+def _build_xml(pts: np.ndarray, tris: np.ndarray, n_pin: int, p: dict, caps: list[tuple[str, float, float]], dt: float) -> str:
+    point = " ".join(f"{x:.6f}" for x in pts.ravel())
+    element = " ".join(str(int(i)) for i in tris.ravel())
+    pins = " ".join(str(i) for i in range(n_pin))
+    geoms = "\n".join(
+        f'<body name="{n}" mocap="true"><geom type="capsule" size="{r:.5f} {hl:.5f}" contype="1" conaffinity="0" '
+        f'friction="{p["friction"]} 0.005 0.0001"/></body>'
+        for n, r, hl in caps
+    )
+    return f"""
+<mujoco model="garment">
+  <option timestep="{dt:.8f}" gravity="0 -9.81 0" integrator="Euler"/>
+  <worldbody>
+    {geoms}
+    <body name="waist" gravcomp="1">
+      <freejoint name="waist"/>
+      <geom type="sphere" size="0.05" mass="20" contype="0" conaffinity="0"/>
+      <flexcomp name="cloth" type="direct" dim="2" radius="{p['cloth_radius']}" mass="{p['mass']}"
+                point="{point}" element="{element}">
+        <pin id="{pins}"/>
+        <elasticity young="{p['young']}" poisson="{p['poisson']}" thickness="{p['thickness']}"
+                    damping="{p['elastic_damping']}" elastic2d="both"/>
+        <contact selfcollide="none" contype="0" conaffinity="1" friction="{p['friction']} 0.005 0.0001"/>
+      </flexcomp>
+    </body>
+  </worldbody>
+</mujoco>"""
+
+
+def simulate_garment(joints, joint_rots, fps, garment="skirt", params=None, seed=0) -> GarmentSequence:
+    """Simulate `garment` on the skeleton `joints` [F,24,3] / `joint_rots` [F,24,3,3] (world, y up) at `fps`.
+
+    The waist ring follows the pelvis (position + orientation, geodesically interpolated over substeps); thighs,
+    shins, hips and torso are kinematic capsules. The first pose is held for `preroll` seconds before frame 0 is
+    recorded. `seed` only draws the initial jitter (`init_noise`) of the free vertices; the simulation itself is
+    deterministic (single-threaded MuJoCo), so equal inputs and seed give bit-identical vertices.
+    """
+    joints, joint_rots, fps = _validate(joints, joint_rots, fps)
+    p = garment_params(garment, params)
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
+        raise ValueError(f"seed: expected an int, got {seed!r}")
+    rng = np.random.default_rng(int(seed))
+    n_frames = joints.shape[0]
+    n_a, n_r = p["n_around"], p["n_rings"]
+
+    R_pel = joint_rots[:, _PELVIS]  # [F,3,3]
+    pts, sizes = _rest_geometry(joints[0], R_pel[0], p, rng)
+    sim_tris, out_tris = tube_topology(n_a, n_r)
+    # Outward orientation: check the first triangle's normal against the radial direction at rest.
+    t0 = pts[sim_tris[0]]
+    nrm = np.cross(t0[1] - t0[0], t0[2] - t0[0])
+    up_l = pts[:n_a].mean(0) - pts[-n_a:].mean(0)  # waist centre minus hem centre: the tube's axis
+    up_l /= np.linalg.norm(up_l)
+    radial = t0.mean(0) - pts[:n_a].mean(0)
+    radial -= (radial @ up_l) * up_l
+    if nrm @ radial < 0:
+        sim_tris = sim_tris[:, [0, 2, 1]]
+        out_tris = out_tris[:, [0, 2, 1]]
+
+    names, seg_a, seg_b = _capsule_segments(joints)
+    radii = [p["thigh_radius"]] * 2 + [p["shin_radius"]] * 2 + [p["hip_radius"], p["torso_radius"]]
+    seg_len = np.linalg.norm(seg_b[0] - seg_a[0], axis=-1)  # [C]; bones are rigid, lengths from the first pose
+    caps = [(n, r, max(0.5 * float(L), 1e-3)) for n, r, L in zip(names, radii, seg_len)]
+
+    n_sub = max(1, math.ceil(1.0 / (fps * p["dt_max"])))
+    dt = 1.0 / (fps * n_sub)
+    model = mujoco.MjModel.from_xml_string(_build_xml(pts, sim_tris, n_a, p, caps, dt))
+    data = mujoco.MjData(model)
+    flex_dofs = np.arange(6, model.nv)  # free joint of the waist first, then 3 slide dofs per free cloth vertex
+    drag = model.body_mass[model.dof_bodyid[flex_dofs]] / p["drag_tau"]  # [nv-6]
+    mocap_ids = [model.body_mocapid[model.body(n).id] for n in names]
+
+    def set_pose(pos, quat, v_world, w_local, a, b):
+        data.qpos[:3], data.qpos[3:7] = pos, quat
+        data.qvel[:3], data.qvel[3:6] = v_world, w_local
+        d = b - a
+        d /= np.linalg.norm(d, axis=1, keepdims=True).clip(1e-9)
+        data.mocap_pos[mocap_ids] = 0.5 * (a + b)
+        data.mocap_quat[mocap_ids] = _z_to_dir_quat(d)
+
+    def step():
+        data.qfrc_applied[flex_dofs] = -drag * data.qvel[flex_dofs]
+        mujoco.mj_step(model, data)
+
+    pelvis = joints[:, _PELVIS]  # [F,3]
+    q_pel = _quat_wxyz(R_pel)  # [F,4]
+    zero = np.zeros(3)
+    set_pose(pelvis[0], q_pel[0], zero, zero, seg_a[0], seg_b[0])
+    mujoco.mj_forward(model, data)
+    flex_start = model.flex_vertadr[0]
+    limit = max(1.0, 1.5 * sizes["length"] + sizes["waist_radius"])
+
+    def check(frame: int):
+        x = data.flexvert_xpos[flex_start:flex_start + n_a * n_r]
+        bad_warn = data.warning[mujoco.mjtWarning.mjWARN_BADQACC].number
+        dist = np.linalg.norm(x - pelvis[frame], axis=1).max() if np.isfinite(x).all() else np.inf
+        if bad_warn > 0 or not dist <= limit:
+            raise RuntimeError(f"simulate_garment: cloth simulation unstable at frame {frame} (max vertex distance "
+                               f"from the pelvis {dist:.3g} m, limit {limit:.2f} m; MuJoCo bad-acceleration warnings "
+                               f"{bad_warn}); try a smaller params['dt_max'] or a softer params['young']")
+        return x.copy()
+
+    for _ in range(int(round(p["preroll"] / dt))):
+        set_pose(pelvis[0], q_pel[0], zero, zero, seg_a[0], seg_b[0])
+        step()
+
+    out = np.empty((n_frames, n_r, n_a + 1, 3), np.float32)
+    x = check(0).reshape(n_r, n_a, 3)
+    out[0, :, :n_a], out[0, :, n_a] = x, x[:, 0]
+    rel = Rotation.from_matrix(np.einsum("fji,fjk->fik", R_pel[:-1], R_pel[1:])).as_rotvec() if n_frames > 1 else None
+    for f in range(1, n_frames):
+        v = (pelvis[f] - pelvis[f - 1]) * fps
+        w_local = rel[f - 1] * fps  # constant body-frame angular velocity over the frame
+        for k in range(n_sub):
+            s = k / n_sub
+            R = R_pel[f - 1] @ Rotation.from_rotvec(s * rel[f - 1]).as_matrix()
+            set_pose(pelvis[f - 1] + s * (pelvis[f] - pelvis[f - 1]), _quat_wxyz(R), v, w_local,
+                     seg_a[f - 1] + s * (seg_a[f] - seg_a[f - 1]), seg_b[f - 1] + s * (seg_b[f] - seg_b[f - 1]))
+            step()
+        x = check(f).reshape(n_r, n_a, 3)
+        out[f, :, :n_a], out[f, :, n_a] = x, x[:, 0]
+
+    u = np.arange(n_a + 1) / n_a
+    v = np.linspace(0.0, 1.0, n_r)
+    uv = np.stack(np.meshgrid(u, v), -1).reshape(-1, 2).astype(np.float32)  # [n_r*(n_a+1),2], row-major by ring
+    used = {**p, "garment": garment, "seed": int(seed), "fps": fps, "substeps": n_sub, "dt": dt, **sizes}
+    return GarmentSequence(name=garment, vertices=out.reshape(n_frames, -1, 3), faces=out_tris, uv=uv, params=used)
