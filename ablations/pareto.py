@@ -1,0 +1,118 @@
+"""Speed-vs-accuracy chart from a hydra multirun: training time and render FPS against novel-view PSNR
+(marker area ∝ number of Gaussians, error bars = seed std), as PNG plus the CSV behind it.
+
+    python ablations/pareto.py outputs/sweeps/speed/<timestamp> [more multirun dirs] [--out ablations/results/speed]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+if __package__ in (None, ""):  # run as a script: make `ablations` importable from the repository root
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import matplotlib  # noqa: E402
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import pandas as pd  # noqa: E402
+
+from ablations.common import aggregate, display_label, load_runs, metric_key, provenance  # noqa: E402
+
+PSNR = metric_key("novel_view", "psnr")
+QUANTITIES = {"train_seconds": "train_seconds", "render_fps": "render_fps", PSNR: "novel_view_psnr",
+              "num_gaussians": "num_gaussians"}
+MAX_MARKER_AREA = 600.0   # points^2 of the row with the most Gaussians
+
+
+def frontier(cost: np.ndarray, acc: np.ndarray) -> np.ndarray:
+    """Rows no other row beats: none has cost <= and accuracy >= with one of them strict. NaN is never on it."""
+    ok = ~(np.isnan(cost) | np.isnan(acc))
+    on = np.zeros(len(cost), dtype=bool)
+    for i in np.flatnonzero(ok):
+        better = ok & (cost <= cost[i]) & (acc >= acc[i]) & ((cost < cost[i]) | (acc > acc[i]))
+        on[i] = not better.any()
+    return on
+
+
+def pareto_table(runs) -> pd.DataFrame:
+    table, _ = aggregate(runs, list(QUANTITIES))
+    out = pd.DataFrame({"label": table["label"], "name": [display_label(lab) for lab in table["label"]],
+                        "n_runs": table["n_runs"], "scenes": table["scenes"]})
+    for q, short in QUANTITIES.items():
+        out[f"{short}_mean"], out[f"{short}_std"] = table[f"{q}:mean"], table[f"{q}:std"]
+    acc = out["novel_view_psnr_mean"].to_numpy(float)
+    out["pareto_time"] = frontier(out["train_seconds_mean"].to_numpy(float), acc)
+    out["pareto_fps"] = frontier(-out["render_fps_mean"].to_numpy(float), acc)   # more FPS = cheaper
+    return out
+
+
+def _panel(ax, df: pd.DataFrame, x: str, xlabel: str, front_col: str, higher_x_better: bool) -> None:
+    g = df["num_gaussians_mean"].to_numpy(float)
+    area = MAX_MARKER_AREA * g / np.nanmax(g) if np.isfinite(g).any() and np.nanmax(g) > 0 else np.full(len(df), 60.0)
+    xs, ys = df[f"{x}_mean"].to_numpy(float), df["novel_view_psnr_mean"].to_numpy(float)
+    xe, ye = np.nan_to_num(df[f"{x}_std"].to_numpy(float)), np.nan_to_num(df["novel_view_psnr_std"].to_numpy(float))
+    colors = plt.cm.tab10(np.arange(len(df)) % 10)
+    ax.errorbar(xs, ys, xerr=xe, yerr=ye, fmt="none", ecolor="0.5", elinewidth=1, capsize=3, zorder=1)
+    ax.scatter(xs, ys, s=area, c=colors, alpha=0.8, edgecolors="k", linewidths=0.5, zorder=2)
+    for xi, yi, name in zip(xs, ys, df["name"]):
+        if np.isfinite(xi) and np.isfinite(yi):
+            ax.annotate(name, (xi, yi), xytext=(6, 6), textcoords="offset points", fontsize=8)
+    front = df[df[front_col]].sort_values(f"{x}_mean")
+    if len(front) > 1:
+        ax.plot(front[f"{x}_mean"], front["novel_view_psnr_mean"], "--", color="0.3", lw=1, zorder=0,
+                label="Pareto front")
+        ax.legend(loc="lower right" if not higher_x_better else "lower left", fontsize=8)
+    finite = xs[np.isfinite(xs) & (xs > 0)]
+    if len(finite) > 1 and finite.max() / finite.min() > 20:
+        ax.set_xscale("log")
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel("novel-view PSNR (dB) ↑")
+    ax.grid(alpha=0.3)
+
+
+def pareto(dirs, out: str | Path | None = None, prefer: str = "eval", name: str | None = None) -> pd.DataFrame:
+    """Write pareto.png and pareto.csv to `out` (default ablations/results/<sweep name>); return the CSV table."""
+    dirs = [Path(dirs)] if isinstance(dirs, (str, Path)) else [Path(d) for d in dirs]
+    runs = load_runs(dirs, prefer=prefer)
+    if name is None:
+        names = {c.get("ablation") for c in runs.frame["config"]}
+        name = str(names.pop()) if len(names) == 1 and None not in names else dirs[0].resolve().name
+    out = Path(out) if out is not None else Path("ablations/results") / name
+    out.mkdir(parents=True, exist_ok=True)
+    df = pareto_table(runs)
+    df.to_csv(out / "pareto.csv", index=False)
+
+    prov = provenance(runs)
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.8), layout="constrained")
+    fig.get_layout_engine().set(rect=(0, 0.04, 1, 0.96))   # room for the provenance line at the bottom
+    _panel(axes[0], df, "train_seconds", "training time (s) ↓", "pareto_time", higher_x_better=False)
+    _panel(axes[1], df, "render_fps", "render speed (FPS) ↑", "pareto_fps", higher_x_better=True)
+    seeds = sorted(set(int(s) for s in runs.frame["seed"]))
+    fig.suptitle(f"{name}: speed vs accuracy — mean ± std over seeds {seeds}, averaged over "
+                 f"{', '.join(runs.scenes)}; marker area ∝ Gaussians", fontsize=10)
+    fig.text(0.01, 0.005, f"commit(s) {', '.join(prov['commits'])} · " + " ; ".join(prov["commands"]),
+             fontsize=6, color="0.4", va="bottom")
+    fig.savefig(out / "pareto.png", dpi=150)
+    plt.close(fig)
+    return df
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("dirs", nargs="+", type=Path, help="multirun folder(s)")
+    p.add_argument("--out", type=Path, default=None, help="output folder (default ablations/results/<sweep name>)")
+    p.add_argument("--prefer", choices=("eval", "train"), default="eval",
+                   help="per job, take <job>/eval/metrics.json from a re-evaluation (default) or the training one")
+    p.add_argument("--name", default=None, help="chart name (default: the ablation config name)")
+    a = p.parse_args(argv)
+    df = pareto(a.dirs, a.out, a.prefer, a.name)
+    print(df.to_string(index=False))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
