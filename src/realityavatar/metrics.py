@@ -1,0 +1,240 @@
+"""Image metrics: PSNR, SSIM, LPIPS (pure torch, only with user-provided weights), mask-box crops, temporal flicker.
+
+Images are float [H,W,3] or [B,H,W,3] in [0,1]; batched inputs give one value per image.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from typing import Literal
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+
+def _batched(x: torch.Tensor, name: str) -> tuple[torch.Tensor, bool]:
+    if x.ndim == 3:
+        return x[None], True
+    if x.ndim == 4:
+        return x, False
+    raise ValueError(f"metrics: {name} expected [H,W,C] or [B,H,W,C], got {tuple(x.shape)}")
+
+
+def psnr(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
+    """10 log10(1 / MSE) over all pixels and channels of each image (data range 1); inf for identical images."""
+    p, single = _batched(pred, "pred")
+    g, _ = _batched(gt, "gt")
+    mse = ((p.float() - g.float()) ** 2).flatten(1).mean(1)
+    out = torch.where(mse > 0, -10.0 * torch.log10(mse.clamp_min(1e-30)), torch.full_like(mse, math.inf))
+    return out[0] if single else out
+
+
+def _gaussian_window(size: int = 11, sigma: float = 1.5, device=None) -> torch.Tensor:
+    x = torch.arange(size, dtype=torch.float64, device=device) - (size - 1) / 2
+    g = torch.exp(-(x**2) / (2 * sigma**2))
+    g = g / g.sum()
+    return (g[:, None] * g[None, :]).float()  # [size,size]
+
+
+def ssim(pred: torch.Tensor, gt: torch.Tensor, window: int = 11, sigma: float = 1.5) -> torch.Tensor:
+    """Mean SSIM (Wang et al. 2004) with an 11x11 Gaussian window (sigma 1.5), K1=0.01, K2=0.03, data range 1.
+
+    Convention: local statistics use population (not sample) covariance and the mean is taken over 'valid'
+    window positions only, averaged over channels. This equals skimage's
+    structural_similarity(gaussian_weights=True, sigma=1.5, use_sample_covariance=False, data_range=1,
+    channel_axis=-1) (its filter is 11 wide for sigma 1.5 and it crops 5 border pixels before averaging).
+    3DGS's training SSIM zero-pads instead and reads slightly lower near borders. Images smaller than the
+    window are edge-padded up to it.
+    """
+    p, single = _batched(pred, "pred")
+    g, _ = _batched(gt, "gt")
+    x = p.float().permute(0, 3, 1, 2)  # [B,C,H,W]
+    y = g.float().permute(0, 3, 1, 2)
+    H, W = x.shape[-2:]
+    if H < window or W < window:
+        ph, pw = max(window - H, 0), max(window - W, 0)
+        pad = (pw // 2, pw - pw // 2, ph // 2, ph - ph // 2)
+        x, y = F.pad(x, pad, mode="replicate"), F.pad(y, pad, mode="replicate")
+    C = x.shape[1]
+    w = _gaussian_window(window, sigma, x.device)[None, None].expand(C, 1, window, window)
+    filt = lambda t: F.conv2d(t, w, groups=C)  # noqa: E731  'valid' positions only
+    mx, my = filt(x), filt(y)
+    sxx = filt(x * x) - mx * mx
+    syy = filt(y * y) - my * my
+    sxy = filt(x * y) - mx * my
+    c1, c2 = 0.01**2, 0.03**2
+    s = ((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx * mx + my * my + c1) * (sxx + syy + c2))
+    out = s.flatten(1).mean(1)
+    return out[0] if single else out
+
+
+def mask_bbox(mask: torch.Tensor, pad: int = 0) -> tuple[int, int, int, int]:
+    """mask [H,W] or [H,W,1] -> (y0, y1, x0, x1) of its non-zero box (+pad, clipped); the whole image if empty."""
+    m = mask.reshape(mask.shape[0], mask.shape[1], -1).amax(-1) > 0.5
+    H, W = m.shape
+    ys, xs = m.any(1).nonzero().squeeze(-1), m.any(0).nonzero().squeeze(-1)
+    if ys.numel() == 0:
+        return 0, H, 0, W
+    return max(int(ys[0]) - pad, 0), min(int(ys[-1]) + 1 + pad, H), max(int(xs[0]) - pad, 0), min(int(xs[-1]) + 1 + pad, W)
+
+
+def masked_bbox(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor, pad: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+    """Crop pred, gt [H,W,3] to the bounding box of mask [H,W,1] (the 'masked' metric variants)."""
+    y0, y1, x0, x1 = mask_bbox(mask, pad)
+    return pred[y0:y1, x0:x1], gt[y0:y1, x0:x1]
+
+
+def psnr_masked(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """PSNR inside the mask's bounding box; pred, gt [H,W,3] or [B,H,W,3], mask [(B,)H,W,1]."""
+    if pred.ndim == 3:
+        return psnr(*masked_bbox(pred, gt, mask))
+    return torch.stack([psnr(*masked_bbox(p, g, m)) for p, g, m in zip(pred, gt, mask)])
+
+
+def ssim_masked(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """SSIM inside the mask's bounding box; shapes as psnr_masked."""
+    if pred.ndim == 3:
+        return ssim(*masked_bbox(pred, gt, mask))
+    return torch.stack([ssim(*masked_bbox(p, g, m)) for p, g, m in zip(pred, gt, mask)])
+
+
+def temporal_flicker(frames_pred: torch.Tensor, frames_gt: torch.Tensor) -> float:
+    """Frame-to-frame change error: mean_t |(pred_t - pred_{t-1}) - (gt_t - gt_{t-1})| over pixels and channels.
+
+    frames [F,H,W,3] of one camera in time order. 0 when the rendering changes exactly as the video does;
+    penalises both flicker (changes the video lacks) and frozen motion (missing changes).
+    """
+    if frames_pred.shape != frames_gt.shape or frames_pred.ndim != 4 or frames_pred.shape[0] < 2:
+        raise ValueError(
+            f"temporal_flicker: expected two [F>=2,H,W,3] tensors of one shape, got {tuple(frames_pred.shape)}, {tuple(frames_gt.shape)}"
+        )
+    dp = frames_pred[1:].float() - frames_pred[:-1].float()
+    dg = frames_gt[1:].float() - frames_gt[:-1].float()
+    return float((dp - dg).abs().mean())
+
+
+# ---------------------------------------------------------------------- backbones (torchvision `features` layouts)
+_VGG_CFG = {
+    "vgg16": [64, 64, "M", 128, 128, "M", 256, 256, 256, "M", 512, 512, 512, "M", 512, 512, 512, "M"],
+    "vgg19": [64, 64, "M", 128, 128, "M", 256, 256, 256, 256, "M", 512, 512, 512, 512, "M", 512, 512, 512, 512, "M"],
+}
+
+
+def vgg_features(arch: Literal["vgg16", "vgg19"]) -> nn.Sequential:
+    """torchvision's vgg16/vgg19 `.features` (same layer indices, so its state-dict keys load directly)."""
+    layers: list[nn.Module] = []
+    c = 3
+    for v in _VGG_CFG[arch]:
+        if v == "M":
+            layers.append(nn.MaxPool2d(2, 2))
+        else:
+            layers += [nn.Conv2d(c, v, 3, padding=1), nn.ReLU(inplace=False)]
+            c = v
+    return nn.Sequential(*layers)
+
+
+def alexnet_features() -> nn.Sequential:
+    """torchvision's alexnet `.features`."""
+    return nn.Sequential(
+        nn.Conv2d(3, 64, 11, 4, 2), nn.ReLU(), nn.MaxPool2d(3, 2),
+        nn.Conv2d(64, 192, 5, padding=2), nn.ReLU(), nn.MaxPool2d(3, 2),
+        nn.Conv2d(192, 384, 3, padding=1), nn.ReLU(),
+        nn.Conv2d(384, 256, 3, padding=1), nn.ReLU(),
+        nn.Conv2d(256, 256, 3, padding=1), nn.ReLU(), nn.MaxPool2d(3, 2),
+    )  # fmt: skip
+
+
+def load_features_state(features: nn.Sequential, path: str) -> None:
+    """Load the `features.*` entries of a torchvision checkpoint (e.g. vgg19-dcbb9e9d.pth) into `features`."""
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"backbone weights: file {path!r} does not exist")
+    sd = torch.load(path, map_location="cpu", weights_only=True)
+    if isinstance(sd, dict) and "state_dict" in sd:
+        sd = sd["state_dict"]
+    own = features.state_dict()
+    sub = {k[len("features."):]: v for k, v in sd.items() if k.startswith("features.") and k[len("features."):] in own}
+    missing = sorted(set(own) - set(sub))
+    if missing:
+        raise ValueError(f"backbone weights {path!r}: missing torchvision 'features.*' keys {missing[:4]}... "
+                         "(expected a torchvision vgg16/vgg19/alexnet state dict)")
+    features.load_state_dict(sub)
+
+
+# ---------------------------------------------------------------------- LPIPS
+_LPIPS_TAPS = {"vgg": (3, 8, 15, 22, 29), "alex": (1, 4, 7, 9, 11)}  # relu outputs used by lpips
+_LPIPS_CHANNELS = {"vgg": (64, 128, 256, 512, 512), "alex": (64, 192, 384, 256, 256)}
+
+
+def lpips_status(backbone_weights: str | None, lin_weights: str | None) -> str:
+    """'computed' when both weight files exist, else 'not computed: <why>' (the text metrics.json records)."""
+    if not backbone_weights or not lin_weights:
+        return ("not computed: no LPIPS weights (set metrics.lpips_backbone_weights=<torchvision vgg16/alexnet .pth> "
+                "and metrics.lpips_lin_weights=<lpips vgg.pth/alex.pth>)")
+    for p in (backbone_weights, lin_weights):
+        if not os.path.isfile(p):
+            return f"not computed: LPIPS weight file {p} does not exist"
+    return "computed"
+
+
+class LPIPS(nn.Module):
+    """LPIPS (Zhang et al. 2018) in pure torch, v0.1 linear layers, like `lpips.LPIPS(net=..., normalize=True)`.
+
+    Inputs [H,W,3] or [B,H,W,3] in [0,1] are mapped to [-1,1], shifted/scaled by lpips' ScalingLayer, passed
+    through the backbone (vgg16 or alexnet, torchvision weights), unit-normalised per channel; squared
+    differences are weighted by the learned 1x1 convs (lin weights file of the lpips package, keys
+    `lin{k}.model.1.weight`) and spatially averaged. Tables report the value x1000.
+    """
+
+    def __init__(self, net: Literal["vgg", "alex"] = "vgg", backbone_weights: str = "", lin_weights: str = "") -> None:
+        super().__init__()
+        if net not in _LPIPS_TAPS:
+            raise ValueError(f"metrics.lpips_net: expected 'vgg' or 'alex', got {net!r}")
+        status = lpips_status(backbone_weights, lin_weights)
+        if status != "computed":
+            raise FileNotFoundError(f"LPIPS: {status}")
+        self.net = net
+        feats = vgg_features("vgg16") if net == "vgg" else alexnet_features()
+        load_features_state(feats, backbone_weights)
+        self.taps = _LPIPS_TAPS[net]
+        self.features = feats[: self.taps[-1] + 1]
+        chans = _LPIPS_CHANNELS[net]
+        self.lins = nn.ModuleList([nn.Conv2d(c, 1, 1, bias=False) for c in chans])
+        sd = torch.load(lin_weights, map_location="cpu", weights_only=True)
+        for k, lin in enumerate(self.lins):
+            key = f"lin{k}.model.1.weight"
+            if key not in sd or sd[key].shape != lin.weight.shape:
+                raise ValueError(f"LPIPS lin weights {lin_weights!r}: expected {key} of shape {tuple(lin.weight.shape)}")
+            lin.weight.data.copy_(sd[key])
+        self.register_buffer("shift", torch.tensor([-0.030, -0.088, -0.188]).view(1, 3, 1, 1))
+        self.register_buffer("scale", torch.tensor([0.458, 0.448, 0.450]).view(1, 3, 1, 1))
+        self.requires_grad_(False)
+        self.eval()
+
+    def _taps(self, x: torch.Tensor) -> list[torch.Tensor]:
+        out = []
+        for i, layer in enumerate(self.features):
+            x = layer(x)
+            if i in self.taps:
+                out.append(x)
+        return out
+
+    def forward(self, pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
+        p, single = _batched(pred, "pred")
+        g, _ = _batched(gt, "gt")
+        x = (p.float().permute(0, 3, 1, 2) * 2 - 1 - self.shift) / self.scale
+        y = (g.float().permute(0, 3, 1, 2) * 2 - 1 - self.shift) / self.scale
+        total = 0.0
+        for lin, fx, fy in zip(self.lins, self._taps(x), self._taps(y)):
+            nx = fx / (fx.pow(2).sum(1, keepdim=True).sqrt() + 1e-10)
+            ny = fy / (fy.pow(2).sum(1, keepdim=True).sqrt() + 1e-10)
+            total = total + lin((nx - ny) ** 2).mean((1, 2, 3))
+        return total[0] if single else total
+
+
+def build_lpips(net: str = "vgg", backbone_weights: str | None = None, lin_weights: str | None = None) -> LPIPS | None:
+    """An LPIPS module when both weight files exist, else None (see lpips_status for the reason to record)."""
+    if lpips_status(backbone_weights, lin_weights) != "computed":
+        return None
+    return LPIPS(net, backbone_weights, lin_weights)

@@ -1,0 +1,182 @@
+"""Motion-trend decoder: encoding of the canonical position ⊕ h_t -> Δx, Δs, Δq, f_mt; pure-torch hash grid."""
+
+from __future__ import annotations
+
+import math
+from typing import Literal
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from realityavatar.geometry import quat_multiply
+from realityavatar.model.skinning import FrequencyEncoding
+
+# Spatial-hash primes of Instant-NGP (Müller et al. 2022); the first is 1 so the x axis stays coherent.
+_PRIMES = (1, 2654435761, 805459861)
+
+
+class HashEncoding(nn.Module):
+    """Multi-resolution hash encoding (Instant-NGP) in pure torch, all levels in one gather.
+
+    Input u [N,3] in [0,1]^3 -> [N, num_levels * features_per_level]. Levels whose dense grid fits the table
+    are indexed densely (no collisions); finer levels use the XOR spatial hash. Trilinear interpolation of
+    the 8 voxel corners.
+    """
+
+    def __init__(
+        self,
+        num_levels: int = 16,
+        features_per_level: int = 2,
+        log2_table_size: int = 16,
+        base_resolution: int = 16,
+        max_resolution: int = 1024,
+        init_std: float = 1e-4,
+    ) -> None:
+        super().__init__()
+        self.num_levels = num_levels
+        self.features_per_level = features_per_level
+        self.table_size = 2**log2_table_size
+        growth = math.exp((math.log(max_resolution) - math.log(base_resolution)) / max(num_levels - 1, 1))
+        res = [int(math.floor(base_resolution * growth**lvl)) for lvl in range(num_levels)]
+        dense = [(r + 1) ** 3 <= self.table_size for r in res]
+        sizes = [(r + 1) ** 3 if d else self.table_size for r, d in zip(res, dense)]
+        offsets = [0]
+        for s in sizes[:-1]:
+            offsets.append(offsets[-1] + s)
+        self.register_buffer("resolution", torch.tensor(res, dtype=torch.long), persistent=False)  # [L]
+        self.register_buffer("dense", torch.tensor(dense), persistent=False)  # [L]
+        self.register_buffer("sizes", torch.tensor(sizes, dtype=torch.long), persistent=False)  # [L]
+        self.register_buffer("offsets", torch.tensor(offsets, dtype=torch.long), persistent=False)  # [L]
+        self.register_buffer("primes", torch.tensor(_PRIMES, dtype=torch.long), persistent=False)
+        self.table = nn.Parameter(torch.empty(sum(sizes), features_per_level).uniform_(-init_std, init_std))
+        self.out_dim = num_levels * features_per_level
+
+    def forward(self, u: torch.Tensor) -> torch.Tensor:
+        """u [N,3] in [0,1]^3 (clamped) -> [N, L*F]. No gradient flows to u: the table is the learned part."""
+        u = u.detach().clamp(0.0, 1.0)
+        N = u.shape[0]
+        pos = u[:, None, :] * self.resolution[None, :, None].to(u.dtype)  # [N,L,3]
+        base = pos.floor().long().clamp(max=self.resolution[None, :, None])
+        frac = pos - base  # [N,L,3]
+        # Per-axis corner coordinates [N,L,2]; combining axes by broadcasting avoids [N,L,8,3] temporaries.
+        cx, cy, cz = (torch.stack([base[..., a], base[..., a] + 1], -1) for a in range(3))
+        r1 = (self.resolution + 1)[None, :, None]  # [1,L,1]
+        dense_idx = cx[..., :, None, None] + r1[..., None, None] * (cy[..., None, :, None] + r1[..., None, None] * cz[..., None, None, :])
+        hashed = (cx * self.primes[0])[..., :, None, None] ^ (cy * self.primes[1])[..., None, :, None] ^ (cz * self.primes[2])[..., None, None, :]
+        hashed = hashed & (self.table_size - 1)
+        idx = torch.where(self.dense[None, :, None, None, None], dense_idx, hashed).reshape(N, self.num_levels, 8)
+        idx = idx + self.offsets[None, :, None]  # [N,L,8]
+        wx, wy, wz = (torch.stack([1 - frac[..., a], frac[..., a]], -1) for a in range(3))
+        w = (wx[..., :, None, None] * wy[..., None, :, None] * wz[..., None, None, :]).reshape(N, self.num_levels, 8)
+        return _HashGather.apply(self.table, idx, w).reshape(N, -1)
+
+
+class _HashGather(torch.autograd.Function):
+    """out[n,l] = sum_c w[n,l,c] table[idx[n,l,c]]; backward by index_add_ (the generic embedding backward sorts)."""
+
+    @staticmethod
+    def forward(ctx, table: torch.Tensor, idx: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+        N, L, C = idx.shape
+        rows = table.index_select(0, idx.reshape(-1)).reshape(N, L, C, -1)  # [N,L,8,F]
+        ctx.save_for_backward(idx, w)
+        ctx.table_shape = table.shape
+        return torch.einsum("nlc,nlcf->nlf", w, rows)
+
+    @staticmethod
+    def backward(ctx, grad_out: torch.Tensor):
+        idx, w = ctx.saved_tensors
+        contrib = (w[..., None] * grad_out[:, :, None, :]).reshape(-1, ctx.table_shape[1])  # [N*L*8,F]
+        grad_table = grad_out.new_zeros(ctx.table_shape).index_add_(0, idx.reshape(-1), contrib)
+        return grad_table, None, None
+
+
+class MotionTrendDecoder(nn.Module):
+    """Paper's motion-trend decoder F_mt: enc(x_c) ⊕ h_t -> Δx [B,N,3], Δs [B,N,3] (log), Δq [B,N,4], f_mt [B,N,F].
+
+    x_c is normalised to [0,1]^3 with the box (bbox_min, bbox_max) (persistent buffers; `fit_bounds` sets
+    them from the canonical Gaussians). num_layers hidden layers of hidden_dim (SiLU), then one output layer
+    whose Δx/Δs/Δq rows start at zero so the deformation starts at the identity.
+    """
+
+    def __init__(
+        self,
+        cond_dim: int = 128,
+        encoding: Literal["hash", "frequency"] = "hash",
+        hidden_dim: int = 128,
+        num_layers: int = 3,
+        feature_dim: int = 16,
+        num_freqs: int = 6,
+        hash_levels: int = 16,
+        hash_features_per_level: int = 2,
+        hash_log2_table_size: int = 16,
+        hash_base_resolution: int = 16,
+        hash_max_resolution: int = 1024,
+        bbox_min: tuple[float, float, float] = (-1.2, -1.5, -1.2),
+        bbox_max: tuple[float, float, float] = (1.2, 1.0, 1.2),
+    ) -> None:
+        super().__init__()
+        if encoding == "hash":
+            self.encoding: nn.Module = HashEncoding(
+                hash_levels, hash_features_per_level, hash_log2_table_size, hash_base_resolution, hash_max_resolution
+            )
+        elif encoding == "frequency":
+            self.encoding = FrequencyEncoding(num_freqs)
+        else:
+            raise ValueError(f"deformer.encoding: expected 'hash' or 'frequency', got {encoding!r}")
+        self.encoding_kind = encoding
+        self.feature_dim = feature_dim
+        self.register_buffer("bbox_min", torch.tensor(bbox_min, dtype=torch.float32))
+        self.register_buffer("bbox_max", torch.tensor(bbox_max, dtype=torch.float32))
+        # First layer split into position and condition parts: h_t's contribution is computed once per batch item.
+        self.in_x = nn.Linear(self.encoding.out_dim, hidden_dim)
+        self.in_h = nn.Linear(cond_dim, hidden_dim, bias=False)
+        hidden: list[nn.Module] = []
+        for _ in range(num_layers - 1):
+            hidden += [nn.Linear(hidden_dim, hidden_dim), nn.SiLU()]
+        self.hidden = nn.Sequential(*hidden)
+        self.out = nn.Linear(hidden_dim, 3 + 3 + 4 + feature_dim)
+        with torch.no_grad():
+            self.out.weight[:10].zero_()
+            self.out.bias[:10].zero_()
+
+    @torch.no_grad()
+    def fit_bounds(self, points: torch.Tensor, padding: float = 0.1) -> None:
+        """Set the normalisation box from points [P,3] with a relative padding per axis."""
+        lo, hi = points.min(0).values, points.max(0).values
+        pad = (hi - lo) * padding
+        self.bbox_min.copy_(lo - pad)
+        self.bbox_max.copy_(hi + pad)
+
+    def forward(self, x_c: torch.Tensor, h_t: torch.Tensor) -> dict[str, torch.Tensor]:
+        """x_c [N,3], h_t [B,H] -> dict(dx [B,N,3], ds [B,N,3], dq [B,N,4] unit wxyz, f_mt [B,N,F])."""
+        u = (x_c - self.bbox_min) / (self.bbox_max - self.bbox_min)
+        if self.encoding_kind == "frequency":
+            u = u * 2 - 1
+        ex = self.in_x(self.encoding(u))  # [N,H]
+        eh = self.in_h(h_t)  # [B,H]
+        z = F.silu(ex[None] + eh[:, None])  # [B,N,H]
+        o = self.out(self.hidden(z))  # [B,N,10+F]
+        dq = o[..., 6:10] + o.new_tensor([1.0, 0.0, 0.0, 0.0])
+        return {"dx": o[..., :3], "ds": o[..., 3:6], "dq": F.normalize(dq, dim=-1), "f_mt": o[..., 10:]}
+
+    def param_groups(self) -> dict[str, list[nn.Parameter]]:
+        enc = list(self.encoding.parameters())
+        ids = {id(p) for p in enc}
+        groups = {"deformer": [p for p in self.parameters() if id(p) not in ids]}
+        if enc:
+            groups["deformer_encoding"] = enc
+        return groups
+
+
+def apply_deformation(
+    means: torch.Tensor, log_scales: torch.Tensor, quats: torch.Tensor, out: dict[str, torch.Tensor]
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Paper eqs.: x_e = x_c + Δx, R_e = ΔR R_c (q_e = Δq ⊗ q_c), s_e = s_c exp(Δs) (log_s_e = log_s_c + Δs).
+
+    means, log_scales [N,3], quats [N,4] -> x_e [B,N,3], log_s_e [B,N,3], q_e [B,N,4] (unit).
+    """
+    x_e = means + out["dx"]
+    log_s_e = log_scales + out["ds"]
+    q_e = F.normalize(quat_multiply(out["dq"], F.normalize(quats, dim=-1).expand_as(out["dq"])), dim=-1)
+    return x_e, log_s_e, q_e

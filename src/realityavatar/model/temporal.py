@@ -1,0 +1,45 @@
+"""Temporal modules over the window of pose features f_p: LSTM/GRU (output at the current frame) or none."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import torch
+from torch import nn
+
+
+class RecurrentTemporal(nn.Module):
+    """LSTM or GRU over f_p [B,T,D] (oldest first); h_t is the output at the last (current) time step."""
+
+    def __init__(self, kind: Literal["lstm", "gru"] = "lstm", in_dim: int = 128, hidden_dim: int = 128, num_layers: int = 1):
+        super().__init__()
+        if kind not in ("lstm", "gru"):
+            raise ValueError(f"temporal.kind: expected 'lstm' or 'gru', got {kind!r}")
+        rnn = nn.LSTM if kind == "lstm" else nn.GRU
+        self.kind = kind
+        self.rnn = rnn(in_dim, hidden_dim, num_layers=num_layers, batch_first=True)
+        self.out_dim = hidden_dim
+
+    def forward(self, f_p: torch.Tensor) -> torch.Tensor:
+        """f_p [B,T,D] -> h_t [B,hidden_dim]."""
+        out, _ = self.rnn(f_p)
+        return out[:, -1]
+
+    def param_groups(self) -> dict[str, list[nn.Parameter]]:
+        return {"temporal": list(self.parameters())}
+
+
+class NoTemporal(nn.Module):
+    """Ablation 'no temporal module': uses only the current frame f_p[:, -1] through a Linear+SiLU of the same width."""
+
+    def __init__(self, in_dim: int = 128, hidden_dim: int = 128):
+        super().__init__()
+        self.net = nn.Sequential(nn.Linear(in_dim, hidden_dim), nn.SiLU())
+        self.out_dim = hidden_dim
+
+    def forward(self, f_p: torch.Tensor) -> torch.Tensor:
+        """f_p [B,T,D] -> h_t [B,hidden_dim]; frames before the last are ignored."""
+        return self.net(f_p[:, -1])
+
+    def param_groups(self) -> dict[str, list[nn.Parameter]]:
+        return {"temporal": list(self.parameters())}
