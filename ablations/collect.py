@@ -13,10 +13,18 @@ from pathlib import Path
 if __package__ in (None, ""):  # run as a script: make `ablations` importable from the repository root
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-import pandas as pd  # noqa: E402
+import pandas as pd
 
-from ablations.common import (  # noqa: E402
-    RUN_NUMBERS, SPLITS, Runs, aggregate, display_label, latex_escape, load_runs, metric_key, provenance,
+from ablations.common import (
+    RUN_NUMBERS,
+    SPLITS,
+    Runs,
+    aggregate,
+    display_label,
+    latex_escape,
+    load_runs,
+    metric_key,
+    provenance,
     within_spread,
 )
 
@@ -26,22 +34,24 @@ MARK_TEX = r"^{\dagger}"
 SPREAD_RULE = "|Δmean| ≤ max(std of the row, std of the reference row)"
 
 
+def _column(q, csv, header, tex, group=None, scale=1.0, dec=0, mark=False, lpips=False) -> dict:
+    return {"q": q, "csv": csv, "header": header, "tex": tex, "group": group, "scale": scale, "dec": dec,
+            "mark": mark, "lpips": lpips}
+
+
 def _columns() -> list[dict]:
     """The table's columns: quantity key, CSV name, header, scale, decimals, whether the spread mark applies."""
     cols = []
     for split in SPLITS:
-        for name, arrow, dec, scale in (("psnr", "↑", 2, 1.0), ("ssim", "↑", 4, 1.0), ("lpips", "↓", 2, 1000.0)):
+        for name, up, dec, scale in (("psnr", True, 2, 1.0), ("ssim", True, 4, 1.0), ("lpips", False, 2, 1000.0)):
             short = f"{split}_{name}" + ("_x1000" if scale != 1.0 else "")
-            cols.append(dict(q=metric_key(split, name), csv=short, header=f"{SPLIT_SHORT[split]} {name.upper()}{arrow}",
-                             tex=f"{name.upper()}$\\{'uparrow' if arrow == '↑' else 'downarrow'}$",
-                             group=split, scale=scale, dec=dec, mark=True, lpips=name == "lpips"))
+            header = f"{SPLIT_SHORT[split]} {name.upper()}{'↑' if up else '↓'}"
+            tex = f"{name.upper()}$\\{'uparrow' if up else 'downarrow'}$"
+            cols.append(_column(metric_key(split, name), short, header, tex, split, scale, dec, True, name == "lpips"))
     cols += [
-        dict(q="train_seconds", csv="train_seconds", header="Train time (s)", tex="Train (s)", group=None,
-             scale=1.0, dec=0, mark=False, lpips=False),
-        dict(q="num_gaussians", csv="num_gaussians", header="Gaussians", tex="Gaussians", group=None,
-             scale=1.0, dec=0, mark=False, lpips=False),
-        dict(q="num_parameters", csv="num_parameters", header="Parameters", tex="Params", group=None,
-             scale=1.0, dec=0, mark=False, lpips=False),
+        _column("train_seconds", "train_seconds", "Train time (s)", "Train (s)"),
+        _column("num_gaussians", "num_gaussians", "Gaussians", "Gaussians"),
+        _column("num_parameters", "num_parameters", "Parameters", "Params"),
     ]
     return cols
 
@@ -74,7 +84,7 @@ def build_table(runs: Runs) -> tuple[pd.DataFrame, pd.DataFrame, dict]:
              for c in cols}
     cells = {"md": [], "tex": []}
     for i, r in table.iterrows():
-        for fmt in cells:
+        for fmt in ("md", "tex"):
             row = []
             for c in cols:
                 text = _cell(r[f"{c['q']}:mean"], r[f"{c['q']}:std"], c, fmt == "tex")
@@ -87,11 +97,11 @@ def build_table(runs: Runs) -> tuple[pd.DataFrame, pd.DataFrame, dict]:
 
 
 def _footnotes(runs: Runs, table: pd.DataFrame, cells_md: list[list[str]], prov: dict, latex: bool) -> list[str]:
-    seeds = sorted(set(int(s) for s in runs.frame["seed"]))
+    seeds = sorted({int(s) for s in runs.frame["seed"]})
     ref = display_label(runs.reference, latex)
     notes = [
-        f"Mean ± std over seeds ({', '.join(map(str, seeds))}; sample std) per scene, then averaged over "
-        f"{len(runs.scenes)} scene(s): {', '.join(runs.scenes)}. LPIPS ×1000.",
+        (f"Mean ± std over seeds ({', '.join(map(str, seeds))}; sample std) per scene, then averaged over "
+        f"{len(runs.scenes)} scene(s): {', '.join(runs.scenes)}. LPIPS ×1000."),
         f"{MARK} difference from the reference row ({ref}) within the seed spread: {SPREAD_RULE}.",
     ]
     nc = any(math.isnan(r[f"{metric_key(s, 'lpips')}:mean"]) for _, r in table.iterrows() for s in SPLITS)

@@ -13,14 +13,14 @@ from pathlib import Path
 if __package__ in (None, ""):  # run as a script: make `ablations` importable from the repository root
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-import matplotlib  # noqa: E402
+import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import pandas as pd  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
+import pandas as pd
 
-from ablations.common import aggregate, display_label, load_runs, metric_key, provenance  # noqa: E402
+from ablations.common import aggregate, display_label, load_runs, metric_key, provenance
 
 PSNR = metric_key("novel_view", "psnr")
 QUANTITIES = {"train_seconds": "train_seconds", "render_fps": "render_fps", PSNR: "novel_view_psnr",
@@ -91,7 +91,7 @@ def pareto(dirs, out: str | Path | None = None, prefer: str = "eval", name: str 
     fig.get_layout_engine().set(rect=(0, 0.04, 1, 0.96))   # room for the provenance line at the bottom
     _panel(axes[0], df, "train_seconds", "training time (s) ↓", "pareto_time", higher_x_better=False)
     _panel(axes[1], df, "render_fps", "render speed (FPS) ↑", "pareto_fps", higher_x_better=True)
-    seeds = sorted(set(int(s) for s in runs.frame["seed"]))
+    seeds = sorted({int(s) for s in runs.frame["seed"]})
     fig.suptitle(f"{name}: speed vs accuracy — mean ± std over seeds {seeds}, averaged over "
                  f"{', '.join(runs.scenes)}; marker area ∝ Gaussians", fontsize=10)
     fig.text(0.01, 0.005, f"commit(s) {', '.join(prov['commits'])} · " + " ; ".join(prov["commands"]),

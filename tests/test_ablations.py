@@ -19,9 +19,9 @@ from hydra.core.override_parser.overrides_parser import OverridesParser
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from ablations.collect import collect  # noqa: E402
-from ablations.common import load_runs  # noqa: E402
-from ablations.pareto import pareto  # noqa: E402
+from ablations.collect import collect
+from ablations.common import load_runs
+from ablations.pareto import pareto
 
 CONF = ROOT / "conf"
 SEEDS = {"0", "1", "2"}
@@ -216,7 +216,7 @@ def write_fake_sweep(root: Path, lpips_missing_for: str = "no_lstm") -> Path:
 def test_collect_table_numbers(tmp_path):
     sweep = write_fake_sweep(tmp_path / "outputs/sweeps/paper/2025-01-01_00-00-00")
     out = tmp_path / "results"
-    csv, out_dir = collect(sweep, out)
+    _csv, out_dir = collect(sweep, out)
     assert out_dir == out
     t = pd.read_csv(out / "table.csv").set_index("label")
     assert list(t.index) == ["full", "no_zc", "no_lstm"]
