@@ -91,8 +91,9 @@ class AvatarDataModule(pl.LightningDataModule):
     reader "zju": <root>/<sequence> in the ARAH layout; splits come from train_views/test_views and the frame ranges
     zju_train_frames / zju_novel_view_frames / zju_novel_pose_frames ([start, end, step], end 0 = to the last frame).
     body: the BodyModel in use; its rest pelvis converts Rh/Th placement to the SMPL convention (`pelvis` overrides;
-    with neither, canonical_joints.pkl's pelvis is used). build_preset: build the synthetic scene in prepare_data()
-    when its folder is missing (realityavatar.data.synthetic.build_scene(build_preset, root, build_seed)).
+    with neither, canonical_joints.pkl's pelvis is used). build_preset/build_sequence/build_seed: prepare_data() calls
+    realityavatar.data.synthetic.build_scene(build_preset, root, build_seed, sequence=build_sequence), which reuses an
+    identical existing build; `sequence` must be the scene name it produces (<garment>_<motion>_<preset>).
     """
 
     def __init__(
@@ -117,6 +118,7 @@ class AvatarDataModule(pl.LightningDataModule):
         body=None,
         pelvis: Sequence[float] | None = None,
         build_preset: str | None = None,
+        build_sequence: str | None = None,
         build_seed: int = 0,
         zju_train_frames: Sequence[int] = (0, 0, 1),
         zju_novel_view_frames: Sequence[int] | None = None,
@@ -144,7 +146,7 @@ class AvatarDataModule(pl.LightningDataModule):
         self.undistort, self.cache_images = undistort, cache_images
         self.body = body
         self.pelvis = pelvis
-        self.build_preset, self.build_seed = build_preset, int(build_seed)
+        self.build_preset, self.build_sequence, self.build_seed = build_preset, build_sequence, int(build_seed)
         self.zju_frames = {
             "train": list(zju_train_frames),
             "novel_view": None if zju_novel_view_frames is None else list(zju_novel_view_frames),
@@ -169,24 +171,26 @@ class AvatarDataModule(pl.LightningDataModule):
         return self.reader == "i3d" and not split_folder(Path(self.root), self.sequence, "train").is_dir()
 
     def prepare_data(self) -> None:
-        """Build the synthetic scene when it is missing and `build_preset` is set (runs on one process only)."""
-        if self.build_preset and self._scene_missing():
-            from realityavatar.data.synthetic import build_scene
+        """With `build_preset` set, (re)build the synthetic scene unless an identical build exists (one process)."""
+        if not self.build_preset:
+            return
+        from realityavatar.data.synthetic import build_scene
 
-            log.info("building scene preset %r under %s (seed %d)", self.build_preset, self.root, self.build_seed)
-            build_scene(self.build_preset, self.root, self.build_seed)
-            if self._scene_missing():
-                raise FileNotFoundError(
-                    f"build_scene({self.build_preset!r}) did not produce {self.root}/{self.sequence}-train; "
-                    f"check data.sequence against the preset's scene name"
-                )
+        log.info("scene preset %r, sequence %r under %s (seed %d)", self.build_preset, self.build_sequence, self.root,
+                 self.build_seed)
+        prefix = build_scene(self.build_preset, self.root, self.build_seed, sequence=self.build_sequence)
+        if Path(prefix).name != self.sequence or self._scene_missing():
+            raise FileNotFoundError(
+                f"build_scene({self.build_preset!r}, sequence={self.build_sequence!r}) wrote {prefix}, not "
+                f"{self.root}/{self.sequence}-train; set data.sequence to {Path(prefix).name!r}"
+            )
 
     def read_scene(self) -> SceneData:
         if self.reader == "i3d":
             from realityavatar.data.i3d import read_i3d
 
-            hint = (f"build it with realityavatar-make-scene (preset {self.build_preset!r})" if self.build_preset
-                    else "check data.root and data.sequence (expected <root>/<sequence>-train)")
+            hint = ("build it with `realityavatar-make-scene` or set data.build_preset (ci|demo|full) so the "
+                    "DataModule builds it; otherwise check data.root and data.sequence")
             return read_i3d(self.root, self.sequence, self._pelvis(), build_hint=hint)
         from realityavatar.data.zju import read_zju
 

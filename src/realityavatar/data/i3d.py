@@ -75,30 +75,30 @@ def read_mesh_infos(folder: Path, pelvis: torch.Tensor) -> PoseTable:
     if not isinstance(raw, dict) or not raw:
         raise SceneFormatError(f"{path}: expected a non-empty dict keyed by frame name, got {type(raw).__name__}")
     frames, poses, Rh, Th = [], [], [], []
-    seen = set()
+    seen, bad_frames = set(), set()
     for name, info in raw.items():
         frame, _ = parse_frame_name(str(name), str(path))
         where = f"entry {name!r}"
         p = require_key(info, "poses", path, where, "[72] axis-angle SMPL pose")
         rh = require_key(info, "Rh", path, where, "[3] global rotation (axis-angle)")
         th = require_key(info, "Th", path, where, "[3] global translation")
-        if frame in seen:
-            continue
-        seen.add(frame)
         if p.size != 72 or rh.size != 3 or th.size != 3:
             raise SceneFormatError(
                 f"{path}: {where} has poses {p.shape}, Rh {rh.shape}, Th {th.shape}; expected [72], [3], [3]"
             )
+        if not (np.isfinite(p).all() and np.isfinite(rh).all() and np.isfinite(th).all()):
+            bad_frames.add(frame)  # checked on every entry: a per-view duplicate may be the broken one
+        if frame in seen:
+            continue
+        seen.add(frame)
         frames.append(frame)
         poses.append(p.reshape(24, 3))
         Rh.append(rh.reshape(3))
         Th.append(th.reshape(3))
+    if bad_frames:
+        raise SceneFormatError(f"{path}: non-finite (NaN/inf) poses/Rh/Th at frames {sorted(bad_frames)[:10]}")
     poses_t = torch.as_tensor(np.stack(poses))  # [F,24,3] float64
     Rh_t, Th_t = torch.as_tensor(np.stack(Rh)), torch.as_tensor(np.stack(Th))  # [F,3]
-    finite = torch.isfinite(poses_t).flatten(1).all(1) & torch.isfinite(Rh_t).all(1) & torch.isfinite(Th_t).all(1)
-    if not finite.all():
-        bad = [frames[i] for i in (~finite).nonzero().flatten().tolist()][:10]
-        raise SceneFormatError(f"{path}: non-finite (NaN/inf) poses/Rh/Th at frames {bad}")
     pose_smpl, transl = rh_th_to_smpl(poses_t, Rh_t, Th_t, pelvis.to(torch.float64))
     return PoseTable(frames, pose_smpl.float(), transl.float(), source=str(path))
 

@@ -1,0 +1,139 @@
+"""Reader for ZJU-MoCap in the ARAH-preprocessed layout (as used by 3DGS-Avatar).
+
+<root>/CoreView_XXX/cam_params.json  {"all_cam_names": [...], "<cam>": {"K": [3,3], "D": [5,1], "R": [3,3], "T": [3,1] m}}
+<root>/CoreView_XXX/<cam>/<idx:06d>.jpg (image) and .png (mask, labels != 0 are the person)
+<root>/CoreView_XXX/models/<idx:06d>.npz  (root_orient [3], pose_body [63], pose_hand [6], trans [3], betas, ...)
+Frame ids are positions in the sorted models/ list (3DGS-Avatar's frame indices); poses are already SMPL-convention.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from realityavatar.data.poses import PoseTable
+from realityavatar.data.records import ImageRecord, SceneData, SceneFormatError, check_shape, require_key
+
+MODEL_KEYS = {"root_orient": 3, "pose_body": 63, "pose_hand": 6, "trans": 3}
+
+
+def read_cam_params(subject_dir: Path) -> dict[str, dict[str, np.ndarray]]:
+    """cam_params.json -> {cam_name: {"K", "viewmat" [4,4] world-to-camera, "dist" [5]}} in file order."""
+    path = subject_dir / "cam_params.json"
+    if not path.is_file():
+        raise FileNotFoundError(f"{path} not found (ZJU-MoCap in the ARAH layout: see README 'Real data')")
+    try:
+        raw = json.loads(path.read_text())
+    except json.JSONDecodeError as e:
+        raise SceneFormatError(f"{path}: not valid JSON ({e})") from e
+    names = raw.get("all_cam_names") or [k for k in raw if k != "all_cam_names"]
+    cams = {}
+    for name in names:
+        name = str(name)
+        if name not in raw:
+            raise SceneFormatError(f"{path}: camera {name!r} is listed in all_cam_names but has no entry")
+        c, where = raw[name], f"camera {name!r}"
+        K = check_shape(require_key(c, "K", path, where, "[3,3] intrinsics"), (3, 3), path, f"{where} K")
+        R = check_shape(require_key(c, "R", path, where, "[3,3] world-to-camera rotation"), (3, 3), path, f"{where} R")
+        T = check_shape(require_key(c, "T", path, where, "[3] translation in metres"), (3,), path, f"{where} T")
+        D = np.asarray(c.get("D", np.zeros(5)), dtype=np.float64).reshape(-1)
+        E = np.eye(4)
+        E[:3, :3], E[:3, 3] = R, T
+        cams[name] = {"K": K, "viewmat": E, "dist": D}
+    return cams
+
+
+def read_models(subject_dir: Path) -> tuple[list[Path], PoseTable, np.ndarray]:
+    """models/*.npz -> (files sorted, PoseTable over frame ids 0..N-1, betas [B] of the first file)."""
+    files = sorted((subject_dir / "models").glob("*.npz"))
+    if not files:
+        raise FileNotFoundError(f"{subject_dir / 'models'}: no <idx:06d>.npz SMPL files")
+    poses, trans, betas = [], [], None
+    for i, f in enumerate(files):
+        try:
+            with np.load(f) as z:
+                d = {k: z[k] for k in z.files}
+        except Exception as e:  # noqa: BLE001
+            raise SceneFormatError(f"{f}: not a readable .npz ({type(e).__name__}: {e})") from e
+        parts = {}
+        for k, n in MODEL_KEYS.items():
+            parts[k] = require_key(d, k, f, "the file", f"[{n}]").reshape(-1)
+            if parts[k].size != n:
+                raise SceneFormatError(f"{f}: {k} has {parts[k].size} values, expected {n}")
+        pose = np.concatenate([parts["root_orient"], parts["pose_body"], parts["pose_hand"]]).reshape(24, 3)
+        if not (np.isfinite(pose).all() and np.isfinite(parts["trans"]).all()):
+            raise SceneFormatError(f"{f}: non-finite (NaN/inf) pose or trans")
+        poses.append(pose)
+        trans.append(parts["trans"])
+        if betas is None and "betas" in d:
+            betas = np.asarray(d["betas"], dtype=np.float64).reshape(-1)
+    table = PoseTable(np.arange(len(files)), np.stack(poses), np.stack(trans), source=str(subject_dir / "models"))
+    return files, table, betas if betas is not None else np.zeros(10)
+
+
+def frame_range(spec: Sequence[int] | None, n: int, what: str) -> list[int]:
+    """[start, end, step] (end 0 or None = to the last frame) -> frame ids, like 3DGS-Avatar's slices."""
+    if spec is None:
+        return []
+    if len(spec) != 3:
+        raise ValueError(f"data.{what}: expected [start, end, step], got {list(spec)}")
+    start, end, step = (int(x) if x is not None else 0 for x in spec)
+    return list(range(n))[slice(start, end if end else None, step or 1)]
+
+
+def read_zju(
+    subject_dir: str | Path,
+    train_views: Sequence[int] | None,
+    test_views: Sequence[int] | None,
+    train_frames: Sequence[int],
+    novel_view_frames: Sequence[int] | None = None,
+    novel_pose_frames: Sequence[int] | None = None,
+) -> SceneData:
+    """Splits: train = train_views x train_frames; novel_view = test_views x novel_view_frames (default: every 30th
+    training frame); novel_pose = test_views x novel_pose_frames (frames outside the training range)."""
+    subject_dir = Path(subject_dir)
+    if not subject_dir.is_dir():
+        raise FileNotFoundError(
+            f"ZJU-MoCap subject folder {subject_dir} not found (set data.root to the folder holding CoreView_XXX)"
+        )
+    cams = read_cam_params(subject_dir)
+    files, table, betas = read_models(subject_dir)
+    n = len(files)
+    all_views = list(cams)
+    tv = [str(v) for v in train_views] if train_views is not None else all_views
+    ev = [str(v) for v in test_views] if test_views is not None else [v for v in all_views if v not in tv]
+    for v in tv + ev:
+        if v not in cams:
+            raise SceneFormatError(f"{subject_dir / 'cam_params.json'}: no camera {v!r} (have {all_views})")
+    train_ids = frame_range(train_frames, n, "zju_train_frames")
+    nv_ids = (frame_range(novel_view_frames, n, "zju_novel_view_frames") if novel_view_frames is not None
+              else train_ids[::30])
+    np_ids = frame_range(novel_pose_frames, n, "zju_novel_pose_frames")
+    overlap = sorted(set(np_ids) & set(train_ids))
+    if overlap:
+        raise ValueError(f"data.zju_novel_pose_frames overlaps the training frames (e.g. {overlap[:5]})")
+
+    def records(views, ids):
+        out = []
+        for f in ids:
+            stem = files[f].stem
+            for v in views:
+                img, mask = subject_dir / v / f"{stem}.jpg", subject_dir / v / f"{stem}.png"
+                if not img.is_file():
+                    raise FileNotFoundError(f"image {img} not found (camera {v}, frame {f})")
+                if not mask.is_file():
+                    raise FileNotFoundError(f"mask {mask} not found (camera {v}, frame {f})")
+                c = cams[v]
+                out.append(ImageRecord(f, int(v), img, mask, c["K"], c["viewmat"], c["dist"], "nonzero"))
+        return out
+
+    splits = {"train": records(tv, train_ids)}
+    if nv_ids and ev:
+        splits["novel_view"] = records(ev, nv_ids)
+    if np_ids and ev:
+        splits["novel_pose"] = records(ev, np_ids)
+    return SceneData(splits=splits, poses=table, source=str(subject_dir),
+                     meta={"reader": "zju", "betas": betas.tolist()})
