@@ -1,0 +1,251 @@
+"""Tests of the synthetic scene generator: layout, masks, joint projections, Rh/Th, determinism, cache, bad
+parameters, and the hysteresis of the simulated garment."""
+
+import hashlib
+import json
+import pickle
+from pathlib import Path
+
+import imageio.v2 as imageio
+import numpy as np
+import pytest
+import torch
+
+from realityavatar.body import MannequinBody, rh_th_to_smpl
+from realityavatar.data.synthetic import build_scene, resolve_params, scene_paths
+from realityavatar.data.synthetic.cameras import look_at, novel_view_ids, ring_cameras
+from realityavatar.data.synthetic.motions import MOTIONS, make_motion
+from realityavatar.geometry import axis_angle_to_matrix
+
+
+@pytest.fixture(scope="module")
+def body():
+    return MannequinBody()
+
+
+@pytest.fixture(scope="module")
+def ci_scene(tmp_path_factory):
+    root = tmp_path_factory.mktemp("scenes_a")
+    return build_scene("ci", root, seed=0, progress=False)
+
+
+def _tree_hashes(root: Path) -> dict[str, str]:
+    return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def _load(path):
+    with open(path, "rb") as f:
+        return pickle.load(f)
+
+
+def test_layout(ci_scene):
+    paths = scene_paths(ci_scene)
+    meta = json.loads(paths["meta"].read_text())
+    p = meta["params"]
+    assert meta["cameras"]["train"] == [0, 1, 3] and meta["cameras"]["novel_view"] == [2]
+    n_tr, n_np = p["train_frames"], p["novel_frames"]
+    expect = {"train": n_tr * 3, "novel_view": n_tr * 1, "novel_pose": n_np * 4}
+    for split, count in expect.items():
+        d = paths[split]
+        images = sorted(x.name for x in (d / "images").iterdir())
+        masks = sorted(x.name for x in (d / "masks").iterdir())
+        assert len(images) == count and images == masks
+        cams, infos = _load(d / "cameras.pkl"), _load(d / "mesh_infos.pkl")
+        assert sorted(cams) == sorted(infos) == [n[:-4] for n in images]
+        name = images[0][:-4]
+        assert name.startswith("frame_") and "_view_" in name
+        c, m = cams[name], infos[name]
+        assert c["intrinsics"].shape == (3, 3) and c["extrinsics"].shape == (4, 4) and c["distortions"].shape == (5,)
+        assert m["poses"].shape == (72,) and np.all(m["poses"][:3] == 0)
+        assert m["Rh"].shape == m["Th"].shape == (3,)
+        assert m["joints"].shape == m["tpose_joints"].shape == (24, 3)
+        assert _load(d / "canonical_joints.pkl")["joints"].shape == (24, 3)
+        frames = {int(n[6:12]) for n in cams}
+        assert frames == (set(range(n_tr)) if split != "novel_pose" else set(range(n_tr, n_tr + n_np)))
+        img = imageio.imread(d / "images" / images[0])
+        assert img.shape == (p["height"], p["width"], 3) and img.dtype == np.uint8
+    g = np.load(paths["garment"])
+    assert g["vertices"].shape[0] == n_tr + n_np and g["vertices"].shape[2] == 3
+    assert g["faces"].max() < g["vertices"].shape[1] and list(g["frames"]) == list(range(n_tr + n_np))
+    assert meta["seed"] == 0 and meta["body"] == "mannequin" and meta["versions"]["mujoco"]
+
+
+def test_masks_match_silhouettes(ci_scene):
+    for split in ("train", "novel_view", "novel_pose"):
+        d = scene_paths(ci_scene)[split]
+        for img_path in sorted((d / "images").iterdir()):
+            rgb = imageio.imread(img_path)
+            mask = imageio.imread(d / "masks" / img_path.name)
+            assert set(np.unique(mask)) <= {0, 255}
+            assert np.array_equal(rgb.max(-1) > 0, mask > 0), img_path.name
+            assert 0.03 < (mask > 0).mean() < 0.6  # the subject is in view and not clipped to a sliver
+
+
+def test_joints_project_inside_masks(ci_scene, body):
+    # Pelvis and head joints (world = R(Rh) joints + Th) fall on the subject in every camera and frame.
+    for split in ("train", "novel_view", "novel_pose"):
+        d = scene_paths(ci_scene)[split]
+        cams, infos = _load(d / "cameras.pkl"), _load(d / "mesh_infos.pkl")
+        for name, cam in cams.items():
+            info = infos[name]
+            R = axis_angle_to_matrix(torch.tensor(info["Rh"], dtype=torch.float64)).numpy()
+            world = info["joints"][[0, 15]] @ R.T + info["Th"]
+            x = (cam["extrinsics"][:3, :3] @ world.T).T + cam["extrinsics"][:3, 3]
+            uv = (cam["intrinsics"] @ x.T).T
+            uv = uv[:, :2] / uv[:, 2:]
+            mask = imageio.imread(d / "masks" / f"{name}.png")
+            H, W = mask.shape
+            for u, v in uv:
+                assert 0 <= u < W and 0 <= v < H, name
+                assert mask[int(v), int(u)] == 255, (name, u, v)
+
+
+def test_rh_th_readback_reproduces_world_joints(ci_scene, body):
+    d = scene_paths(ci_scene)["novel_pose"]
+    infos = _load(d / "mesh_infos.pkl")
+    for name in sorted(infos)[::7]:
+        m = infos[name]
+        pose = torch.tensor(m["poses"]).reshape(24, 3)
+        assert torch.allclose(body.joints(pose), torch.tensor(m["joints"]), atol=1e-5)  # stored in the body frame
+        R = axis_angle_to_matrix(torch.tensor(m["Rh"]))
+        world = torch.tensor(m["joints"]) @ R.T + torch.tensor(m["Th"])
+        smpl_pose, transl = rh_th_to_smpl(pose, torch.tensor(m["Rh"]), torch.tensor(m["Th"]), body.rest_joints[0])
+        assert torch.allclose(body.joints(smpl_pose, transl), world, atol=1e-4)
+        assert torch.allclose(torch.tensor(m["tpose_joints"]), body.rest_joints)
+
+
+def test_feet_on_ground_and_garment_near_body(ci_scene, body):
+    infos = _load(scene_paths(ci_scene)["train"] / "mesh_infos.pkl")
+    m = infos["frame_000000_view_00"]
+    v = body.posed_vertices(torch.tensor(m["poses"]).reshape(24, 3)).numpy()
+    R = axis_angle_to_matrix(torch.tensor(m["Rh"], dtype=torch.float64)).numpy()
+    world = v @ R.T + m["Th"]
+    assert abs(world[:, 1].min()) < 0.02  # soles on y = 0 (world y up)
+    g = np.load(scene_paths(ci_scene)["garment"])["vertices"][0]
+    assert 0.2 < g[:, 1].min() < 1.0 and g[:, 1].max() < 1.3  # a skirt: from about knee to waist height
+
+
+def test_determinism_cache_and_other_seed(ci_scene, tmp_path):
+    root_a = ci_scene.parent
+    root_b = tmp_path / "b"
+    prefix_b = build_scene("ci", root_b, seed=0, progress=False)
+    assert _tree_hashes(root_a) == _tree_hashes(root_b)  # same seed -> byte-identical files
+    meta = scene_paths(prefix_b)["meta"]
+    stamp = meta.stat().st_mtime_ns
+    assert build_scene("ci", root_b, seed=0, progress=False) == prefix_b  # cached: nothing rewritten
+    assert meta.stat().st_mtime_ns == stamp
+    build_scene("ci", root_b, seed=1, progress=False)  # parameters changed -> rebuilt in place
+    hb = _tree_hashes(root_b)
+    ha = _tree_hashes(root_a)
+    assert json.loads(meta.read_text())["seed"] == 1
+    assert hb[f"{prefix_b.name}-garment.npz"] != ha[f"{prefix_b.name}-garment.npz"]
+    changed = [k for k in ha if k.endswith(".png") and ha[k] != hb.get(k)]
+    assert len(changed) > 0.5 * sum(k.endswith(".png") for k in ha)
+    assert not [p for p in root_b.iterdir() if p.name.startswith(".tmp")]
+
+
+@pytest.mark.parametrize("overrides, match", [
+    ({"cameras": 0}, "cameras"),
+    ({"train_frames": -3}, "train_frames"),
+    ({"novel_frames": -1}, "novel_frames"),
+    ({"motion": "dance"}, "motion"),
+    ({"garment": "cape"}, "garment"),
+    ({"sequence": "cape_spin"}, "sequence"),
+    ({"width": 0}, "width"),
+    ({"novel_view_cameras": 4}, "novel_view_cameras"),
+    ({"fps": 0}, "fps"),
+    ({"colour": 1}, "unknown keys"),
+])
+def test_bad_parameters_raise_before_writing(tmp_path, overrides, match):
+    root = tmp_path / "never"
+    with pytest.raises(ValueError, match=match):
+        build_scene("ci", root, seed=0, overrides=overrides, progress=False)
+    assert not root.exists()
+
+
+def test_unknown_preset_and_short_spin(tmp_path):
+    with pytest.raises(ValueError, match="preset"):
+        build_scene("huge", tmp_path / "x")
+    with pytest.raises(ValueError, match="too short"):
+        build_scene("ci", tmp_path / "x", overrides={"train_frames": 8}, progress=False)
+    assert not (tmp_path / "x").exists()
+
+
+def test_failure_mid_write_leaves_no_scene(tmp_path, monkeypatch):
+    import realityavatar.data.synthetic.scene as scene
+
+    calls = {"n": 0}
+    real = scene.render_views
+
+    def flaky(*a, **k):
+        calls["n"] += 1
+        if calls["n"] > 3:
+            raise RuntimeError("disk full")
+        return real(*a, **k)
+
+    monkeypatch.setattr(scene, "render_views", flaky)
+    with pytest.raises(RuntimeError, match="disk full"):
+        build_scene("ci", tmp_path, seed=0, progress=False)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_cameras_opencv_convention():
+    Ks, E = ring_cameras(6, 2.8, 1.2, 0.9, 256, 256)
+    assert novel_view_ids(6, 2) == [1, 4]
+    target = np.array([0.0, 0.9, 0.0])
+    for K, V in zip(Ks, E):
+        assert np.allclose(V[:3, :3] @ V[:3, :3].T, np.eye(3), atol=1e-9)
+        for point, check in ((target, lambda u, v: abs(u - 128) < 1e-6 and abs(v - 128) < 1e-6),
+                             (target + [0, 0.5, 0], lambda u, v: v < 128)):  # world up -> image up (y down)
+            x = V[:3, :3] @ point + V[:3, 3]
+            assert x[2] > 0
+            u, v = (K @ x)[:2] / x[2]
+            assert check(u, v)
+    E0 = look_at(np.array([0.0, 1.0, 3.0]), np.zeros(3))
+    assert np.allclose(-E0[:3, :3].T @ E0[:3, 3], [0, 1, 3])
+
+
+@pytest.mark.parametrize("name", MOTIONS)
+def test_motions_shapes_and_split(name, body):
+    m = make_motion(name, 25.0, 100, 30, body.rest_joints[0].numpy(), 0.95, seed=0)
+    assert m.pose.shape == (130, 24, 3) and m.Rh.shape == m.Th.shape == (130, 3)
+    assert np.all(m.pose[:, 0] == 0) and np.isfinite(m.pose).all()
+    # The held-out continuation holds poses not seen in training.
+    assert np.abs(m.pose[100:] - m.pose[99]).max() + np.abs(m.Rh[100:] - m.Rh[99]).max() > 0.05
+    other = make_motion(name, 25.0, 100, 30, body.rest_joints[0].numpy(), 0.95, seed=1)
+    assert not np.array_equal(m.Rh, other.Rh) or not np.array_equal(m.pose, other.pose)
+
+
+def test_garment_hysteresis_after_spin(body):
+    """Same body pose before the spin and after the abrupt stop, yet the hem differs (> 5 cm mean) and keeps
+    swinging after the stop with a speed that decays."""
+    from realityavatar.data.synthetic.cloth import simulate_garment
+    from realityavatar.data.synthetic.scene import body_sequence
+
+    fps = 25.0
+    rest = body.rest_vertices.numpy()
+    pelvis = body.rest_joints[0].numpy().astype(np.float64)
+    m = make_motion("spin", fps, 110, 1, pelvis, float(pelvis[1] - rest[:, 1].min()), seed=0)
+    a, s = m.events["spin_start_frame"], m.events["spin_stop_frame"]
+    # Identical body pose and placement (the yaw differs by exactly one turn).
+    assert np.array_equal(m.pose[a], m.pose[s]) and np.array_equal(m.Rh[a], m.Rh[s])
+    assert np.array_equal(m.Th[a], m.Th[s])
+    assert np.array_equal(m.pose[s], m.pose[-1]) and np.array_equal(m.Rh[s], m.Rh[-1])  # still after the stop
+    _, _, joints, rots = body_sequence(body, m)
+    g = simulate_garment(joints, rots, fps, "skirt", None, seed=0)
+    ring = g.uv[:, 1] == g.uv[:, 1].max()  # the hem ring (v = 1)
+    hem = g.vertices[:, ring]  # [F,H,3]
+    diff = np.linalg.norm(hem[a] - hem[s], axis=-1).mean()
+    assert diff > 0.05, f"hem differs by only {diff:.3f} m at identical poses"
+    speed = np.linalg.norm(np.diff(hem, axis=0), axis=-1).mean(1) * fps  # [F-1] m/s, speed[f] from f to f+1
+    early = speed[s:s + int(0.5 * fps)].mean()
+    late = speed[s + int(1.5 * fps):s + int(2.3 * fps)].mean()
+    assert early > 0.3, f"hem nearly still right after the stop ({early:.3f} m/s)"
+    assert late < 0.5 * early, f"hem speed does not decay ({early:.3f} -> {late:.3f} m/s)"
+
+
+def test_resolve_params_names():
+    p = resolve_params("demo", sequence="dress_walk")
+    assert p["garment"] == "dress" and p["motion"] == "walk" and p["name"] == "dress_walk_demo"
+    assert p["width"] == 256 and p["cameras"] == 6 and p["novel_view_cameras"] == 2
