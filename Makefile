@@ -28,7 +28,7 @@ test-all: install
 	$(RUNENV) $(PY) -m pytest -q
 
 demo: install
-	$(RUNENV) $(PY) -m realityavatar.demo out_dir=$(DEMO_OUT)
+	$(RUNENV) $(PY) -m realityavatar.train +experiment=demo hydra.run.dir=$(DEMO_OUT)
 
 bench: install
 	$(RUNENV) $(PY) benchmarks/render.py

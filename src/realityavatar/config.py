@@ -39,3 +39,12 @@ def choices_of(cfg: DictConfig) -> dict:
     except Exception:  # composed outside @hydra.main (tests)
         ch = dict(cfg.get("_choices", {}) or {})
     return {k: v for k, v in ch.items() if not k.startswith("hydra") and v is not None}
+
+
+def compose(overrides: list[str] | None = None, config_name: str = "train") -> DictConfig:
+    """Compose the primary config exactly as `realityavatar-train <overrides>` would, hydra node included."""
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
+
+    with initialize_config_dir(config_dir=config_dir(), version_base="1.3"):
+        return hydra_compose(config_name=config_name, overrides=list(overrides or []), return_hydra_config=True)

@@ -1,0 +1,32 @@
+"""Shared fixtures: composing configs as the command line does, and the tiny `ci` scene built once per session."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+import torch
+
+torch.set_num_threads(min(2, os.cpu_count() or 1))
+
+
+def pytest_collection_modifyitems(config, items):
+    if torch.cuda.is_available():
+        return
+    skip = pytest.mark.skip(reason="needs CUDA")
+    for item in items:
+        if "gpu" in item.keywords:
+            item.add_marker(skip)
+
+
+@pytest.fixture(scope="session")
+def scenes_root(tmp_path_factory) -> Path:
+    """A scene root holding the `ci` preset; REALITYAVATAR_SCENES points at it for configs that read it."""
+    from realityavatar.data.synthetic import build_scene
+
+    root = tmp_path_factory.mktemp("scenes")
+    build_scene("ci", root, seed=0)
+    os.environ["REALITYAVATAR_SCENES"] = str(root)
+    return root
+
