@@ -268,7 +268,7 @@ def provenance(runs: Runs) -> dict:
         if mr.is_file():
             h = (yaml.safe_load(mr.read_text()) or {}).get("hydra", {})
             ov = h.get("overrides", {}) or {}
-            args = [a for a in (ov.get("hydra") or []) if a != "hydra.mode=MULTIRUN"] + list(ov.get("task") or [])
+            args = list(ov.get("task") or []) + [a for a in (ov.get("hydra") or []) if a != "hydra.mode=MULTIRUN"]
             commands.append("realityavatar-train -m " + " ".join(shlex.quote(a) for a in args))
     if not commands:
         for job in dict.fromkeys(runs.frame["job_dir"]):

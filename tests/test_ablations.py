@@ -298,3 +298,22 @@ def test_pareto_chart_and_csv(tmp_path):
     # every row trains equally long here, so only the most accurate one is on the time frontier
     assert list(c.index[c["pareto_time"]]) == ["full"]
     assert len(df) == 3 and not math.isnan(df["novel_view_psnr_std"].iloc[0])
+
+
+@pytest.mark.slow
+def test_tiny_sweep_end_to_end(tmp_path):
+    """`realityavatar-train -m +ablation=tiny` trains both jobs; the collectors read what they wrote."""
+    import subprocess
+
+    sweep = tmp_path / "sweep"
+    cmd = [sys.executable, "-m", "realityavatar.train", "-m", "+ablation=tiny", f"hydra.sweep.dir={sweep}",
+           "eval.save_video=false"]
+    res = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=1800, check=False)
+    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
+    assert len(list(sweep.rglob("metrics.json"))) == 2
+    csv, _ = collect(sweep, tmp_path / "table")
+    assert list(csv["label"]) == ["full", "no_lstm"]
+    assert csv["novel_view_psnr_mean"].notna().all() and csv["num_gaussians_mean"].gt(0).all()
+    assert "realityavatar-train -m +ablation=tiny eval.save_video=false hydra.sweep.dir=" in (
+        tmp_path / "table" / "table.md").read_text()
+    assert len(pareto(sweep, tmp_path / "chart")) == 2
