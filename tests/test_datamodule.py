@@ -1,0 +1,225 @@
+"""AvatarDataModule: samples per CONTRACTS.md, splits and filters, pose windows across splits, configs, scene building."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from hydra.utils import instantiate
+from omegaconf import OmegaConf
+
+sys.path.insert(0, str(Path(__file__).parent))
+from fixtures_data import SIZE, TinyBody, project, write_i3d, write_zju  # noqa: E402
+
+from realityavatar.data.datamodule import AvatarDataModule  # noqa: E402
+from realityavatar.data.poses import PoseTable  # noqa: E402
+
+CONF = Path(__file__).resolve().parents[1] / "conf"
+KEYS = {"image", "mask", "K", "viewmat", "width", "height", "poses", "transl", "frame", "frame_idx", "view", "split"}
+
+
+@pytest.fixture(scope="module")
+def body():
+    return TinyBody()
+
+
+@pytest.fixture(scope="module")
+def scene_root(tmp_path_factory, body):
+    root = tmp_path_factory.mktemp("scenes")
+    write_i3d(root, "seq", body, train_frames=tuple(range(8)), pose_frames=(8, 9, 10), train_views=(0, 1, 3),
+              test_views=(2, 5))
+    return root
+
+
+def make(scene_root, body, **kw):
+    dm = AvatarDataModule(str(scene_root), "seq", body=body, **{"window_len": 3, "window_step": 2, **kw})
+    dm.setup("fit")
+    return dm
+
+
+def test_sample_dict_follows_the_contract(scene_root, body):
+    dm = make(scene_root, body, batch_size=2)
+    assert dm.num_train_frames == 8 and dm.train_frame_ids == list(range(8))
+    assert dm.image_size == (SIZE, SIZE) and (dm.width, dm.height) == (SIZE, SIZE)
+    assert 2.5 < dm.scene_extent < 4.5  # cameras 3 m from the subject, x1.1
+    assert dm.test_split_names == ["novel_view", "novel_pose"]
+    s = dm.datasets["train"][0]
+    assert set(s) == KEYS
+    assert s["image"].shape == (SIZE, SIZE, 3) and s["image"].dtype == torch.float32
+    assert s["mask"].shape == (SIZE, SIZE, 1) and set(s["mask"].unique().tolist()) <= {0.0, 1.0}
+    assert s["poses"].shape == (3, 24, 3) and s["transl"].shape == (3, 3)
+    b = next(iter(dm.train_dataloader()))
+    assert b["image"].shape == (2, SIZE, SIZE, 3) and b["poses"].shape == (2, 3, 24, 3)
+    assert b["K"].shape == (2, 3, 3) and b["viewmat"].shape == (2, 4, 4) and b["frame_idx"].shape == (2,)
+    nv, npose = dm.test_dataloader()
+    assert all(set(x["split"]) == {"novel_view"} and torch.equal(x["frame_idx"], x["frame"]) for x in nv)
+    assert all(set(x["split"]) == {"novel_pose"} and (x["frame_idx"] == -1).all() for x in npose)
+    assert len(nv.dataset) == 8 * 2 and len(npose.dataset) == 3 * 2
+    val = [s for x in dm.val_dataloader() for s in x["split"]]
+    assert len(val) == 4 and set(val) == {"novel_view"}
+
+
+def test_joint_projects_inside_mask_in_samples(scene_root, body):
+    dm = make(scene_root, body, image_scale=0.5)
+    assert dm.image_size == (SIZE // 2, SIZE // 2)
+    for split, ds in dm.datasets.items():
+        for i in range(len(ds)):
+            s = ds[i]
+            pelvis = body.joints(s["poses"][-1], s["transl"][-1])[0].double().numpy()
+            u, v = project(s["K"].double().numpy(), s["viewmat"].double().numpy(), pelvis)
+            assert s["mask"][int(v), int(u), 0] == 1, (split, s["frame"], s["view"])
+
+
+def test_background_is_composited(scene_root, body):
+    dm = make(scene_root, body, background=[1.0, 0.5, 0.0])
+    s = dm.datasets["train"][0]
+    outside = s["mask"][..., 0] == 0
+    assert torch.allclose(s["image"][outside], torch.tensor([1.0, 0.5, 0.0]))
+    assert not torch.allclose(s["image"][~outside].mean(0), torch.tensor([1.0, 0.5, 0.0]))
+
+
+def test_view_and_frame_selection(scene_root, body):
+    dm = make(scene_root, body, train_views=[0, 3], test_views=[5], max_train_frames=5, frame_subsample=2)
+    assert sorted({r.view for r in dm.records["train"]}) == [0, 3]
+    assert dm.train_frame_ids == [0, 1, 2, 3, 4] and dm.num_train_frames == 5
+    assert sorted({r.view for r in dm.records["novel_pose"]}) == [5]
+    assert sorted({r.frame for r in dm.records["novel_pose"]}) == [8, 10]
+    # novel-view frames beyond max_train_frames are not training frames: frame_idx -1
+    idx = {s["frame"]: s["frame_idx"] for s in (dm.datasets["novel_view"][i] for i in range(len(dm.datasets["novel_view"])))}
+    assert idx[0] == 0 and idx[2] == 2 and idx[6] == -1
+    with pytest.raises(ValueError, match=r"no training images left after selecting views \[7\]"):
+        make(scene_root, body, train_views=[7])
+
+
+def test_novel_pose_window_looks_back_into_training_frames(scene_root, body):
+    dm = make(scene_root, body, window_len=4, window_step=3)
+    table = dm.scene.poses
+    s = next(dm.datasets["novel_pose"][i] for i in range(len(dm.datasets["novel_pose"]))
+             if dm.datasets["novel_pose"][i]["frame"] == 9)
+    for k, f in enumerate([0, 3, 6, 9]):  # 9-9, 9-6, 9-3, 9: three of them are training frames
+        torch.testing.assert_close(s["poses"][k], table.get(f)[0])
+        torch.testing.assert_close(s["transl"][k], table.get(f)[1])
+    s0 = dm.datasets["train"][0]  # frame 0: every window entry clamps to the first frame
+    assert s0["frame"] == 0 and torch.equal(s0["poses"], table.get(0)[0].expand(4, 24, 3))
+
+
+def test_pose_sequence_and_window_for(scene_root, body):
+    dm = make(scene_root, body)
+    f, p, t = dm.pose_sequence("novel_pose")
+    assert f.tolist() == [8, 9, 10] and p.shape == (3, 24, 3) and t.shape == (3, 3)
+    f_all, _, _ = dm.pose_sequence("all")
+    assert f_all.tolist() == list(range(11))
+    seq_p, seq_t = torch.randn(5, 24, 3), torch.randn(5, 3)
+    wp, wt = dm.window_for((seq_p, seq_t), 3)  # T=3, s=2: frames 0 (clamped from -1), 1, 3
+    torch.testing.assert_close(wp, seq_p[[0, 1, 3]])
+    torch.testing.assert_close(wt, seq_t[[0, 1, 3]])
+    wp2, _ = dm.window_for(PoseTable.from_sequence(seq_p, seq_t, frame_ids=[10, 11, 12, 13, 14]), 14)
+    torch.testing.assert_close(wp2, seq_p[[0, 2, 4]])  # frames 10, 12, 14
+    with pytest.raises(ValueError, match="unknown split"):
+        dm.pose_sequence("valid")
+
+
+def test_cache_images_keeps_decoded_images(tmp_path, body):
+    write_i3d(tmp_path, "c", body, train_frames=(0, 1), pose_frames=(2,), train_views=(0,), test_views=(1,))
+    dm = AvatarDataModule(str(tmp_path), "c", body=body, cache_images=True)
+    dm.setup()
+    dm2 = AvatarDataModule(str(tmp_path), "c", body=body, cache_images=False)
+    dm2.setup()
+    first = dm.datasets["train"][0]["image"]
+    dm.datasets["train"].records[0].image_path.unlink()
+    torch.testing.assert_close(dm.datasets["train"][0]["image"], first)  # served from memory
+    with pytest.raises(FileNotFoundError, match="frame_000000_view_00.png not found"):
+        dm2.datasets["train"][0]
+
+
+def test_missing_scene_folder_error_says_how_to_build(tmp_path):
+    dm = AvatarDataModule(str(tmp_path), "demo_skirt_spin")
+    with pytest.raises(FileNotFoundError, match=r"scene folder .*demo_skirt_spin-train not found; build it with"):
+        dm.setup()
+
+
+def test_bad_arguments_fail_fast():
+    with pytest.raises(ValueError, match="unknown reader 'h36m'"):
+        AvatarDataModule("x", "y", reader="h36m")
+    with pytest.raises(ValueError, match="background"):
+        AvatarDataModule("x", "y", background=[0, 0])
+
+
+def test_build_preset_builds_missing_scene(tmp_path, body, monkeypatch):
+    import realityavatar.data.synthetic as synthetic
+
+    calls = []
+
+    def fake_build(preset, root, seed=0, *, sequence=None, **_):
+        calls.append((preset, str(root), seed, sequence))
+        write_i3d(root, f"{sequence}_{preset}", body, train_frames=(0, 1), pose_frames=(2,), train_views=(0,),
+                  test_views=(1,))
+        return Path(root) / f"{sequence}_{preset}"
+
+    monkeypatch.setattr(synthetic, "build_scene", fake_build)
+    dm = AvatarDataModule(str(tmp_path), "skirt_spin_ci", body=body, build_preset="ci", build_sequence="skirt_spin")
+    dm.prepare_data()
+    dm.setup()
+    assert calls == [("ci", str(tmp_path), 0, "skirt_spin")] and dm.num_train_frames == 2
+    bad = AvatarDataModule(str(tmp_path), "other_name", body=body, build_preset="ci", build_sequence="skirt_spin")
+    with pytest.raises(FileNotFoundError, match="set data.sequence to 'skirt_spin_ci'"):
+        bad.prepare_data()
+
+
+def test_zju_datamodule(tmp_path, body):
+    write_zju(tmp_path, "CoreView_377", body, n_frames=6, cams=("1", "2", "3"))
+    dm = AvatarDataModule(str(tmp_path), "CoreView_377", reader="zju", body=body, train_views=[1], test_views=[2, 3],
+                          zju_train_frames=[0, 4, 1], zju_novel_view_frames=[0, 4, 2], zju_novel_pose_frames=[4, 0, 1],
+                          window_len=2, window_step=1, background=[1, 1, 1], image_scale=0.5)
+    dm.setup()
+    assert dm.train_frame_ids == [0, 1, 2, 3] and dm.image_size == (SIZE // 2, SIZE // 2)
+    s = dm.datasets["novel_pose"][0]
+    assert s["frame"] == 4 and s["frame_idx"] == -1 and s["view"] == 2
+    assert torch.allclose(s["image"][s["mask"][..., 0] == 0], torch.ones(3))  # the jpg's background is replaced
+
+
+@pytest.mark.parametrize("path", sorted((CONF / "data").glob("*.yaml")), ids=lambda p: p.stem)
+def test_every_data_config_instantiates(path, body, monkeypatch):
+    monkeypatch.delenv("I3D_ROOT", raising=False)
+    cfg = OmegaConf.load(path)
+    dm = instantiate(cfg, body=body)
+    assert isinstance(dm, AvatarDataModule) and dm.body is body
+    if path.stem.startswith("i3d_"):
+        assert dm.window_len == 6 and dm.window_step == 25 and dm.root == "data/I3D-Human"
+        assert not set(dm.train_views) & set(dm.test_views)
+    if path.stem.startswith("zju_"):
+        assert dm.reader == "zju" and dm.image_scale == 0.5
+        assert dm.train_views == ([1] if path.stem.endswith("mono") else [1, 7, 13, 19])
+        assert sorted(dm.train_views + dm.test_views) == list(range(1, 24))
+
+
+def test_paper_camera_splits():
+    splits = {"ID1_1": ([1, 3, 6, 8], [2, 4, 7, 9]), "ID1_2": ([0, 2, 5, 7], [1, 6, 8, 9]),
+              "ID2_1": ([1, 3, 5, 7, 9], [2, 4, 6, 10]), "ID3_1": ([1, 3, 5, 7, 9], [2, 4, 6, 8, 10])}
+    for seq, (tr, te) in splits.items():
+        cfg = OmegaConf.load(CONF / "data" / f"i3d_{seq}.yaml")
+        assert (cfg.sequence, list(cfg.train_views), list(cfg.test_views)) == (seq, tr, te)
+
+
+@pytest.mark.slow
+def test_synthetic_ci_scene_joints_inside_masks(tmp_path):
+    """The generator's real ci scene read through synthetic_ci.yaml: every sampled joint lands inside its mask."""
+    from realityavatar.body.mannequin import MannequinBody
+
+    body = MannequinBody()
+    cfg = OmegaConf.load(CONF / "data" / "synthetic_ci.yaml")
+    cfg.root = str(tmp_path)
+    dm = instantiate(cfg, body=body)
+    dm.prepare_data()
+    dm.setup()
+    for ds in dm.datasets.values():
+        for i in range(0, len(ds), 5):
+            s = ds[i]
+            J = body.joints(s["poses"][-1], s["transl"][-1]).double().numpy()
+            for j in (0, 3, 6, 9, 12, 15):
+                u, v = project(s["K"].double().numpy(), s["viewmat"].double().numpy(), J[j])
+                assert s["mask"][int(v), int(u), 0] == 1
+    assert np.isfinite(dm.scene_extent)
