@@ -25,9 +25,8 @@ class VGG19Loss(nn.Module):
 
     def __init__(self, weights_path: str) -> None:
         super().__init__()
-        feats = vgg_features("vgg19")
-        load_features_state(feats, weights_path)
-        self.features = feats[: _VGG19_TAPS[-1] + 1]
+        self.features = vgg_features("vgg19")[: _VGG19_TAPS[-1] + 1]  # layers after relu5_1 are never used
+        load_features_state(self.features, weights_path)
         self.register_buffer("mean", torch.tensor([0.485, 0.456, 0.406]).view(1, 3, 1, 1))
         self.register_buffer("std", torch.tensor([0.229, 0.224, 0.225]).view(1, 3, 1, 1))
         self.requires_grad_(False)

@@ -147,7 +147,8 @@ def alexnet_features() -> nn.Sequential:
 
 
 def load_features_state(features: nn.Sequential, path: str) -> None:
-    """Load the `features.*` entries of a torchvision checkpoint (e.g. vgg19-dcbb9e9d.pth) into `features`."""
+    """Load the `features.*` entries of a torchvision checkpoint (e.g. vgg19-dcbb9e9d.pth) into `features`
+    (which may be a prefix of torchvision's `.features`; extra checkpoint layers are ignored)."""
     if not os.path.isfile(path):
         raise FileNotFoundError(f"backbone weights: file {path!r} does not exist")
     sd = torch.load(path, map_location="cpu", weights_only=True)
@@ -167,11 +168,29 @@ _LPIPS_TAPS = {"vgg": (3, 8, 15, 22, 29), "alex": (1, 4, 7, 9, 11)}  # relu outp
 _LPIPS_CHANNELS = {"vgg": (64, 128, 256, 512, 512), "alex": (64, 192, 384, 256, 256)}
 
 
-def lpips_status(backbone_weights: str | None, lin_weights: str | None) -> str:
+_TORCHVISION_NAMES = {"vgg": "vgg16-397923af.pth", "alex": "alexnet-owt-7be5be79.pth"}
+
+
+def resolve_lpips_paths(
+    net: str, lin_weights: str | None, backbone_weights: str | None = None
+) -> tuple[str | None, str | None]:
+    """Accept files or a directory: a directory `lin_weights` means <dir>/<net>.pth (lpips package file name) and,
+    when backbone_weights is not given, <dir>/<torchvision file name> (vgg16-397923af.pth / alexnet-owt-7be5be79.pth)."""
+    lin, backbone = lin_weights, backbone_weights
+    if lin and os.path.isdir(lin):
+        if not backbone:
+            backbone = os.path.join(lin, _TORCHVISION_NAMES.get(net, ""))
+        lin = os.path.join(lin, f"{net}.pth")
+    if backbone and os.path.isdir(backbone):
+        backbone = os.path.join(backbone, _TORCHVISION_NAMES.get(net, ""))
+    return backbone, lin
+
+
+def lpips_status(backbone_weights: str | None = None, lin_weights: str | None = None) -> str:
     """'computed' when both weight files exist, else 'not computed: <why>' (the text metrics.json records)."""
     if not backbone_weights or not lin_weights:
-        return ("not computed: no LPIPS weights (set metrics.lpips_backbone_weights=<torchvision vgg16/alexnet .pth> "
-                "and metrics.lpips_lin_weights=<lpips vgg.pth/alex.pth>)")
+        return ("not computed: no LPIPS weights (set metrics.lpips_weights=<dir with the lpips vgg.pth and "
+                "torchvision vgg16-397923af.pth>, or metrics.lpips_backbone_weights=<file>)")
     for p in (backbone_weights, lin_weights):
         if not os.path.isfile(p):
             return f"not computed: LPIPS weight file {p} does not exist"
@@ -195,10 +214,10 @@ class LPIPS(nn.Module):
         if status != "computed":
             raise FileNotFoundError(f"LPIPS: {status}")
         self.net = net
-        feats = vgg_features("vgg16") if net == "vgg" else alexnet_features()
-        load_features_state(feats, backbone_weights)
         self.taps = _LPIPS_TAPS[net]
-        self.features = feats[: self.taps[-1] + 1]
+        feats = vgg_features("vgg16") if net == "vgg" else alexnet_features()
+        self.features = feats[: self.taps[-1] + 1]  # the final max-pool is never used
+        load_features_state(self.features, backbone_weights)
         chans = _LPIPS_CHANNELS[net]
         self.lins = nn.ModuleList([nn.Conv2d(c, 1, 1, bias=False) for c in chans])
         sd = torch.load(lin_weights, map_location="cpu", weights_only=True)
@@ -211,6 +230,12 @@ class LPIPS(nn.Module):
         self.register_buffer("scale", torch.tensor([0.458, 0.448, 0.450]).view(1, 3, 1, 1))
         self.requires_grad_(False)
         self.eval()
+
+    @classmethod
+    def from_paths(cls, lin_weights: str, backbone_weights: str | None = None, net: str = "vgg") -> "LPIPS":
+        """Build from files or a directory (see resolve_lpips_paths); raises FileNotFoundError naming what is missing."""
+        backbone, lin = resolve_lpips_paths(net, lin_weights, backbone_weights)
+        return cls(net, backbone or "", lin or "")
 
     def _taps(self, x: torch.Tensor) -> list[torch.Tensor]:
         out = []
@@ -234,7 +259,9 @@ class LPIPS(nn.Module):
 
 
 def build_lpips(net: str = "vgg", backbone_weights: str | None = None, lin_weights: str | None = None) -> LPIPS | None:
-    """An LPIPS module when both weight files exist, else None (see lpips_status for the reason to record)."""
+    """An LPIPS module when both weight files exist, else None (lpips_status gives the reason to record).
+    Paths may be directories (see resolve_lpips_paths)."""
+    backbone_weights, lin_weights = resolve_lpips_paths(net, lin_weights, backbone_weights)
     if lpips_status(backbone_weights, lin_weights) != "computed":
         return None
     return LPIPS(net, backbone_weights, lin_weights)

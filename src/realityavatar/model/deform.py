@@ -94,8 +94,9 @@ class _HashGather(torch.autograd.Function):
 class MotionTrendDecoder(nn.Module):
     """Paper's motion-trend decoder F_mt: enc(x_c) ⊕ h_t -> Δx [B,N,3], Δs [B,N,3] (log), Δq [B,N,4], f_mt [B,N,F].
 
-    x_c is normalised to [0,1]^3 with the box (bbox_min, bbox_max) (persistent buffers; `fit_bounds` sets
-    them from the canonical Gaussians). num_layers hidden layers of hidden_dim (SiLU), then one output layer
+    x_c is normalised to [0,1]^3 with the box (bbox_min, bbox_max) (persistent buffers). With auto_bounds the
+    box is fitted (10% padding) to the x_c of the first forward call, i.e. the initial canonical Gaussians;
+    `fit_bounds` sets it explicitly. num_layers hidden layers of hidden_dim (SiLU), then one output layer
     whose Δx/Δs/Δq rows start at zero so the deformation starts at the identity.
     """
 
@@ -114,6 +115,7 @@ class MotionTrendDecoder(nn.Module):
         hash_max_resolution: int = 1024,
         bbox_min: tuple[float, float, float] = (-1.2, -1.5, -1.2),
         bbox_max: tuple[float, float, float] = (1.2, 1.0, 1.2),
+        auto_bounds: bool = True,
     ) -> None:
         super().__init__()
         if encoding == "hash":
@@ -128,6 +130,8 @@ class MotionTrendDecoder(nn.Module):
         self.feature_dim = feature_dim
         self.register_buffer("bbox_min", torch.tensor(bbox_min, dtype=torch.float32))
         self.register_buffer("bbox_max", torch.tensor(bbox_max, dtype=torch.float32))
+        # 0 until the box is fitted; persistent, so a loaded checkpoint keeps the box it was trained with.
+        self.register_buffer("bounds_fitted", torch.tensor(0 if auto_bounds else 1, dtype=torch.uint8))
         # First layer split into position and condition parts: h_t's contribution is computed once per batch item.
         self.in_x = nn.Linear(self.encoding.out_dim, hidden_dim)
         self.in_h = nn.Linear(cond_dim, hidden_dim, bias=False)
@@ -147,9 +151,12 @@ class MotionTrendDecoder(nn.Module):
         pad = (hi - lo) * padding
         self.bbox_min.copy_(lo - pad)
         self.bbox_max.copy_(hi + pad)
+        self.bounds_fitted.fill_(1)
 
     def forward(self, x_c: torch.Tensor, h_t: torch.Tensor) -> dict[str, torch.Tensor]:
         """x_c [N,3], h_t [B,H] -> dict(dx [B,N,3], ds [B,N,3], dq [B,N,4] unit wxyz, f_mt [B,N,F])."""
+        if not bool(self.bounds_fitted):
+            self.fit_bounds(x_c.detach())  # auto_bounds: the first x_c seen (the initial canonical Gaussians)
         u = (x_c - self.bbox_min) / (self.bbox_max - self.bbox_min)
         if self.encoding_kind == "frequency":
             u = u * 2 - 1
