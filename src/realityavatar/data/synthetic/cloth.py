@@ -28,15 +28,17 @@ _COMMON = {
     "poisson": 0.2,
     "thickness": 1.0e-3,
     "elastic_damping": 1.0e-3,  # flex elasticity damping (internal, relative motion)
-    "drag_tau": 1.0,  # air drag: per-vertex force -m v / drag_tau (relative to the world, why motion decays)
-    "cloth_radius": 0.006,  # collision half-thickness of the cloth
+    "drag_tau": 0.5,  # air drag: per-vertex force -m v / drag_tau (relative to the world, why motion decays)
+    "cloth_radius": 0.01,  # collision half-thickness of the cloth
     "friction": 0.3,
+    "contact_timeconst": 0.005,  # contact solref time constant (s): stiffer than MuJoCo's 0.02 so legs push cloth firmly
     "thigh_radius": 0.075,
     "shin_radius": 0.055,
     "hip_radius": 0.09,  # capsule between the two hip joints (buttocks / pelvis)
     "torso_radius": 0.11,  # capsule pelvis -> spine2
     "dt_max": 2.0e-3,  # largest physics step; substeps per frame = ceil(1 / (fps * dt_max))
-    "preroll": 1.0,  # seconds of settling holding the first frame before recording
+    "preroll": 2.0,  # seconds of settling holding the first frame before recording
+    "preroll_drag_tau": 0.1,  # stronger air drag during the pre-roll so the initial cone settles within it
     "init_noise": 1.0e-3,  # seeded jitter of the initial free vertices (breaks the cone's symmetry so it can fold)
 }
 _GARMENT_DEFAULTS = {
@@ -68,8 +70,8 @@ def garment_params(garment: str = "skirt", params: dict | None = None) -> dict:
         if not isinstance(p[k], (int, np.integer)) or p[k] < (6 if k == "n_around" else 3):
             raise ValueError(f"params[{k!r}]: expected an int >= {6 if k == 'n_around' else 3}, got {p[k]!r}")
         p[k] = int(p[k])
-    positive = ("length_scale", "young", "thickness", "drag_tau", "cloth_radius", "thigh_radius", "shin_radius",
-                "hip_radius", "torso_radius", "dt_max", "mass")
+    positive = ("length_scale", "young", "thickness", "drag_tau", "preroll_drag_tau", "cloth_radius", "thigh_radius", "shin_radius",
+                "hip_radius", "torso_radius", "dt_max", "mass", "contact_timeconst")
     for k in positive:
         if not (isinstance(p[k], (int, float)) and math.isfinite(p[k]) and p[k] > 0):
             raise ValueError(f"params[{k!r}]: expected a finite number > 0, got {p[k]!r}")
@@ -141,8 +143,10 @@ def _z_to_dir_quat(d: np.ndarray) -> np.ndarray:
 
 def _rest_geometry(j0: np.ndarray, R0: np.ndarray, p: dict, rng: np.random.Generator):
     """Cone of cloth in the pelvis frame of the first pose: points [n_rings*n_around,3] (local), and sizes."""
-    axis_w = j0[_NECK] - j0[_PELVIS]
-    axis_w /= np.linalg.norm(axis_w)  # body up axis, world
+    axis_w = j0[_NECK] - j0[_PELVIS]  # body up axis, world
+    if np.linalg.norm(axis_w) < 0.05 or np.linalg.norm(j0[_LHIP] - j0[_RHIP]) < 0.01:
+        raise ValueError("joints: first frame is degenerate (neck within 5 cm of the pelvis or hips within 1 cm)")
+    axis_w /= np.linalg.norm(axis_w)
     hip_sep = float(np.linalg.norm(j0[_LHIP] - j0[_RHIP]))
     waist_r = p["waist_radius"] or max(0.5 * hip_sep + 0.08, p["torso_radius"] + 0.02)
     waist_w = j0[_PELVIS] + p["waist_offset"] * axis_w
@@ -205,7 +209,8 @@ def _build_xml(pts: np.ndarray, tris: np.ndarray, n_pin: int, p: dict, caps: lis
         <pin id="{pins}"/>
         <elasticity young="{p['young']}" poisson="{p['poisson']}" thickness="{p['thickness']}"
                     damping="{p['elastic_damping']}" elastic2d="both"/>
-        <contact selfcollide="none" contype="0" conaffinity="1" friction="{p['friction']} 0.005 0.0001"/>
+        <contact selfcollide="none" contype="0" conaffinity="1" friction="{p['friction']} 0.005 0.0001"
+                 solref="{p['contact_timeconst']} 1"/>
       </flexcomp>
     </body>
   </worldbody>
@@ -252,16 +257,21 @@ def simulate_garment(joints, joint_rots, fps, garment="skirt", params=None, seed
     model = mujoco.MjModel.from_xml_string(_build_xml(pts, sim_tris, n_a, p, caps, dt))
     data = mujoco.MjData(model)
     flex_dofs = np.arange(6, model.nv)  # free joint of the waist first, then 3 slide dofs per free cloth vertex
-    drag = model.body_mass[model.dof_bodyid[flex_dofs]] / p["drag_tau"]  # [nv-6]
+    vert_mass = model.body_mass[model.dof_bodyid[flex_dofs]]  # [nv-6]
+    drag = vert_mass / p["preroll_drag_tau"]
     mocap_ids = [model.body_mocapid[model.body(n).id] for n in names]
 
-    def set_pose(pos, quat, v_world, w_local, a, b):
+    def set_pose(pos, quat, v_world, w_local, cap_pos, cap_quat):
         data.qpos[:3], data.qpos[3:7] = pos, quat
         data.qvel[:3], data.qvel[3:6] = v_world, w_local
+        data.mocap_pos[mocap_ids] = cap_pos
+        data.mocap_quat[mocap_ids] = cap_quat
+
+    def capsules(a, b):
+        """Endpoints a, b: [S,C,3] -> centres [S,C,3], wxyz orientations [S,C,4]."""
         d = b - a
-        d /= np.linalg.norm(d, axis=1, keepdims=True).clip(1e-9)
-        data.mocap_pos[mocap_ids] = 0.5 * (a + b)
-        data.mocap_quat[mocap_ids] = _z_to_dir_quat(d)
+        d = d / np.linalg.norm(d, axis=-1, keepdims=True).clip(1e-9)
+        return 0.5 * (a + b), _z_to_dir_quat(d.reshape(-1, 3)).reshape(d.shape[:-1] + (4,))
 
     def step():
         data.qfrc_applied[flex_dofs] = -drag * data.qvel[flex_dofs]
@@ -270,7 +280,8 @@ def simulate_garment(joints, joint_rots, fps, garment="skirt", params=None, seed
     pelvis = joints[:, _PELVIS]  # [F,3]
     q_pel = _quat_wxyz(R_pel)  # [F,4]
     zero = np.zeros(3)
-    set_pose(pelvis[0], q_pel[0], zero, zero, seg_a[0], seg_b[0])
+    cap0_pos, cap0_quat = capsules(seg_a[:1], seg_b[:1])
+    set_pose(pelvis[0], q_pel[0], zero, zero, cap0_pos[0], cap0_quat[0])
     mujoco.mj_forward(model, data)
     flex_start = model.flex_vertadr[0]
     limit = max(1.0, 1.5 * sizes["length"] + sizes["waist_radius"])
@@ -286,21 +297,26 @@ def simulate_garment(joints, joint_rots, fps, garment="skirt", params=None, seed
         return x.copy()
 
     for _ in range(int(round(p["preroll"] / dt))):
-        set_pose(pelvis[0], q_pel[0], zero, zero, seg_a[0], seg_b[0])
+        set_pose(pelvis[0], q_pel[0], zero, zero, cap0_pos[0], cap0_quat[0])
         step()
 
+    drag = vert_mass / p["drag_tau"]
     out = np.empty((n_frames, n_r, n_a + 1, 3), np.float32)
     x = check(0).reshape(n_r, n_a, 3)
     out[0, :, :n_a], out[0, :, n_a] = x, x[:, 0]
     rel = Rotation.from_matrix(np.einsum("fji,fjk->fik", R_pel[:-1], R_pel[1:])).as_rotvec() if n_frames > 1 else None
+    s_sub = np.arange(n_sub) / n_sub  # [S] substep fractions within a frame
     for f in range(1, n_frames):
         v = (pelvis[f] - pelvis[f - 1]) * fps
         w_local = rel[f - 1] * fps  # constant body-frame angular velocity over the frame
+        R = R_pel[f - 1] @ Rotation.from_rotvec(s_sub[:, None] * rel[f - 1]).as_matrix()  # [S,3,3] geodesic
+        quats = _quat_wxyz(R)
+        pos = pelvis[f - 1] + s_sub[:, None] * (pelvis[f] - pelvis[f - 1])  # [S,3]
+        lerp = s_sub[:, None, None]
+        cap_pos, cap_quat = capsules(seg_a[f - 1] + lerp * (seg_a[f] - seg_a[f - 1]),
+                                     seg_b[f - 1] + lerp * (seg_b[f] - seg_b[f - 1]))  # [S,C,3], [S,C,4]
         for k in range(n_sub):
-            s = k / n_sub
-            R = R_pel[f - 1] @ Rotation.from_rotvec(s * rel[f - 1]).as_matrix()
-            set_pose(pelvis[f - 1] + s * (pelvis[f] - pelvis[f - 1]), _quat_wxyz(R), v, w_local,
-                     seg_a[f - 1] + s * (seg_a[f] - seg_a[f - 1]), seg_b[f - 1] + s * (seg_b[f] - seg_b[f - 1]))
+            set_pose(pos[k], quats[k], v, w_local, cap_pos[k], cap_quat[k])
             step()
         x = check(f).reshape(n_r, n_a, 3)
         out[f, :, :n_a], out[f, :, n_a] = x, x[:, 0]
