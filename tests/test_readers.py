@@ -14,14 +14,15 @@ import torch
 from PIL import Image
 
 sys.path.insert(0, str(Path(__file__).parent))
-from fixtures_data import SIZE, TinyBody, camera, project, write_i3d, write_zju  # noqa: E402
+from fixtures_data import SIZE, TinyBody, camera, project, write_i3d, write_zju
 
-from realityavatar.body.base import rh_th_to_smpl  # noqa: E402
-from realityavatar.data.capture import CaptureError, convert, main as capture_main, scan  # noqa: E402
-from realityavatar.data.i3d import read_i3d  # noqa: E402
-from realityavatar.data.poses import PoseTable  # noqa: E402
-from realityavatar.data.records import SceneFormatError, load_record, undistort_grid  # noqa: E402
-from realityavatar.data.zju import read_zju  # noqa: E402
+from realityavatar.body.base import rh_th_to_smpl
+from realityavatar.data.capture import CaptureError, convert, scan
+from realityavatar.data.capture import main as capture_main
+from realityavatar.data.i3d import read_i3d
+from realityavatar.data.poses import PoseTable
+from realityavatar.data.records import SceneFormatError, load_record, undistort_grid
+from realityavatar.data.zju import read_zju
 
 
 @pytest.fixture(scope="module")
@@ -167,6 +168,7 @@ def test_pose_window_clamps_at_sequence_start():
     poses = torch.arange(10, 20, dtype=torch.float32)[:, None, None].expand(10, 24, 3)
     table = PoseTable(frames, poses, torch.zeros(10, 3))
     p, t = table.window(12, window_len=4, window_step=1)
+    assert t.shape == (4, 3)
     assert p[:, 0, 0].tolist() == [10, 10, 11, 12]  # t-3 = 9 is before the start: clamped to 10
     p, _ = table.window(19, window_len=3, window_step=4)
     assert p[:, 0, 0].tolist() == [11, 15, 19]
@@ -206,7 +208,8 @@ def test_zju_cameras_poses_splits_and_masks(tmp_path, body):
         for rec in recs:
             K, E = camera(rec.view)
             np.testing.assert_allclose(rec.viewmat, E, atol=1e-12)
-            img, mask, K2 = load_record(rec)
+            np.testing.assert_allclose(rec.K, K)
+            _, mask, K2 = load_record(rec)
             assert pixel_in_mask(mask, project(K2, rec.viewmat, w["pelvis_world"][rec.frame]))
             assert 50 < mask.sum() < 120  # 0/1 label masks are read as the person, not as background
 
@@ -375,8 +378,8 @@ def test_capture_validation_reports_every_problem_at_once(tmp_path, body, capsys
     (cap / "images" / "2" / "000001.jpg").write_bytes(b"not a jpeg")  # a corrupt image
     problems, *_ = scan(cap, train_views=[0, 1], test_views=[2, 7])
     text = "\n".join(problems)
-    for needle in ("camera '0': missing K", "images/1: missing images for frames [3]", "masks/2: missing masks for "
-                   "frames [5]", "camera 2: 6 images but 5 masks", "smpl/000002.npz: non-finite values",
+    for needle in ("camera '0': missing K", "images/1: missing images for frames [3]",
+                   "masks/2: missing masks for frames [5]", "camera 2: 6 images but 5 masks", "smpl/000002.npz: non-finite values",
                    "images/2/000001.jpg: corrupt", "test_views: camera 7 is not in cameras.json"):
         assert needle in text, (needle, text)
     with pytest.raises(CaptureError) as e:

@@ -6,8 +6,8 @@ Plain LBS with the shaped rest mesh (betas applied, no pose blend shapes), the s
 from __future__ import annotations
 
 import pickle
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 import torch
@@ -67,11 +67,12 @@ def load_model_data(path: Path) -> dict:
         if e.name and e.name.split(".")[0] == "chumpy":
             raise RuntimeError(f"cannot read SMPL model file {path}: {CHUMPY_HELP}") from e
         raise RuntimeError(f"cannot read SMPL model file {path}: needs module {e.name!r}") from e
-    except Exception as e:  # noqa: BLE001 - report which file is bad
+    except Exception as e:
         raise RuntimeError(f"cannot read SMPL model file {path}: {type(e).__name__}: {e}") from e
     if not isinstance(data, dict):
-        raise RuntimeError(f"SMPL model file {path}: expected a dict of arrays, got {type(data).__name__}")
-    missing = [k for k in ("v_template", "shapedirs", "posedirs", "J_regressor", "weights", "f", "kintree_table") if k not in data]
+        raise RuntimeError(f"SMPL model file {path}: expected a dict of arrays, got {type(data).__name__}")  # noqa: TRY004
+    needed = ("v_template", "shapedirs", "posedirs", "J_regressor", "weights", "f", "kintree_table")
+    missing = [k for k in needed if k not in data]
     if missing:
         raise RuntimeError(f"SMPL model file {path}: missing keys {missing}")
     out = {}

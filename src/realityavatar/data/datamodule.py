@@ -7,8 +7,8 @@ frame, frame_idx, view, split.
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 import pytorch_lightning as pl
@@ -238,9 +238,9 @@ class AvatarDataModule(pl.LightningDataModule):
         self.width, self.height = max(1, round(w0 * self.image_scale)), max(1, round(h0 * self.image_scale))
         self.image_size = (self.height, self.width)
         self.scene_extent = self._extent(selected["train"], scene.poses)
-        kw = dict(train_frame_index=frame_index, window_len=self.window_len, window_step=self.window_step,
-                  background=self.background, image_scale=self.image_scale, undistort=self.undistort,
-                  cache_images=self.cache_images)
+        kw = {"train_frame_index": frame_index, "window_len": self.window_len, "window_step": self.window_step,
+              "background": self.background, "image_scale": self.image_scale, "undistort": self.undistort,
+              "cache_images": self.cache_images}
         self.datasets = {s: AvatarDataset(recs, scene.poses, s, **kw) for s, recs in selected.items() if recs}
         self.test_split_names = [s for s in ("novel_view", "novel_pose") if s in self.datasets]
         if not self.test_split_names:
