@@ -10,14 +10,34 @@ from realityavatar.data.synthetic.cloth import GARMENTS, GarmentSequence, garmen
 
 FPS = 25
 # A standing figure in SMPL joint order, y up, feet near y = 0, metres (proportions of the mannequin-x body).
-REST = np.array([
-    [0.00, 0.95, 0.00], [0.06, 0.86, -0.01], [-0.06, 0.86, -0.01], [0.00, 1.06, -0.02],
-    [0.10, 0.48, -0.01], [-0.10, 0.48, -0.01], [0.00, 1.19, -0.02], [0.08, 0.08, -0.04],
-    [-0.08, 0.08, -0.04], [0.00, 1.25, 0.00], [0.09, 0.02, 0.08], [-0.09, 0.02, 0.08],
-    [0.00, 1.41, -0.02], [0.07, 1.33, -0.02], [-0.07, 1.33, -0.02], [0.00, 1.58, 0.00],
-    [0.17, 1.37, -0.03], [-0.17, 1.37, -0.03], [0.20, 1.12, -0.03], [-0.20, 1.12, -0.03],
-    [0.22, 0.88, -0.01], [-0.22, 0.88, -0.01], [0.22, 0.80, 0.00], [-0.22, 0.80, 0.00],
-])  # [24,3]
+REST = np.array(
+    [
+        [0.00, 0.95, 0.00],
+        [0.06, 0.86, -0.01],
+        [-0.06, 0.86, -0.01],
+        [0.00, 1.06, -0.02],
+        [0.10, 0.48, -0.01],
+        [-0.10, 0.48, -0.01],
+        [0.00, 1.19, -0.02],
+        [0.08, 0.08, -0.04],
+        [-0.08, 0.08, -0.04],
+        [0.00, 1.25, 0.00],
+        [0.09, 0.02, 0.08],
+        [-0.09, 0.02, 0.08],
+        [0.00, 1.41, -0.02],
+        [0.07, 1.33, -0.02],
+        [-0.07, 1.33, -0.02],
+        [0.00, 1.58, 0.00],
+        [0.17, 1.37, -0.03],
+        [-0.17, 1.37, -0.03],
+        [0.20, 1.12, -0.03],
+        [-0.20, 1.12, -0.03],
+        [0.22, 0.88, -0.01],
+        [-0.22, 0.88, -0.01],
+        [0.22, 0.80, 0.00],
+        [-0.22, 0.80, 0.00],
+    ]
+)  # [24,3]
 LEG_SEGMENTS = [(1, 4), (2, 5), (4, 7), (5, 8)]  # thighs, shins
 
 
@@ -27,13 +47,13 @@ def spin_motion(rest_s=1.0, ramp_s=2.0, hold_s=1.0, after_s=3.0, revs=5):
     Returns joints [F,24,3], joint_rots [F,24,3,3], stop frame (first frame at rest again), rev/s at the stop.
     Frames after the stop are bit-identical to the rest frames (same pose, different history).
     """
-    n = int(round((rest_s + ramp_s + hold_s + after_s) * FPS))
+    n = round((rest_s + ramp_s + hold_s + after_s) * FPS)
     t = np.arange(n) / FPS
     profile = np.clip((t - rest_s) / ramp_s, 0, 1) * (t >= rest_s) * (t < rest_s + ramp_s + hold_s)  # [F]
     step = profile[:-1] / FPS  # angle increment per frame interval, before scaling
     step *= revs * 2 * np.pi / step.sum()  # stop after exactly `revs` turns
     ang = np.concatenate([[0.0], np.cumsum(step)])
-    stop = int(round((rest_s + ramp_s + hold_s) * FPS))
+    stop = round((rest_s + ramp_s + hold_s) * FPS)
     ang[stop:] = 0.0  # exactly `revs` turns: the same pose as at rest, bit for bit
     R = Rotation.from_rotvec(ang[:, None] * np.array([0.0, 1.0, 0.0])).as_matrix()  # [F,3,3]
     piv = REST[0]
@@ -48,7 +68,7 @@ def spin_motion(rest_s=1.0, ramp_s=2.0, hold_s=1.0, after_s=3.0, revs=5):
 
 def walk_motion(seconds=3.0, speed=0.8, stride_deg=30.0, sway_deg=20.0):
     """Walk along +z with legs swinging about the hips (knees bending) and the pelvis swaying about the vertical."""
-    n = int(round(seconds * FPS))
+    n = round(seconds * FPS)
     t = np.arange(n) / FPS
     phase = 2 * np.pi * 1.0 * t  # one stride per second
     joints = np.repeat(REST[None], n, 0).copy()
@@ -74,7 +94,7 @@ def walk_motion(seconds=3.0, speed=0.8, stride_deg=30.0, sway_deg=20.0):
 def hem(seq: GarmentSequence) -> np.ndarray:
     """Hem ring [F,n_around,3] (without the duplicated seam column)."""
     n = seq.params["n_around"]
-    return seq.vertices[:, -(n + 1):-1]
+    return seq.vertices[:, -(n + 1) : -1]
 
 
 @pytest.fixture(scope="module")
@@ -89,7 +109,7 @@ def test_spin_flares_and_keeps_moving_after_stop(spin_run):
     h = hem(seq)
     axis = joints[:, 0]  # the body axis passes through the pelvis (vertical)
     radius = np.linalg.norm((h - axis[:, None])[..., [0, 2]], axis=-1).mean(1)  # [F]
-    rest_r = radius[: FPS].mean()
+    rest_r = radius[:FPS].mean()
     spin_r = radius[stop - FPS // 2 : stop].mean()  # the last 0.5 s at full speed
     # Measured (defaults, seed 0): rest 0.20 m, spinning 0.565 m (+0.37 m). Require at least +0.15 m of flare.
     assert spin_r > rest_r + 0.15, (rest_r, spin_r)
@@ -104,7 +124,10 @@ def test_spin_flares_and_keeps_moving_after_stop(spin_run):
 
 def test_same_pose_different_history_differs(spin_run):
     seq, joints, stop, _ = spin_run
-    rest_frame, after_frame = FPS - 1, stop + 2  # identical joints, one before the spin, one 0.08 s after the stop
+    rest_frame, after_frame = (
+        FPS - 1,
+        stop + 2,
+    )  # identical joints, one before the spin, one 0.08 s after the stop
     assert np.array_equal(joints[rest_frame], joints[after_frame])
     h = hem(seq)
     diff = np.linalg.norm(h[after_frame] - h[rest_frame], axis=-1).mean()
@@ -145,6 +168,19 @@ def test_output_layout(spin_run):
     radial[:, 1] = 0.0
     assert ((n * radial).sum(1) > 0).mean() > 0.9
     assert p["garment"] == "skirt" and p["seed"] == 0 and p["substeps"] >= 1
+    # The waist ring is pinned to the pelvis: it turns with the body exactly, at every recorded frame.
+    joints = spin_run[1]
+    rot_y = np.arctan2(
+        joints[:, 1, 2] - joints[:, 2, 2], joints[:, 1, 0] - joints[:, 2, 0]
+    )  # hip line heading
+    waist = seq.vertices[:, :n_a].astype(np.float64) - joints[:, None, 0]  # [F,n_a,3]
+    c, s = np.cos(rot_y - rot_y[0]), np.sin(rot_y - rot_y[0])
+    R = np.stack(
+        [np.stack([c, 0 * c, -s], -1), np.stack([0 * c, 1 + 0 * c, 0 * c], -1), np.stack([s, 0 * c, c], -1)],
+        1,
+    )
+    expect = np.einsum("fij,vj->fvi", R, waist[0])
+    assert np.abs(waist - expect).max() < 1e-4
 
 
 def test_deterministic_and_seed_matters():

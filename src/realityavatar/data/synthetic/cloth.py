@@ -70,22 +70,51 @@ def garment_params(garment: str = "skirt", params: dict | None = None) -> dict:
         if not isinstance(p[k], (int, np.integer)) or p[k] < (6 if k == "n_around" else 3):
             raise ValueError(f"params[{k!r}]: expected an int >= {6 if k == 'n_around' else 3}, got {p[k]!r}")
         p[k] = int(p[k])
-    positive = ("length_scale", "young", "thickness", "drag_tau", "preroll_drag_tau", "cloth_radius", "thigh_radius", "shin_radius",
-                "hip_radius", "torso_radius", "dt_max", "mass", "contact_timeconst")
+    positive = (
+        "length_scale",
+        "young",
+        "thickness",
+        "drag_tau",
+        "preroll_drag_tau",
+        "cloth_radius",
+        "thigh_radius",
+        "shin_radius",
+        "hip_radius",
+        "torso_radius",
+        "dt_max",
+        "mass",
+        "contact_timeconst",
+    )
     for k in positive:
         if not (isinstance(p[k], (int, float)) and math.isfinite(p[k]) and p[k] > 0):
             raise ValueError(f"params[{k!r}]: expected a finite number > 0, got {p[k]!r}")
         p[k] = float(p[k])
-    for k in ("waist_offset", "poisson", "elastic_damping", "friction", "preroll", "init_noise", "hem_level",
-              "flare_deg"):
+    for k in (
+        "waist_offset",
+        "poisson",
+        "elastic_damping",
+        "friction",
+        "preroll",
+        "init_noise",
+        "hem_level",
+        "flare_deg",
+    ):
         if not (isinstance(p[k], (int, float)) and math.isfinite(p[k])) or (k != "waist_offset" and p[k] < 0):
-            raise ValueError(f"params[{k!r}]: expected a finite number{'' if k == 'waist_offset' else ' >= 0'}, got {p[k]!r}")
+            raise ValueError(
+                f"params[{k!r}]: expected a finite number{'' if k == 'waist_offset' else ' >= 0'}, got {p[k]!r}"
+            )
         p[k] = float(p[k])
     if not 0.0 <= p["flare_deg"] < 80.0:
         raise ValueError(f"params['flare_deg']: expected 0 <= flare_deg < 80, got {p['flare_deg']}")
     if p["waist_radius"] is not None:
-        if not (isinstance(p["waist_radius"], (int, float)) and math.isfinite(p["waist_radius"]) and p["waist_radius"] > 0):
-            raise ValueError(f"params['waist_radius']: expected None or a number > 0, got {p['waist_radius']!r}")
+        if not (
+            isinstance(p["waist_radius"], (int, float))
+            and math.isfinite(p["waist_radius"])
+            and p["waist_radius"] > 0
+        ):
+            raise ValueError(
+                f"params['waist_radius']: expected None or a number > 0, got {p['waist_radius']!r}"
+            )
         p["waist_radius"] = float(p["waist_radius"])
     return p
 
@@ -110,7 +139,9 @@ def _validate(joints, joint_rots, fps) -> tuple[np.ndarray, np.ndarray, float]:
     if joints.ndim != 3 or joints.shape[1:] != (24, 3) or joints.shape[0] < 1:
         raise ValueError(f"joints: expected shape [F,24,3] with F >= 1, got {joints.shape}")
     if joint_rots.shape != (joints.shape[0], 24, 3, 3):
-        raise ValueError(f"joint_rots: expected shape [{joints.shape[0]},24,3,3] (matching joints), got {joint_rots.shape}")
+        raise ValueError(
+            f"joint_rots: expected shape [{joints.shape[0]},24,3,3] (matching joints), got {joint_rots.shape}"
+        )
     if not np.isfinite(joints).all():
         raise ValueError("joints: contains non-finite values")
     if not np.isfinite(joint_rots).all():
@@ -118,8 +149,15 @@ def _validate(joints, joint_rots, fps) -> tuple[np.ndarray, np.ndarray, float]:
     R0 = joint_rots[:, _PELVIS]  # [F,3,3]
     ortho = np.abs(np.einsum("fji,fjk->fik", R0, R0) - np.eye(3)).max()
     if ortho > 1e-3 or (np.linalg.det(R0) < 0).any():
-        raise ValueError(f"joint_rots: pelvis orientations must be rotation matrices (max |R^T R - I| = {ortho:.2g})")
-    if isinstance(fps, bool) or not isinstance(fps, (int, float, np.integer, np.floating)) or not math.isfinite(fps) or fps <= 0:
+        raise ValueError(
+            f"joint_rots: pelvis orientations must be rotation matrices (max |R^T R - I| = {ortho:.2g})"
+        )
+    if (
+        isinstance(fps, bool)
+        or not isinstance(fps, (int, float, np.integer, np.floating))
+        or not math.isfinite(fps)
+        or fps <= 0
+    ):
         raise ValueError(f"fps: expected a finite number > 0, got {fps!r}")
     return joints, joint_rots, float(fps)
 
@@ -145,7 +183,9 @@ def _rest_geometry(j0: np.ndarray, R0: np.ndarray, p: dict, rng: np.random.Gener
     """Cone of cloth in the pelvis frame of the first pose: points [n_rings*n_around,3] (local), and sizes."""
     axis_w = j0[_NECK] - j0[_PELVIS]  # body up axis, world
     if np.linalg.norm(axis_w) < 0.05 or np.linalg.norm(j0[_LHIP] - j0[_RHIP]) < 0.01:
-        raise ValueError("joints: first frame is degenerate (neck within 5 cm of the pelvis or hips within 1 cm)")
+        raise ValueError(
+            "joints: first frame is degenerate (neck within 5 cm of the pelvis or hips within 1 cm)"
+        )
     axis_w /= np.linalg.norm(axis_w)
     hip_sep = float(np.linalg.norm(j0[_LHIP] - j0[_RHIP]))
     waist_r = p["waist_radius"] or max(0.5 * hip_sep + 0.08, p["torso_radius"] + 0.02)
@@ -155,8 +195,10 @@ def _rest_geometry(j0: np.ndarray, R0: np.ndarray, p: dict, rng: np.random.Gener
     hem_w = (1 - p["hem_level"]) * knee + p["hem_level"] * ankle
     length = p["length_scale"] * float((waist_w - hem_w) @ axis_w)
     if length < 0.1:
-        raise ValueError(f"joints: garment length from waist to hem level is {length:.3f} m (< 0.1 m); "
-                         "expected a standing body with knees/ankles below the pelvis along pelvis->neck")
+        raise ValueError(
+            f"joints: garment length from waist to hem level is {length:.3f} m (< 0.1 m); "
+            "expected a standing body with knees/ankles below the pelvis along pelvis->neck"
+        )
     # Local frame: up = body axis in pelvis coordinates; e1 towards the left hip; e2 = e1 x up.
     up = R0.T @ axis_w
     e1 = R0.T @ (j0[_LHIP] - j0[_RHIP])
@@ -170,7 +212,11 @@ def _rest_geometry(j0: np.ndarray, R0: np.ndarray, p: dict, rng: np.random.Gener
     flare = math.radians(p["flare_deg"])
     r = waist_r + s * length * math.sin(flare)  # [n_r,1]
     h = -s * length * math.cos(flare)
-    pts = centre + r[..., None] * (np.cos(phi)[..., None] * e1 + np.sin(phi)[..., None] * e2) + h[..., None] * up
+    pts = (
+        centre
+        + r[..., None] * (np.cos(phi)[..., None] * e1 + np.sin(phi)[..., None] * e2)
+        + h[..., None] * up
+    )
     pts = pts.reshape(-1, 3)  # [n_r*n_a,3]
     if p["init_noise"] > 0:
         pts[n_a:] += rng.normal(scale=p["init_noise"], size=pts[n_a:].shape)
@@ -179,15 +225,23 @@ def _rest_geometry(j0: np.ndarray, R0: np.ndarray, p: dict, rng: np.random.Gener
 
 def _capsule_segments(joints: np.ndarray) -> tuple[list[str], np.ndarray, np.ndarray]:
     """Collider names, endpoints a,b: [F,C,3] (thighs, shins, hips, torso)."""
-    pairs = [("thigh_l", _LHIP, _LKNEE), ("thigh_r", _RHIP, _RKNEE), ("shin_l", _LKNEE, _LANKLE),
-             ("shin_r", _RKNEE, _RANKLE), ("hips", _LHIP, _RHIP), ("torso", _PELVIS, _SPINE2)]
+    pairs = [
+        ("thigh_l", _LHIP, _LKNEE),
+        ("thigh_r", _RHIP, _RKNEE),
+        ("shin_l", _LKNEE, _LANKLE),
+        ("shin_r", _RKNEE, _RANKLE),
+        ("hips", _LHIP, _RHIP),
+        ("torso", _PELVIS, _SPINE2),
+    ]
     names = [n for n, _, _ in pairs]
     a = joints[:, [i for _, i, _ in pairs]]
     b = joints[:, [k for _, _, k in pairs]]
     return names, a, b
 
 
-def _build_xml(pts: np.ndarray, tris: np.ndarray, n_pin: int, p: dict, caps: list[tuple[str, float, float]], dt: float) -> str:
+def _build_xml(
+    pts: np.ndarray, tris: np.ndarray, n_pin: int, p: dict, caps: list[tuple[str, float, float]], dt: float
+) -> str:
     point = " ".join(f"{x:.6f}" for x in pts.ravel())
     element = " ".join(str(int(i)) for i in tris.ravel())
     pins = " ".join(str(i) for i in range(n_pin))
@@ -204,13 +258,13 @@ def _build_xml(pts: np.ndarray, tris: np.ndarray, n_pin: int, p: dict, caps: lis
     <body name="waist" gravcomp="1">
       <freejoint name="waist"/>
       <geom type="sphere" size="0.05" mass="20" contype="0" conaffinity="0"/>
-      <flexcomp name="cloth" type="direct" dim="2" radius="{p['cloth_radius']}" mass="{p['mass']}"
+      <flexcomp name="cloth" type="direct" dim="2" radius="{p["cloth_radius"]}" mass="{p["mass"]}"
                 point="{point}" element="{element}">
         <pin id="{pins}"/>
-        <elasticity young="{p['young']}" poisson="{p['poisson']}" thickness="{p['thickness']}"
-                    damping="{p['elastic_damping']}" elastic2d="both"/>
-        <contact selfcollide="none" contype="0" conaffinity="1" friction="{p['friction']} 0.005 0.0001"
-                 solref="{p['contact_timeconst']} 1"/>
+        <elasticity young="{p["young"]}" poisson="{p["poisson"]}" thickness="{p["thickness"]}"
+                    damping="{p["elastic_damping"]}" elastic2d="both"/>
+        <contact selfcollide="none" contype="0" conaffinity="1" friction="{p["friction"]} 0.005 0.0001"
+                 solref="{p["contact_timeconst"]} 1"/>
       </flexcomp>
     </body>
   </worldbody>
@@ -228,7 +282,7 @@ def simulate_garment(joints, joint_rots, fps, garment="skirt", params=None, seed
     joints, joint_rots, fps = _validate(joints, joint_rots, fps)
     p = garment_params(garment, params)
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
-        raise ValueError(f"seed: expected an int, got {seed!r}")
+        raise ValueError(f"seed: expected an int, got {seed!r}")  # noqa: TRY004 (contract: bad input -> ValueError)
     rng = np.random.default_rng(int(seed))
     n_frames = joints.shape[0]
     n_a, n_r = p["n_around"], p["n_rings"]
@@ -249,14 +303,18 @@ def simulate_garment(joints, joint_rots, fps, garment="skirt", params=None, seed
 
     names, seg_a, seg_b = _capsule_segments(joints)
     radii = [p["thigh_radius"]] * 2 + [p["shin_radius"]] * 2 + [p["hip_radius"], p["torso_radius"]]
-    seg_len = np.linalg.norm(seg_b[0] - seg_a[0], axis=-1)  # [C]; bones are rigid, lengths from the first pose
+    seg_len = np.linalg.norm(
+        seg_b[0] - seg_a[0], axis=-1
+    )  # [C]; bones are rigid, lengths from the first pose
     caps = [(n, r, max(0.5 * float(L), 1e-3)) for n, r, L in zip(names, radii, seg_len)]
 
     n_sub = max(1, math.ceil(1.0 / (fps * p["dt_max"])))
     dt = 1.0 / (fps * n_sub)
     model = mujoco.MjModel.from_xml_string(_build_xml(pts, sim_tris, n_a, p, caps, dt))
     data = mujoco.MjData(model)
-    flex_dofs = np.arange(6, model.nv)  # free joint of the waist first, then 3 slide dofs per free cloth vertex
+    flex_dofs = np.arange(
+        6, model.nv
+    )  # free joint of the waist first, then 3 slide dofs per free cloth vertex
     vert_mass = model.body_mass[model.dof_bodyid[flex_dofs]]  # [nv-6]
     drag = vert_mass / p["preroll_drag_tau"]
     mocap_ids = [model.body_mocapid[model.body(n).id] for n in names]
@@ -280,49 +338,72 @@ def simulate_garment(joints, joint_rots, fps, garment="skirt", params=None, seed
     pelvis = joints[:, _PELVIS]  # [F,3]
     q_pel = _quat_wxyz(R_pel)  # [F,4]
     zero = np.zeros(3)
-    cap0_pos, cap0_quat = capsules(seg_a[:1], seg_b[:1])
-    set_pose(pelvis[0], q_pel[0], zero, zero, cap0_pos[0], cap0_quat[0])
+    set_pose(pelvis[0], q_pel[0], zero, zero, *capsules(seg_a[0], seg_b[0]))
     mujoco.mj_forward(model, data)
     flex_start = model.flex_vertadr[0]
     limit = max(1.0, 1.5 * sizes["length"] + sizes["waist_radius"])
 
-    def check(frame: int):
-        x = data.flexvert_xpos[flex_start:flex_start + n_a * n_r]
+    def check(frame: int, when: str = ""):
+        """Cloth vertices [n_r*n_a,3] of the current state; RuntimeError naming the frame if it diverged."""
+        x = data.flexvert_xpos[flex_start : flex_start + n_a * n_r]
         bad_warn = data.warning[mujoco.mjtWarning.mjWARN_BADQACC].number
         dist = np.linalg.norm(x - pelvis[frame], axis=1).max() if np.isfinite(x).all() else np.inf
         if bad_warn > 0 or not dist <= limit:
-            raise RuntimeError(f"simulate_garment: cloth simulation unstable at frame {frame} (max vertex distance "
-                               f"from the pelvis {dist:.3g} m, limit {limit:.2f} m; MuJoCo bad-acceleration warnings "
-                               f"{bad_warn}); try a smaller params['dt_max'] or a softer params['young']")
+            raise RuntimeError(
+                f"simulate_garment: cloth simulation unstable at frame {frame}{when} (max vertex "
+                f"distance from the pelvis {dist:.3g} m, limit {limit:.2f} m; MuJoCo bad-acceleration "
+                f"warnings {bad_warn}); try a smaller params['dt_max'] or a softer params['young']"
+            )
         return x.copy()
 
-    for _ in range(int(round(p["preroll"] / dt))):
-        set_pose(pelvis[0], q_pel[0], zero, zero, cap0_pos[0], cap0_quat[0])
+    def record(f: int):
+        # mj_step leaves positions computed before its integration; re-pose the waist at frame f exactly and
+        # recompute positions so the stored cloth (pinned ring included) belongs to frame f, not one substep earlier.
+        set_pose(pelvis[f], q_pel[f], v_prev, w_prev, cap_f_pos[f], cap_f_quat[f])
+        mujoco.mj_forward(model, data)
+        x = check(f).reshape(n_r, n_a, 3)
+        out[f, :, :n_a], out[f, :, n_a] = x, x[:, 0]
+
+    cap_f_pos, cap_f_quat = capsules(seg_a, seg_b)  # [F,C,3], [F,C,4] at the frames themselves
+    n_pre = round(p["preroll"] / dt)
+    for i in range(n_pre):
+        set_pose(pelvis[0], q_pel[0], zero, zero, cap_f_pos[0], cap_f_quat[0])
         step()
+        if (i + 1) % n_sub == 0:
+            check(0, f" (pre-roll, {(i + 1) * dt:.2f} s)")
 
     drag = vert_mass / p["drag_tau"]
     out = np.empty((n_frames, n_r, n_a + 1, 3), np.float32)
-    x = check(0).reshape(n_r, n_a, 3)
-    out[0, :, :n_a], out[0, :, n_a] = x, x[:, 0]
-    rel = Rotation.from_matrix(np.einsum("fji,fjk->fik", R_pel[:-1], R_pel[1:])).as_rotvec() if n_frames > 1 else None
+    v_prev, w_prev = zero, zero
+    record(0)
+    # Relative pelvis rotation per frame interval (must stay below pi: spins slower than fps/2 turns per second).
+    rel = (
+        Rotation.from_matrix(np.einsum("fji,fjk->fik", R_pel[:-1], R_pel[1:])).as_rotvec()
+        if n_frames > 1
+        else None
+    )
     s_sub = np.arange(n_sub) / n_sub  # [S] substep fractions within a frame
     for f in range(1, n_frames):
-        v = (pelvis[f] - pelvis[f - 1]) * fps
-        w_local = rel[f - 1] * fps  # constant body-frame angular velocity over the frame
+        v_prev = (pelvis[f] - pelvis[f - 1]) * fps
+        w_prev = rel[f - 1] * fps  # constant body-frame angular velocity over the frame
         R = R_pel[f - 1] @ Rotation.from_rotvec(s_sub[:, None] * rel[f - 1]).as_matrix()  # [S,3,3] geodesic
         quats = _quat_wxyz(R)
         pos = pelvis[f - 1] + s_sub[:, None] * (pelvis[f] - pelvis[f - 1])  # [S,3]
         lerp = s_sub[:, None, None]
-        cap_pos, cap_quat = capsules(seg_a[f - 1] + lerp * (seg_a[f] - seg_a[f - 1]),
-                                     seg_b[f - 1] + lerp * (seg_b[f] - seg_b[f - 1]))  # [S,C,3], [S,C,4]
+        cap_pos, cap_quat = capsules(
+            seg_a[f - 1] + lerp * (seg_a[f] - seg_a[f - 1]), seg_b[f - 1] + lerp * (seg_b[f] - seg_b[f - 1])
+        )  # [S,C,3], [S,C,4]
         for k in range(n_sub):
-            set_pose(pos[k], quats[k], v, w_local, cap_pos[k], cap_quat[k])
+            set_pose(pos[k], quats[k], v_prev, w_prev, cap_pos[k], cap_quat[k])
             step()
-        x = check(f).reshape(n_r, n_a, 3)
-        out[f, :, :n_a], out[f, :, n_a] = x, x[:, 0]
+        record(f)
 
     u = np.arange(n_a + 1) / n_a
     v = np.linspace(0.0, 1.0, n_r)
-    uv = np.stack(np.meshgrid(u, v), -1).reshape(-1, 2).astype(np.float32)  # [n_r*(n_a+1),2], row-major by ring
+    uv = (
+        np.stack(np.meshgrid(u, v), -1).reshape(-1, 2).astype(np.float32)
+    )  # [n_r*(n_a+1),2], row-major by ring
     used = {**p, "garment": garment, "seed": int(seed), "fps": fps, "substeps": n_sub, "dt": dt, **sizes}
-    return GarmentSequence(name=garment, vertices=out.reshape(n_frames, -1, 3), faces=out_tris, uv=uv, params=used)
+    return GarmentSequence(
+        name=garment, vertices=out.reshape(n_frames, -1, 3), faces=out_tris, uv=uv, params=used
+    )
