@@ -12,10 +12,10 @@ from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
 sys.path.insert(0, str(Path(__file__).parent))
-from fixtures_data import SIZE, TinyBody, project, write_i3d, write_zju  # noqa: E402
+from fixtures_data import SIZE, TinyBody, project, write_i3d, write_zju
 
-from realityavatar.data.datamodule import AvatarDataModule  # noqa: E402
-from realityavatar.data.poses import PoseTable  # noqa: E402
+from realityavatar.data.datamodule import AvatarDataModule
+from realityavatar.data.poses import PoseTable
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
 KEYS = {"image", "mask", "K", "viewmat", "width", "height", "poses", "transl", "frame", "frame_idx", "view", "split"}
@@ -149,7 +149,7 @@ def test_bad_arguments_fail_fast():
 
 
 def test_build_preset_builds_missing_scene(tmp_path, body, monkeypatch):
-    import realityavatar.data.synthetic as synthetic
+    from realityavatar.data import synthetic
 
     calls = []
 
@@ -223,3 +223,24 @@ def test_synthetic_ci_scene_joints_inside_masks(tmp_path):
                 u, v = project(s["K"].double().numpy(), s["viewmat"].double().numpy(), J[j])
                 assert s["mask"][int(v), int(u), 0] == 1
     assert np.isfinite(dm.scene_extent)
+
+
+@pytest.mark.slow
+def test_training_command_runs_on_fixture_dataset(tmp_path):
+    """`realityavatar-train data=capture ...` end to end (fit a few steps, then test) on a fixture I3D-layout dataset."""
+    import json
+    import subprocess
+
+    from realityavatar.body.mannequin import MannequinBody
+
+    write_i3d(tmp_path / "data", "fx", MannequinBody(), train_frames=tuple(range(4)), pose_frames=(4,),
+              train_views=(0, 1), test_views=(2,))
+    run = tmp_path / "run"
+    cmd = [sys.executable, "-m", "realityavatar.train", "data=capture", f"data.root={tmp_path / 'data'}",
+           "data.sequence=fx", "iterations=3", "trainer=ci", "gaussians.num_points=2000", "eval.save_video=false",
+           "eval.fps_frames=2", f"hydra.run.dir={run}"]
+    out = subprocess.run(cmd, capture_output=True, text=True, timeout=900, cwd=Path(__file__).resolve().parents[1])
+    assert out.returncode == 0, out.stderr[-3000:]
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert metrics["config"]["data"] == "capture" and metrics["iterations"] == 3
+    assert np.isfinite(metrics["test/novel_view/psnr"]) and np.isfinite(metrics["test/novel_pose/psnr"])
