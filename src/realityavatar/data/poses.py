@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 import torch
@@ -38,13 +38,13 @@ class PoseTable:
         self._row = {int(f): i for i, f in enumerate(self.frames)}
 
     @classmethod
-    def from_sequence(cls, poses, transl, frame_ids: Sequence[int] | None = None) -> "PoseTable":
+    def from_sequence(cls, poses, transl, frame_ids: Sequence[int] | None = None) -> PoseTable:
         """A table for an arbitrary sequence (e.g. an animation): frame ids default to 0..F-1."""
         n = len(poses)
         return cls(np.arange(n) if frame_ids is None else frame_ids, poses, transl, source="pose sequence")
 
     @classmethod
-    def union(cls, tables: Sequence["PoseTable"]) -> "PoseTable":
+    def union(cls, tables: Sequence[PoseTable]) -> PoseTable:
         """Merge tables (e.g. all splits of one sequence); a frame present in several keeps its first occurrence."""
         rows: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
         for t in tables:

@@ -62,7 +62,7 @@ def load_pickle(path: Path, hint: str = "") -> object:
             return pickle.load(f, encoding="latin1")
     except ModuleNotFoundError as e:
         raise SceneFormatError(f"{path}: unpickling needs the module {e.name!r}, which is not installed") from e
-    except Exception as e:  # noqa: BLE001 - any unpickling failure means a bad file; say which
+    except Exception as e:
         raise SceneFormatError(f"{path}: not a readable pickle ({type(e).__name__}: {e})") from e
 
 
@@ -110,7 +110,7 @@ def read_image(path: Path) -> np.ndarray:
                 a = np.asarray(im.convert("RGB"))
             else:
                 a = np.asarray(im.convert("RGB"))
-    except Exception as e:  # noqa: BLE001 - PIL raises many types for truncated/corrupt files
+    except Exception as e:
         raise OSError(f"image {path} is corrupt or not an image ({type(e).__name__}: {e})") from e
     if a.ndim == 2:
         a = a[..., None]
@@ -126,7 +126,7 @@ def image_size(path: Path) -> tuple[int, int]:
             return im.size
     except FileNotFoundError:
         raise FileNotFoundError(f"image {path} not found") from None
-    except Exception as e:  # noqa: BLE001
+    except Exception as e:
         raise OSError(f"image {path} is corrupt or not an image ({type(e).__name__}: {e})") from e
 
 

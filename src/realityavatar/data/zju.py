@@ -9,8 +9,8 @@ Frame ids are positions in the sorted models/ list (3DGS-Avatar's frame indices)
 from __future__ import annotations
 
 import json
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 
@@ -56,7 +56,7 @@ def read_models(subject_dir: Path) -> tuple[list[Path], PoseTable, np.ndarray]:
         try:
             with np.load(f) as z:
                 d = {k: z[k] for k in z.files}
-        except Exception as e:  # noqa: BLE001
+        except Exception as e:
             raise SceneFormatError(f"{f}: not a readable .npz ({type(e).__name__}: {e})") from e
         parts = {}
         for k, n in MODEL_KEYS.items():
