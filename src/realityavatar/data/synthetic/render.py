@@ -93,10 +93,17 @@ def _vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return vn / np.linalg.norm(vn, axis=1, keepdims=True).clip(1e-12)
 
 
+def all_camera_rays(Ks: np.ndarray, viewmats: np.ndarray, width: int, height: int):
+    """Origins, directions [C*H*W,3] for all cameras (fixed cameras: compute once per scene)."""
+    origins, dirs = zip(*(camera_rays(Ks[c], viewmats[c], width, height) for c in range(len(Ks))))
+    return np.concatenate(origins), np.concatenate(dirs)
+
+
 def render_views(parts: list[tuple[np.ndarray, np.ndarray, object]], Ks: np.ndarray, viewmats: np.ndarray,
-                 width: int, height: int):
+                 width: int, height: int, rays: tuple[np.ndarray, np.ndarray] | None = None):
     """Ray cast the union of mesh parts [(vertices [V,3], faces [F,3], texture)] into every camera.
 
+    rays: optional precomputed `all_camera_rays(Ks, viewmats, width, height)`.
     Returns rgb [C,H,W,3] uint8 (black background) and mask [C,H,W] uint8 (0/255, 255 where any part is hit).
     """
     verts, faces, owner, offsets = [], [], [], [0]
@@ -110,8 +117,7 @@ def render_views(parts: list[tuple[np.ndarray, np.ndarray, object]], Ks: np.ndar
     caster = RayMeshIntersector(mesh)
     vn = _vertex_normals(V, Fc)
     C = len(Ks)
-    origins, dirs = zip(*(camera_rays(Ks[c], viewmats[c], width, height) for c in range(C)))
-    origins, dirs = np.concatenate(origins), np.concatenate(dirs)
+    origins, dirs = rays if rays is not None else all_camera_rays(Ks, viewmats, width, height)
     tri, ray = caster.intersects_id(origins, dirs, multiple_hits=False, return_locations=False)
     rgb = np.zeros((C * width * height, 3))
     mask = np.zeros(C * width * height, dtype=np.uint8)

@@ -24,7 +24,7 @@ from PIL import Image
 from realityavatar.data.synthetic.cameras import novel_view_ids, ring_cameras
 from realityavatar.data.synthetic.motions import MOTIONS, Motion, make_motion
 from realityavatar.data.synthetic.presets import PRESETS, SEQUENCES
-from realityavatar.data.synthetic.render import BodyTexture, GarmentTexture, render_views
+from realityavatar.data.synthetic.render import BodyTexture, GarmentTexture, all_camera_rays, render_views
 
 GENERATOR_VERSION = 1  # bump when the output changes for the same parameters (invalidates caches)
 SPLITS = {"train": "train", "novel_view": "novelview", "novel_pose": "novelpose"}
@@ -114,8 +114,17 @@ def resolve_params(preset_or_params: str | dict, sequence: str | None = None, ov
     return p
 
 
+def code_hash() -> str:
+    """Hash of the generator's source files: a changed cloth default or texture must invalidate cached scenes."""
+    h = hashlib.sha256()
+    for name in ("cameras.py", "cloth.py", "motions.py", "presets.py", "render.py", "scene.py"):
+        h.update((Path(__file__).parent / name).read_bytes())
+    return h.hexdigest()[:16]
+
+
 def params_hash(params: dict, seed: int) -> str:
-    blob = json.dumps({"params": params, "seed": int(seed), "generator": GENERATOR_VERSION}, sort_keys=True)
+    blob = json.dumps({"params": params, "seed": int(seed), "generator": GENERATOR_VERSION, "code": code_hash()},
+                      sort_keys=True)
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
 
@@ -241,9 +250,10 @@ def _write(tmp: Path, p: dict, seed: int, phash: str, body, motion: Motion, Ks, 
     body_faces = body.faces.numpy()
     all_ids = list(range(p["cameras"]))
     F = motion.num_frames
+    rays = all_camera_rays(Ks, viewmats, p["width"], p["height"])
     for f in tqdm(range(F), desc=f"scene {name}", disable=not progress, unit="frame"):
         rgb, mask = render_views([(verts_w[f], body_faces, body_tex), (garment.vertices[f], garment.faces, garm_tex)],
-                                 Ks, viewmats, p["width"], p["height"])
+                                 Ks, viewmats, p["width"], p["height"], rays)
         poses = motion.pose[f].reshape(72).astype(np.float32)
         info = {"poses": poses, "Rh": motion.Rh[f].astype(np.float32), "Th": motion.Th[f].astype(np.float32),
                 "joints": joints_body[f].astype(np.float32), "tpose_joints": tpose}
@@ -268,7 +278,7 @@ def _write(tmp: Path, p: dict, seed: int, phash: str, body, motion: Motion, Ks, 
                  uv=np.asarray(garment.uv, np.float32), frames=frames)
     meta = {
         "name": name, "generator": "realityavatar.data.synthetic", "generator_version": GENERATOR_VERSION,
-        "params": p, "params_hash": phash, "seed": int(seed), "fps": p["fps"], "body": p["body"],
+        "params": p, "params_hash": phash, "code_hash": code_hash(), "seed": int(seed), "fps": p["fps"], "body": p["body"],
         "world_up": "+y", "ground": "y = 0",
         "garment": p["garment"], "garment_params": _jsonable(getattr(garment, "params", {})),
         "motion": {"name": motion.name, "events": _jsonable(motion.events), "train_frames": motion.num_train,
