@@ -40,14 +40,34 @@ def load_pose_file(path: str | Path, body) -> PoseTable:
     return PoseTable.from_sequence(p, t)
 
 
+def dataset_cameras(dm, views: list[int] | None = None, split: str | None = None) -> list[dict]:
+    """Cameras (K, viewmat, width, height, view) of a DataModule's split, at the loader's image scale."""
+    split = split or ("novel_pose" if "novel_pose" in dm.datasets else "train")
+    ds = dm.datasets[split]
+    first = {}
+    for i, rec in enumerate(ds.records):
+        first.setdefault(rec.view, i)
+    wanted = sorted(first) if views is None else views
+    missing = [v for v in wanted if v not in first]
+    if missing:
+        raise ValueError(f"views {missing} are not cameras of split {split!r} (available {sorted(first)})")
+    cams = []
+    for v in wanted:
+        item = ds[first[v]]
+        cams.append({k: item[k] for k in ("K", "viewmat", "width", "height", "view")})
+    return cams
+
+
 @torch.no_grad()
-def render_sequence(module, table: PoseTable, cameras: list[dict], window_len: int, window_step: int) -> list[np.ndarray]:
-    """Render every frame of `table` from each camera; returns uint8 frames [H, W*len(cameras), 3]."""
+def render_sequence(module, table: PoseTable, cameras: list[dict], window_len: int, window_step: int,
+                    frames_to_render=None) -> list[np.ndarray]:
+    """Render frames of `table` (all, or `frames_to_render`; windows look back into the whole table) from each
+    camera; returns uint8 frames [H, W*len(cameras), 3]."""
     from realityavatar.render import rasterize
 
     dev = module.device
     frames = []
-    for f in table.frames:
+    for f in (table.frames if frames_to_render is None else frames_to_render):
         poses, transl = table.window(int(f), window_len, window_step)
         idx = torch.full((1,), -1, dtype=torch.long, device=dev)
         posed = module.deform(poses[None].to(dev), transl[None].to(dev), idx)
@@ -74,16 +94,16 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     cfg, module, info = load_run(args["run_dir"])
     dm = build_data(cfg, module.body)
+    split = args.get("split", "novel_pose")
     if "poses" in args:
-        table = load_pose_file(args["poses"], module.body)
+        table, frame_ids = load_pose_file(args["poses"], module.body), None
         name = Path(args["poses"]).stem
     else:
-        split = args.get("split", "novel_pose")
-        table = dm.pose_table_for(split)
+        table, frame_ids = dm.scene.poses, dm.pose_sequence(split)[0].tolist()
         name = split
     views = [int(v) for v in args["views"].split(",")] if "views" in args else None
-    cameras = dm.cameras(views)
-    frames = render_sequence(module, table, cameras, dm.window_len, dm.window_step)
+    cameras = dataset_cameras(dm, views, split if split in dm.datasets else None)
+    frames = render_sequence(module, table, cameras, dm.window_len, dm.window_step, frame_ids)
     out = Path(args.get("out", Path(args["run_dir"]) / "animations" / f"{name}.mp4"))
     out.parent.mkdir(parents=True, exist_ok=True)
     imageio.mimwrite(out, frames, fps=float(args.get("fps", 25)), macro_block_size=1)

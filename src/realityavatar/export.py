@@ -130,7 +130,7 @@ def main(argv: list[str] | None = None) -> int:
         export_gaussians(module, out)
     else:
         dm = build_data(cfg, module.body)
-        poses, transl = dm.window(int(frame))
+        poses, transl = dm.window_for(dm.scene.poses, int(frame))
         export_gaussians(module, out, poses, transl)
     print(f"wrote {out}")
     return 0
