@@ -173,7 +173,7 @@ def test_unknown_preset_and_short_spin(tmp_path):
 
 
 def test_failure_mid_write_leaves_no_scene(tmp_path, monkeypatch):
-    import realityavatar.data.synthetic.scene as scene
+    from realityavatar.data.synthetic import scene
 
     calls = {"n": 0}
     real = scene.render_views

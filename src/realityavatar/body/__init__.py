@@ -2,7 +2,14 @@
 
 from __future__ import annotations
 
-from realityavatar.body.base import NUM_JOINTS, SMPL_JOINT_NAMES, SMPL_PARENTS, BodyModel, canonical_pose, rh_th_to_smpl
+from realityavatar.body.base import (
+    NUM_JOINTS,
+    SMPL_JOINT_NAMES,
+    SMPL_PARENTS,
+    BodyModel,
+    canonical_pose,
+    rh_th_to_smpl,
+)
 from realityavatar.body.mannequin import MannequinBody
 
 BODIES = ("mannequin", "smpl")
@@ -13,7 +20,9 @@ def build_body(name: str = "mannequin", **kw) -> BodyModel:
     if name == "mannequin":
         return MannequinBody(**kw)
     if name == "smpl":
-        from realityavatar.body.smpl import SMPLBody  # lazy: pulls in smplx and needs the user's model directory
+        from realityavatar.body.smpl import (
+            SMPLBody,  # lazy: pulls in smplx and needs the user's model directory
+        )
 
         return SMPLBody(**kw)
     raise ValueError(f"body: unknown body model {name!r}; expected one of {BODIES}")

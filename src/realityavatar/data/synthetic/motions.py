@@ -94,7 +94,7 @@ def make_motion(name: str, fps: float, num_train: int, num_novel: int, pelvis_bo
     p = dict(params or {})
     rng = np.random.default_rng(seed)
     # Small per-seed variation of amplitudes and phases: another seed is another take of the same motion.
-    jit = lambda: 1.0 + 0.1 * (rng.random() * 2 - 1)  # noqa: E731
+    jit = lambda: 1.0 + 0.1 * (rng.random() * 2 - 1)
     F = num_train + num_novel
     t = np.arange(F) / fps
     T_train = num_train / fps

@@ -61,7 +61,8 @@ def resolve_params(preset_or_params: str | dict, sequence: str | None = None, ov
             raise ValueError(f"params['preset']: unknown scene preset {base!r}; expected one of {tuple(PRESETS)}")
         p = {**PRESETS[base], "preset": base, **preset_or_params}
     else:
-        raise ValueError(f"preset_or_params: expected a preset name or a dict, got {type(preset_or_params).__name__}")
+        raise ValueError(  # noqa: TRY004 -- every bad scene parameter raises ValueError (one type for callers)
+            f"preset_or_params: expected a preset name or a dict, got {type(preset_or_params).__name__}")
     if sequence is not None:
         p["sequence"] = sequence
     p.update(overrides or {})
@@ -83,7 +84,7 @@ def resolve_params(preset_or_params: str | dict, sequence: str | None = None, ov
         raise ValueError(f"motion: unknown motion {p['motion']!r}; expected one of {MOTIONS}")
     for k in ("train_frames", "novel_frames", "cameras", "novel_view_cameras", "width", "height"):
         if isinstance(p[k], bool) or not isinstance(p[k], (int, np.integer)):
-            raise ValueError(f"{k}: expected an integer, got {p[k]!r}")
+            raise ValueError(f"{k}: expected an integer, got {p[k]!r}")  # noqa: TRY004 -- one error type
         p[k] = int(p[k])
     if p["train_frames"] < 2:
         raise ValueError(f"train_frames: expected at least 2 training frames, got {p['train_frames']}")
