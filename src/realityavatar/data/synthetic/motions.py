@@ -154,7 +154,7 @@ def make_motion(name: str, fps: float, num_train: int, num_novel: int, pelvis_bo
         yaw = 0.3 * np.sin(TWO_PI * 0.2 * t)
     elif name == "walk":
         speed = p.get("walk_speed", 0.7) * jit()
-        length = p.get("walk_length", 1.0)
+        length = p.get("walk_length", 0.6)
         turn_s = p.get("turn_seconds", 0.8)
         step_hz = p.get("step_hz", 1.8) * jit()
         walk_s = length / speed
