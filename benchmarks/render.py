@@ -1,0 +1,223 @@
+"""Renderer benchmark: torch backend (and gsplat on CUDA) vs the dense reference on a human-sized scene.
+
+Prints a table and writes JSON. Each configuration runs in a fresh subprocess so peak memory (ru_maxrss) is its own.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import multiprocessing as mp
+import platform
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+
+def human_scene(n: int, size: int, seed: int = 0, device: str = "cpu", dtype=torch.float32):
+    """N Gaussians on a 1.7 m body-like shape (head, torso, arms, legs), one camera 3 m away filling the image.
+
+    World is z-up, the person stands at the origin facing -y; scales 5-15 mm, opacities mostly high.
+    Returns the positional arguments of `rasterize` minus width/height.
+    """
+    g = torch.Generator().manual_seed(seed)
+    # (centre xyz, radii xyz) of ellipsoids; points are sampled on their surfaces in proportion to area
+    parts = [
+        ((0.0, 0.0, 1.62), (0.09, 0.10, 0.12)),  # head
+        ((0.0, 0.0, 1.47), (0.05, 0.05, 0.06)),  # neck
+        ((0.0, 0.0, 1.18), (0.18, 0.11, 0.27)),  # torso
+        ((0.0, 0.0, 0.92), (0.17, 0.11, 0.12)),  # hips
+        ((-0.09, 0.0, 0.45), (0.07, 0.07, 0.42)),  # legs
+        ((0.09, 0.0, 0.45), (0.07, 0.07, 0.42)),
+        ((-0.24, 0.0, 1.08), (0.045, 0.045, 0.33)),  # arms
+        ((0.24, 0.0, 1.08), (0.045, 0.045, 0.33)),
+        ((-0.09, -0.05, 0.03), (0.05, 0.11, 0.03)),  # feet
+        ((0.09, -0.05, 0.03), (0.05, 0.11, 0.03)),
+    ]
+    centre = torch.tensor([p[0] for p in parts])
+    radii = torch.tensor([p[1] for p in parts])
+    # approximate ellipsoid area (Knud Thomsen) for the sampling weights
+    a, b, c = radii.unbind(-1)
+    pw = 1.6075
+    area = 4 * math.pi * (((a * b) ** pw + (a * c) ** pw + (b * c) ** pw) / 3) ** (1 / pw)
+    part = torch.multinomial(area / area.sum(), n, replacement=True, generator=g)
+    d = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1)
+    shell = 1.0 + 0.03 * torch.randn(n, 1, generator=g)  # a little thickness, like cloth over skin
+    means = centre[part] + radii[part] * d * shell
+    scales = torch.exp(torch.empty(n, 3).uniform_(math.log(0.005), math.log(0.015), generator=g))
+    quats = torch.randn(n, 4, generator=g)
+    opac = torch.where(torch.rand(n, generator=g) < 0.75, torch.empty(n).uniform_(0.6, 1.0, generator=g),
+                       torch.empty(n).uniform_(0.05, 0.6, generator=g))
+    colors = torch.rand(n, 3, generator=g)
+    # OpenCV camera at (0,-3,0.85) looking along +y: x_cam = x, y_cam = -z, z_cam = y
+    R = torch.tensor([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]])
+    campos = torch.tensor([0.0, -3.0, 0.85])
+    vm = torch.eye(4)
+    vm[:3, :3] = R
+    vm[:3, 3] = -R @ campos
+    f = 0.92 * size * 3.0 / 1.7  # the 1.7 m person spans ~92% of the image height
+    K = torch.tensor([[f, 0, size / 2], [0, f, size / 2], [0, 0, 1.0]])
+    out = [means, quats, scales, opac, colors, vm[None], K[None]]
+    return [t.to(device=device, dtype=dtype) for t in out]
+
+
+def _rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: KiB
+
+
+def _current_rss_mb() -> float:
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * resource.getpagesize() / 2**20
+
+
+def _sync(device: str) -> None:
+    if device == "cuda":
+        torch.cuda.synchronize()
+
+
+def _time(fn, repeats: int, device: str) -> float:
+    fn()  # warm-up
+    _sync(device)
+    best = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        _sync(device)
+        best.append(time.perf_counter() - t0)
+    return float(sorted(best)[len(best) // 2])  # median
+
+
+def run_one(cfg: dict) -> dict:
+    """One configuration (in its own process): forward and forward+backward seconds, peak memory."""
+    from realityavatar.render import rasterize
+    from realityavatar.render.reference import rasterize_reference
+
+    torch.set_num_threads(cfg["threads"]) if cfg["threads"] else None
+    dev, n, size, method = cfg["device"], cfg["n"], cfg["size"], cfg["method"]
+    args = human_scene(n, size, device=dev)
+    params = [t.requires_grad_() for t in args[:5]]
+    cams = args[5:]
+    gout = torch.rand(1, size, size, 3, device=dev)
+    if dev == "cuda":
+        torch.cuda.reset_peak_memory_stats()
+    base = _current_rss_mb()
+
+    if method == "dense":
+        def render():
+            return rasterize_reference(*params, *cams, size, size, method="matrix", pixel_chunk=cfg["pixel_chunk"])
+    else:
+        def render():
+            return rasterize(*params, *cams, size, size, backend=method, **cfg.get("options", {}))
+
+    def fwd():
+        with torch.no_grad():
+            render()
+
+    def fwd_bwd():
+        img = render()[0]
+        (img * gout).sum().backward()
+        for p in params:
+            p.grad = None
+
+    img, alpha, meta = render()
+    info: dict = {}
+    if method != "dense":
+        info = {k: meta[k] for k in ("tile_pairs", "padded_elements", "n_chunks", "backend") if k in meta}
+        info["visible"] = int(meta["visible"].sum())
+        info["coverage"] = float((alpha > 0.5).float().mean())
+    del img, alpha, meta
+    t_f = _time(fwd, cfg["repeats"], dev)
+    t_fb = _time(fwd_bwd, cfg["repeats"], dev)
+    res = dict(cfg, forward_s=t_f, forward_backward_s=t_fb, **info)
+    if dev == "cuda":
+        res["peak_mem_mb"] = torch.cuda.max_memory_allocated() / 2**20
+        res["peak_mem_kind"] = "cuda max_memory_allocated"
+    else:
+        res["peak_mem_mb"] = _rss_mb()
+        res["peak_mem_above_start_mb"] = _rss_mb() - base
+        res["peak_mem_kind"] = "process peak RSS"
+    return res
+
+
+def _child(cfg_json: str) -> None:
+    print(json.dumps(run_one(json.loads(cfg_json))))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--n", type=int, nargs="+", default=[5000, 10000, 35000])
+    ap.add_argument("--size", type=int, nargs="+", default=[128, 256, 512])
+    ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    ap.add_argument("--backends", nargs="+", default=None, help="default: torch (+ gsplat on CUDA)")
+    ap.add_argument("--dense", nargs="*", default=["10000x256", "5000x128"],
+                    help="NxSIZE configurations also timed with the dense reference (slow); none with --dense")
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--threads", type=int, default=0, help="torch threads (0: torch default)")
+    ap.add_argument("--quick", action="store_true", help="10k at 256^2 only, dense reference included")
+    ap.add_argument("--out", default=None, help="JSON path (default benchmarks/results/render_<device>.json)")
+    a = ap.parse_args()
+    if a.quick:
+        a.n, a.size, a.repeats = [10000], [256], 3
+    backends = a.backends or (["torch", "gsplat"] if a.device == "cuda" else ["torch"])
+    runs = []
+    for n in a.n:
+        for size in a.size:
+            for m in backends:
+                runs.append({"n": n, "size": size, "method": m, "device": a.device, "repeats": a.repeats,
+                             "threads": a.threads})
+            if f"{n}x{size}" in (a.dense or []):
+                runs.append({"n": n, "size": size, "method": "dense", "device": a.device, "repeats": 1,
+                             "threads": a.threads, "pixel_chunk": 1024})
+    results = []
+    for cfg in runs:
+        p = subprocess.run([sys.executable, __file__, "--child", json.dumps(cfg)], capture_output=True, text=True, check=False)
+        if p.returncode != 0:
+            print(p.stderr, file=sys.stderr)
+            raise SystemExit(f"benchmarks/render.py: configuration {cfg} failed")
+        r = json.loads(p.stdout.strip().splitlines()[-1])
+        results.append(r)
+        print(f"  done {r['method']:6s} N={r['n']:6d} {r['size']}^2  fwd+bwd {r['forward_backward_s']:.3f}s",
+              file=sys.stderr)
+    # speed-up of torch over dense where both ran
+    for r in results:
+        if r["method"] == "dense":
+            for t in results:
+                if t["method"] == "torch" and (t["n"], t["size"]) == (r["n"], r["size"]):
+                    t["speedup_vs_dense_fwd"] = r["forward_s"] / t["forward_s"]
+                    t["speedup_vs_dense_fwd_bwd"] = r["forward_backward_s"] / t["forward_backward_s"]
+    hdr = "| backend | N | image | forward s | fwd+bwd s | peak MB | vs dense (fwd+bwd) | tile pairs | chunks |"
+    lines = [hdr, "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for r in results:
+        sp = f"{r['speedup_vs_dense_fwd_bwd']:.0f}x" if "speedup_vs_dense_fwd_bwd" in r else ""
+        lines.append(
+            f"| {r['method']} | {r['n']} | {r['size']}² | {r['forward_s']:.3f} | {r['forward_backward_s']:.3f} | "
+            f"{r['peak_mem_mb']:.0f} | {sp} | {r.get('tile_pairs', '')} | {r.get('n_chunks', '')} |"
+        )
+    print("\n".join(lines))
+    out = Path(a.out or Path(__file__).parent / "results" / f"render_{a.device}.json")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    meta = {
+        "command": " ".join([Path(sys.executable).name, *sys.argv]),
+        "torch": torch.__version__,
+        "threads": torch.get_num_threads() if not a.threads else a.threads,
+        "machine": platform.platform(),
+        "cpu": platform.processor() or platform.machine(),
+        "device": a.device if a.device == "cpu" else torch.cuda.get_device_name(0),
+        "note": "median of repeats; peak memory is the process peak RSS on CPU (includes ~torch itself) and "
+                "torch.cuda.max_memory_allocated on CUDA; dense = every Gaussian x every pixel, float32, "
+                "1024-pixel chunks",
+    }
+    out.write_text(json.dumps({"meta": meta, "results": results}, indent=1))
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    if len(sys.argv) > 2 and sys.argv[1] == "--child":
+        _child(sys.argv[2])
+    else:
+        mp.freeze_support()
+        main()

@@ -1,0 +1,259 @@
+"""`rasterize`: gsplat-1.5-style Gaussian splatting with a pure-torch tiled backend and a gsplat (CUDA) backend."""
+from __future__ import annotations
+
+import warnings
+from typing import Any
+
+import torch
+
+from .project import project_gaussians
+from .sh import eval_sh
+from .tiles import build_plan, composite_tiles
+
+_RENDER_MODES = ("RGB", "D", "ED", "RGB+D", "RGB+ED")
+_RASTER_MODES = ("classic", "antialiased")
+_BACKENDS = ("auto", "torch", "gsplat")
+_WHERE = "realityavatar/render/splat.py (rasterize)"
+_gsplat_failure: str | None = None  # why gsplat could not be used (warned once)
+_gsplat_module: Any = None
+
+
+def _fail(field: str, expected: str, got: Any) -> None:
+    raise ValueError(f"{_WHERE}: `{field}` expected {expected}, got {got}")
+
+
+def _shape(t: Any) -> Any:
+    return tuple(t.shape) if isinstance(t, torch.Tensor) else type(t).__name__
+
+
+def _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree, backgrounds,
+                  near, far, render_mode, rasterize_mode, check_finite):
+    for name, t in (("means", means), ("quats", quats), ("scales", scales), ("opacities", opacities),
+                    ("colors", colors), ("viewmats", viewmats), ("Ks", Ks)):
+        if not isinstance(t, torch.Tensor):
+            _fail(name, "a torch.Tensor", type(t).__name__)
+        if not t.is_floating_point():
+            _fail(name, "a floating-point tensor", t.dtype)
+    if means.dim() != 2 or means.shape[1] != 3:
+        _fail("means", "shape [N,3]", _shape(means))
+    N = means.shape[0]
+    if quats.shape != (N, 4):
+        _fail("quats", f"shape [N,4] = [{N},4] (wxyz)", _shape(quats))
+    if scales.shape != (N, 3):
+        _fail("scales", f"shape [N,3] = [{N},3]", _shape(scales))
+    if opacities.shape != (N,):
+        _fail("opacities", f"shape [N] = [{N}]", _shape(opacities))
+    if viewmats.dim() != 3 or viewmats.shape[1:] != (4, 4):
+        _fail("viewmats", "shape [C,4,4] (world-to-camera)", _shape(viewmats))
+    C = viewmats.shape[0]
+    if C == 0:
+        _fail("viewmats", "at least one camera", _shape(viewmats))
+    if Ks.shape != (C, 3, 3):
+        _fail("Ks", f"shape [C,3,3] = [{C},3,3]", _shape(Ks))
+    for name, v in (("width", width), ("height", height)):
+        if isinstance(v, bool) or not isinstance(v, int) or v <= 0:
+            _fail(name, "a positive int", repr(v))
+    if render_mode not in _RENDER_MODES:
+        _fail("render_mode", f"one of {_RENDER_MODES}", repr(render_mode))
+    if rasterize_mode not in _RASTER_MODES:
+        _fail("rasterize_mode", f"one of {_RASTER_MODES}", repr(rasterize_mode))
+    if not (0 <= float(near) < float(far)):
+        _fail("near/far", "0 <= near < far", (near, far))
+    if sh_degree is None:
+        if not (colors.dim() == 2 and colors.shape[0] == N) and not (colors.dim() == 3 and colors.shape[:2] == (C, N)):
+            _fail("colors", f"[N,D] = [{N},D] or [C,N,D] = [{C},{N},D] (or SH [N,K,3] with sh_degree)",
+                  _shape(colors))
+    else:
+        if not 0 <= int(sh_degree) <= 3:
+            _fail("sh_degree", "an int in 0..3", repr(sh_degree))
+        k = (int(sh_degree) + 1) ** 2
+        ok = (colors.dim() == 3 and colors.shape[0] == N) or (colors.dim() == 4 and colors.shape[:2] == (C, N))
+        if not ok or colors.shape[-1] != 3 or colors.shape[-2] < k:
+            _fail("colors", f"SH coefficients [N,K,3] or [C,N,K,3] with N={N}, K>={k}", _shape(colors))
+    if backgrounds is not None:
+        D = 3 if sh_degree is not None else colors.shape[-1]
+        if not isinstance(backgrounds, torch.Tensor) or backgrounds.shape != (C, D):
+            _fail("backgrounds", f"shape [C,D] = [{C},{D}] (colour channels only)", _shape(backgrounds))
+    if check_finite:
+        tensors = [("means", means), ("quats", quats), ("scales", scales), ("opacities", opacities),
+                   ("colors", colors), ("viewmats", viewmats), ("Ks", Ks)]
+        if backgrounds is not None:
+            tensors.append(("backgrounds", backgrounds))
+        for name, t in tensors:
+            if t.numel() and not bool(torch.isfinite(t).all()):
+                bad = int((~torch.isfinite(t)).sum())
+                _fail(name, "finite values", f"{bad} NaN/inf entries")
+        if N and bool((quats.detach().norm(dim=-1) == 0).any()):
+            _fail("quats", "non-zero quaternions", "an all-zero row")
+
+
+def _load_gsplat() -> Any:
+    """Import gsplat once; on any failure remember why and warn once."""
+    global _gsplat_failure, _gsplat_module
+    if _gsplat_module is not None or _gsplat_failure is not None:
+        return _gsplat_module
+    try:
+        import gsplat
+
+        _gsplat_module = gsplat
+    except Exception as exc:  # noqa: BLE001 - ImportError or a CUDA extension build error: any means fall back
+        _gsplat_failure = f"{type(exc).__name__}: {exc}"
+        warnings.warn(f"{_WHERE}: gsplat unavailable ({_gsplat_failure}); using the torch backend", stacklevel=3)
+    return _gsplat_module
+
+
+def _gsplat_failed(exc: Exception) -> None:
+    global _gsplat_failure, _gsplat_module
+    _gsplat_failure = f"{type(exc).__name__}: {exc}"
+    _gsplat_module = None
+    warnings.warn(f"{_WHERE}: gsplat failed ({_gsplat_failure}); using the torch backend", stacklevel=3)
+
+
+def rasterize(
+    means: torch.Tensor,  # [N,3] world
+    quats: torch.Tensor,  # [N,4] wxyz, need not be normalised
+    scales: torch.Tensor,  # [N,3]
+    opacities: torch.Tensor,  # [N]
+    colors: torch.Tensor,  # [N,D] | [C,N,D] | SH [N,K,3] | [C,N,K,3] with sh_degree
+    viewmats: torch.Tensor,  # [C,4,4] world-to-camera, OpenCV
+    Ks: torch.Tensor,  # [C,3,3]
+    width: int,
+    height: int,
+    *,
+    sh_degree: int | None = None,
+    backgrounds: torch.Tensor | None = None,  # [C,D]
+    background: Any = None,  # [D] list/tensor for every camera (the hydra config key); ignored if backgrounds given
+    near: float = 0.01,
+    far: float = 1e10,
+    render_mode: str = "RGB",
+    rasterize_mode: str = "classic",
+    backend: str = "auto",
+    tile_size: int | None = None,
+    eps2d: float = 0.3,
+    radius_clip: float = 0.0,
+    alpha_max: float = 0.999,
+    chunk_elements: int = 1 << 20,
+    tile_cull: bool = True,
+    check_finite: bool = True,
+    **gsplat_kwargs: Any,
+) -> tuple[torch.Tensor, torch.Tensor, dict[str, Any]]:
+    """Render C cameras. Returns colours [C,H,W,D'], alphas [C,H,W,1] and `meta`, like gsplat.rasterization 1.5.
+
+    meta: means2d [C,N,2] (grad retained), radii [C,N] int32 (max of the x/y half-extents, 0 = culled),
+    radii_xy [C,N,2] (gsplat 1.5's per-axis radii), depths [C,N], conics [C,N,3], opacities [C,N] (after
+    antialiasing compensation), visible [C,N] bool, backend ("torch" | "gsplat"), plus torch-backend statistics.
+    `tile_size` defaults to 8 for torch (faster on CPU) and 16 for gsplat; `alpha_max`, `chunk_elements` and `tile_cull` tune the torch backend; gsplat's own extra options
+    go through `gsplat_kwargs` (ignored by the torch backend).
+    """
+    if backgrounds is None and background is not None:
+        bg = torch.as_tensor(background, dtype=means.dtype, device=means.device)
+        D = 3 if sh_degree is not None else colors.shape[-1]
+        if bg.dim() != 1 or bg.shape[0] != D:
+            _fail("background", f"a list of {D} values (one per colour channel)", tuple(bg.shape))
+        backgrounds = bg[None].expand(viewmats.shape[0], D)
+    if backend not in _BACKENDS:
+        _fail("backend", f"one of {_BACKENDS}", repr(backend))
+    _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree, backgrounds,
+                  near, far, render_mode, rasterize_mode, check_finite)
+    use_gsplat = backend == "gsplat" or (backend == "auto" and means.is_cuda)
+    if use_gsplat and not means.is_cuda:
+        if backend == "gsplat":
+            warnings.warn(f"{_WHERE}: backend='gsplat' needs CUDA tensors; using the torch backend", stacklevel=2)
+        use_gsplat = False
+    if use_gsplat and means.shape[0] > 0 and _load_gsplat() is not None:
+        try:
+            return _rasterize_gsplat(means, quats, scales, opacities, colors, viewmats, Ks, width, height,
+                                     sh_degree=sh_degree, backgrounds=backgrounds, near=near, far=far,
+                                     render_mode=render_mode, rasterize_mode=rasterize_mode, tile_size=tile_size,
+                                     eps2d=eps2d, radius_clip=radius_clip, **gsplat_kwargs)
+        except (RuntimeError, ImportError, OSError) as exc:  # e.g. the JIT build of its CUDA kernels failed
+            _gsplat_failed(exc)
+    return _rasterize_torch(means, quats, scales, opacities, colors, viewmats, Ks, width, height,
+                            sh_degree=sh_degree, backgrounds=backgrounds, near=near, far=far,
+                            render_mode=render_mode, rasterize_mode=rasterize_mode, tile_size=tile_size,
+                            eps2d=eps2d, radius_clip=radius_clip, alpha_max=alpha_max,
+                            chunk_elements=chunk_elements, tile_cull=tile_cull)
+
+
+def _sh_colors(colors, sh_degree, means, viewmats, C):
+    campos = torch.linalg.inv(viewmats)[:, :3, 3]  # [C,3]
+    dirs = means[None, :, :] - campos[:, None, :]  # [C,N,3]
+    coeffs = colors if colors.dim() == 4 else colors[None].expand(C, *colors.shape)
+    return torch.clamp_min(eval_sh(int(sh_degree), coeffs, dirs) + 0.5, 0.0)  # [C,N,3]
+
+
+def _rasterize_torch(means, quats, scales, opacities, colors, viewmats, Ks, width, height, *, sh_degree,
+                     backgrounds, near, far, render_mode, rasterize_mode, tile_size, eps2d, radius_clip,
+                     alpha_max, chunk_elements, tile_cull):
+    C = viewmats.shape[0]
+    proj = project_gaussians(means, quats, scales, opacities, viewmats, Ks, width, height, near, far,
+                             eps2d=eps2d, radius_clip=radius_clip, antialiased=rasterize_mode == "antialiased")
+    means2d = proj.means2d
+    if means2d.requires_grad:
+        means2d.retain_grad()  # densification reads meta["means2d"].grad (gsplat's absgrad=False)
+
+    if sh_degree is not None:
+        cols = _sh_colors(colors, sh_degree, means, viewmats, C)
+    else:
+        cols = colors if colors.dim() == 3 else colors[None].expand(C, *colors.shape)  # [C,N,D]
+    bg = backgrounds
+    if render_mode in ("RGB+D", "RGB+ED"):
+        cols = torch.cat([cols, proj.depths[..., None]], dim=-1)
+        if bg is not None:
+            bg = torch.cat([bg, bg.new_zeros(C, 1)], dim=-1)
+    elif render_mode in ("D", "ED"):
+        cols = proj.depths[..., None]
+        if bg is not None:
+            bg = bg.new_zeros(C, 1)
+
+    plan = build_plan(proj.means2d, proj.conics, proj.opacities, proj.depths, proj.radii_xy, width, height,
+                      tile_size=8 if tile_size is None else int(tile_size), chunk_elements=chunk_elements, tile_cull=tile_cull)
+    img, alphas = composite_tiles(means2d, proj.conics, proj.opacities, cols.to(means2d.dtype), plan,
+                                  width, height, alpha_max=alpha_max)
+    if bg is not None:
+        img = img + (1.0 - alphas) * bg[:, None, None, :]
+    if render_mode in ("ED", "RGB+ED"):
+        img = torch.cat([img[..., :-1], img[..., -1:] / alphas.clamp(min=1e-10)], dim=-1)
+
+    meta = {
+        "means2d": means2d,
+        "radii": proj.radii_xy.amax(-1),
+        "radii_xy": proj.radii_xy,
+        "depths": proj.depths,
+        "conics": proj.conics,
+        "opacities": proj.opacities,
+        "visible": proj.visible,
+        "compensations": proj.compensations,
+        "colors": cols,
+        "width": width,
+        "height": height,
+        "tile_size": plan.tile_size,
+        "n_cameras": C,
+        "tile_pairs": plan.pairs,
+        "padded_elements": plan.elements,
+        "n_chunks": len(plan.chunks),
+        "backend": "torch",
+    }
+    return img, alphas, meta
+
+
+def _rasterize_gsplat(means, quats, scales, opacities, colors, viewmats, Ks, width, height, *, sh_degree,
+                      backgrounds, near, far, render_mode, rasterize_mode, tile_size, eps2d, radius_clip,
+                      **kwargs):
+    gsplat = _gsplat_module
+    img, alphas, info = gsplat.rasterization(
+        means, quats, scales, opacities, colors, viewmats, Ks, width, height,
+        near_plane=near, far_plane=far, sh_degree=sh_degree, backgrounds=backgrounds, render_mode=render_mode,
+        rasterize_mode=rasterize_mode, tile_size=16 if tile_size is None else int(tile_size),
+        eps2d=eps2d, radius_clip=radius_clip, packed=kwargs.pop("packed", False), **kwargs,
+    )
+    meta = dict(info)
+    radii = meta["radii"]
+    radii_xy = radii if radii.dim() == 3 else torch.stack([radii, radii], -1)
+    meta["radii_xy"] = radii_xy
+    meta["radii"] = radii_xy.amax(-1)
+    meta["visible"] = (radii_xy > 0).all(-1)
+    if meta["means2d"].requires_grad:
+        meta["means2d"].retain_grad()
+    meta["backend"] = "gsplat"
+    return img, alphas, meta
