@@ -135,6 +135,11 @@ def _real_tree_gaps() -> list[str]:
     return sorted(g for g in groups if not any((CONF / g).glob("*.yaml")))
 
 
+# The sweep-sized scene preset belongs to the scene/data configs; until it exists the sweeps that use it
+# cannot compose, which is reported as a skip naming the file (every other missing option fails).
+SWEEP_SCENE = CONF / "data" / "synthetic_sweep.yaml"
+
+
 @pytest.mark.parametrize("name", sorted(EXPECTED))
 def test_sweep_jobs_compose_in_the_real_tree(name):
     gaps = _real_tree_gaps()
@@ -142,12 +147,21 @@ def test_sweep_jobs_compose_in_the_real_tree(name):
         pytest.skip(f"conf/ groups not written yet: {gaps}")
     jobs = expand(CONF, name)
     assert len(jobs) == EXPECTED[name][0]
+    stand_in = any(o == "data=synthetic_sweep" for j in jobs for o in j) and not SWEEP_SCENE.is_file()
     for job in jobs:
+        if stand_in:  # check every other axis against the real tree meanwhile
+            job = [o.replace("data=synthetic_sweep", "data=synthetic_demo") for o in job]
         cfg, choices = _job_choices(CONF, name, job)
         ov = dict(o.split("=", 1) for o in job)
         if "+variant" in ov:
             assert (choices["encoder"], choices["temporal"]) == VARIANT_CHOICES[ov["+variant"]]
+        for key in ("temporal", "color", "density", "render", "trainer", "data"):
+            if key in ov:
+                assert choices[key] == ov[key]
         assert cfg.seed == int(ov["seed"])
+    if stand_in:
+        pytest.skip(f"{SWEEP_SCENE.relative_to(ROOT)} (the sweep scene preset) does not exist yet; "
+                    "the other axes compose (checked with data=synthetic_demo)")
 
 
 @pytest.mark.parametrize("real", [False, True], ids=["standin", "real"])
@@ -305,6 +319,8 @@ def test_tiny_sweep_end_to_end(tmp_path):
     """`realityavatar-train -m +ablation=tiny` trains both jobs; the collectors read what they wrote."""
     import subprocess
 
+    if _real_tree_gaps():
+        pytest.skip(f"conf/ groups not written yet: {_real_tree_gaps()}")
     sweep = tmp_path / "sweep"
     cmd = [sys.executable, "-m", "realityavatar.train", "-m", "+ablation=tiny", f"hydra.sweep.dir={sweep}",
            "eval.save_video=false"]
