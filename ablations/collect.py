@@ -49,7 +49,7 @@ def _columns() -> list[dict]:
             tex = f"{name.upper()}$\\{'uparrow' if up else 'downarrow'}$"
             cols.append(_column(metric_key(split, name), short, header, tex, split, scale, dec, True, name == "lpips"))
     cols += [
-        _column("train_seconds", "train_seconds", "Train time (s)", "Train (s)"),
+        _column("train_seconds", "train_seconds", "Train time (s)", "Train (s)", dec=1),
         _column("num_gaussians", "num_gaussians", "Gaussians", "Gaussians"),
         _column("num_parameters", "num_parameters", "Parameters", "Params"),
     ]
@@ -99,11 +99,16 @@ def build_table(runs: Runs) -> tuple[pd.DataFrame, pd.DataFrame, dict]:
 def _footnotes(runs: Runs, table: pd.DataFrame, cells_md: list[list[str]], prov: dict, latex: bool) -> list[str]:
     seeds = sorted({int(s) for s in runs.frame["seed"]})
     ref = display_label(runs.reference, latex)
-    notes = [
-        (f"Mean ± std over seeds ({', '.join(map(str, seeds))}; sample std) per scene, then averaged over "
-        f"{len(runs.scenes)} scene(s): {', '.join(runs.scenes)}. LPIPS ×1000."),
-        f"{MARK} difference from the reference row ({ref}) within the seed spread: {SPREAD_RULE}.",
-    ]
+    scenes = f"{len(runs.scenes)} scene(s): {', '.join(runs.scenes)}"
+    if len(seeds) > 1:
+        notes = [
+            (f"Mean ± std over seeds ({', '.join(map(str, seeds))}; sample std) per scene, then averaged over {scenes}."
+            " LPIPS ×1000."),
+            f"{MARK} difference from the reference row ({ref}) within the seed spread: {SPREAD_RULE}.",
+        ]
+    else:
+        notes = [(f"One seed ({seeds[0]}): no seed spread, so no ± and no {MARK} marks; averaged over {scenes}."
+                 " LPIPS ×1000.")]
     nc = any(math.isnan(r[f"{metric_key(s, 'lpips')}:mean"]) for _, r in table.iterrows() for s in SPLITS)
     if nc:
         why = "; ".join(prov["lpips_not_computed"]) or "LPIPS missing from metrics.json"

@@ -159,6 +159,8 @@ def test_sweep_jobs_compose_in_the_real_tree(name):
             if key in ov:
                 assert choices[key] == ov[key]
         assert cfg.seed == int(ov["seed"])
+        if name == "tiny":
+            assert (cfg.iterations, cfg.gaussians.num_points, cfg.eval.save_video) == (30, 1500, False)
     if stand_in:
         pytest.skip(f"{SWEEP_SCENE.relative_to(ROOT)} (the sweep scene preset) does not exist yet; "
                     "the other axes compose (checked with data=synthetic_demo)")
@@ -322,14 +324,13 @@ def test_tiny_sweep_end_to_end(tmp_path):
     if _real_tree_gaps():
         pytest.skip(f"conf/ groups not written yet: {_real_tree_gaps()}")
     sweep = tmp_path / "sweep"
-    cmd = [sys.executable, "-m", "realityavatar.train", "-m", "+ablation=tiny", f"hydra.sweep.dir={sweep}",
-           "eval.save_video=false"]
+    cmd = [sys.executable, "-m", "realityavatar.train", "-m", "+ablation=tiny", f"hydra.sweep.dir={sweep}"]
     res = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=1800, check=False)
     assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
     assert len(list(sweep.rglob("metrics.json"))) == 2
     csv, _ = collect(sweep, tmp_path / "table")
     assert list(csv["label"]) == ["full", "no_lstm"]
     assert csv["novel_view_psnr_mean"].notna().all() and csv["num_gaussians_mean"].gt(0).all()
-    assert "realityavatar-train -m +ablation=tiny eval.save_video=false hydra.sweep.dir=" in (
-        tmp_path / "table" / "table.md").read_text()
+    md = (tmp_path / "table" / "table.md").read_text()
+    assert "realityavatar-train -m +ablation=tiny hydra.sweep.dir=" in md and "One seed (0)" in md
     assert len(pareto(sweep, tmp_path / "chart")) == 2
