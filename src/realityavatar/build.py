@@ -71,7 +71,7 @@ def build_data(cfg: DictConfig, body):
 def load_run(run_dir: str | Path, overrides: list[str] | None = None, ckpt: str | Path | None = None):
     """Rebuild (cfg, module, run_info) from a run folder written by `realityavatar-train`."""
     run_dir = Path(run_dir)
-    cfg_path = run_dir / ".hydra" / "config.yaml"
+    cfg_path = run_dir / "config.yaml"
     if not cfg_path.is_file():
         raise FileNotFoundError(f"{cfg_path} not found: expected a run folder written by realityavatar-train")
     cfg = OmegaConf.load(cfg_path)

@@ -97,7 +97,7 @@ def export_gaussians(module, out: Path, poses: torch.Tensor | None = None, trans
     if poses is None:
         means, quats, scales = g.means, g.quats, torch.exp(g.log_scales)
         rot = torch.eye(3, device=dev).expand(g.num_points, 3, 3)[None]
-        f_mt = None
+        f_mt = g.means.new_zeros(1, g.num_points, module.deformer.feature_dim)  # canonical: no motion-trend feature
         frame_idx = torch.full((1,), -1, dtype=torch.long, device=dev)
     else:
         frame_idx = torch.full((1,), -1, dtype=torch.long, device=dev)

@@ -25,6 +25,8 @@ def run(cfg: DictConfig, choices: dict | None = None) -> dict:
     pl.seed_everything(int(cfg.seed), workers=True)
     out_dir = Path(cfg.out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
+    # The resolved config beside the checkpoint is what evaluate/animate/export rebuild the run from.
+    OmegaConf.save(cfg, out_dir / "config.yaml", resolve=True)
     body = instantiate(cfg.body)
     dm = build_data(cfg, body)
     module = build_module(cfg, body, dm.num_train_frames, dm.scene_extent)
