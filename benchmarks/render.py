@@ -65,6 +65,9 @@ def human_scene(n: int, size: int, seed: int = 0, device: str = "cpu", dtype=tor
     return [t.to(device=device, dtype=dtype) for t in out]
 
 
+_loadavg_before: list = []
+
+
 def _rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: KiB
 
@@ -79,8 +82,9 @@ def _sync(device: str) -> None:
         torch.cuda.synchronize()
 
 
-def _time(fn, repeats: int, device: str) -> float:
-    fn()  # warm-up
+def _time(fn, repeats: int, device: str, warmup: bool = True) -> float:
+    if warmup:
+        fn()
     _sync(device)
     best = []
     for _ in range(repeats):
@@ -94,7 +98,8 @@ def _time(fn, repeats: int, device: str) -> float:
 def run_one(cfg: dict) -> dict:
     """One configuration (in its own process): forward and forward+backward seconds, peak memory."""
     from realityavatar.render import rasterize
-    from realityavatar.render.reference import rasterize_reference
+    from realityavatar.render.project import project_gaussians
+    from realityavatar.render.reference import composite_dense_rows, pixel_centres, rasterize_reference
 
     torch.set_num_threads(cfg["threads"]) if cfg["threads"] else None
     dev, n, size, method = cfg["device"], cfg["n"], cfg["size"], cfg["method"]
@@ -118,20 +123,34 @@ def run_one(cfg: dict) -> dict:
             render()
 
     def fwd_bwd():
-        img = render()[0]
-        (img * gout).sum().backward()
+        if method == "dense":
+            # backward a chunk of pixels at a time: the whole [HW,N] graph would not fit in memory
+            proj = project_gaussians(*params[:4], *cams, size, size, 0.01, 1e10)
+            order = torch.argsort(proj.depths[0])
+            g = [proj.means2d[0][order], proj.conics[0][order], proj.opacities[0][order], params[4][order],
+                 proj.visible[0][order]]
+            pix = pixel_centres(size, size, dev, torch.float32)
+            go = gout.reshape(-1, 3)
+            for s in range(0, pix.shape[0], cfg["pixel_chunk"]):
+                img, _ = composite_dense_rows(*g, pix[s : s + cfg["pixel_chunk"]])
+                (img * go[s : s + cfg["pixel_chunk"]]).sum().backward(retain_graph=True)
+        else:
+            img = render()[0]
+            (img * gout).sum().backward()
         for p in params:
             p.grad = None
 
-    img, alpha, meta = render()
+    with torch.no_grad():  # a full dense graph would not fit in memory
+        img, alpha, meta = render()
     info: dict = {}
     if method != "dense":
         info = {k: meta[k] for k in ("tile_pairs", "padded_elements", "n_chunks", "backend") if k in meta}
         info["visible"] = int(meta["visible"].sum())
         info["coverage"] = float((alpha > 0.5).float().mean())
     del img, alpha, meta
-    t_f = _time(fwd, cfg["repeats"], dev)
-    t_fb = _time(fwd_bwd, cfg["repeats"], dev)
+    warm = method != "dense"  # the dense reference takes minutes; its one run is already warm
+    t_f = _time(fwd, cfg["repeats"], dev, warm)
+    t_fb = _time(fwd_bwd, cfg["repeats"], dev, warm)
     res = dict(cfg, forward_s=t_f, forward_backward_s=t_fb, **info)
     if dev == "cuda":
         res["peak_mem_mb"] = torch.cuda.max_memory_allocated() / 2**20
@@ -172,6 +191,8 @@ def main() -> None:
             if f"{n}x{size}" in (a.dense or []):
                 runs.append({"n": n, "size": size, "method": "dense", "device": a.device, "repeats": 1,
                              "threads": a.threads, "pixel_chunk": 1024})
+    global _loadavg_before
+    _loadavg_before = list(__import__("os").getloadavg())  # the machine is shared: record how busy it was
     results = []
     for cfg in runs:
         p = subprocess.run([sys.executable, __file__, "--child", json.dumps(cfg)], capture_output=True, text=True, check=False)
@@ -205,6 +226,8 @@ def main() -> None:
         "torch": torch.__version__,
         "threads": torch.get_num_threads() if not a.threads else a.threads,
         "machine": platform.platform(),
+        "load_average_before": _loadavg_before,
+        "load_average_after": list(__import__("os").getloadavg()),
         "cpu": platform.processor() or platform.machine(),
         "device": a.device if a.device == "cpu" else torch.cuda.get_device_name(0),
         "note": "median of repeats; peak memory is the process peak RSS on CPU (includes ~torch itself) and "

@@ -37,28 +37,38 @@ def composite_dense_loop(means2d, conics, opacities, colors, visible, width, hei
     return out, (1 - T)[..., None]
 
 
+def pixel_centres(width, height, device=None, dtype=torch.float64):
+    """[H*W,2] pixel centres (x+0.5, y+0.5) in row-major order."""
+    ys, xs = torch.meshgrid(torch.arange(height, device=device, dtype=dtype) + 0.5,
+                            torch.arange(width, device=device, dtype=dtype) + 0.5, indexing="ij")
+    return torch.stack([xs.reshape(-1), ys.reshape(-1)], -1)
+
+
+def composite_dense_rows(means2d, conics, opacities, colors, visible, pix, alpha_max=0.999):
+    """Pixels pix [P,2] against every Gaussian (depth-sorted [N,...]) as a [P,N] matrix with cumprod."""
+    dx = means2d[None, :, 0] - pix[:, 0:1]  # [P,N]
+    dy = means2d[None, :, 1] - pix[:, 1:2]
+    sigma = 0.5 * (conics[:, 0] * dx * dx + conics[:, 2] * dy * dy) + conics[:, 1] * dx * dy
+    alpha = torch.clamp(opacities * torch.exp(-sigma), max=alpha_max)
+    ok = visible & (sigma >= 0) & (alpha >= ALPHA_THRESHOLD)
+    alpha = alpha * ok
+    t_incl = torch.cumprod(1 - alpha, dim=-1)
+    alpha = alpha * (t_incl > T_MIN)
+    t_excl = torch.cat([torch.ones_like(t_incl[:, :1]), t_incl[:, :-1]], dim=-1)
+    w = alpha * t_excl
+    return w @ colors, w.sum(-1, keepdim=True)
+
+
 def composite_dense_matrix(means2d, conics, opacities, colors, visible, width, height, alpha_max=0.999,
                            pixel_chunk=1024):
-    """Same rules with a [pixels, N] matrix per chunk of pixels and cumprod (autograd-friendly, for benchmarks)."""
-    dev, dt = means2d.device, means2d.dtype
-    ys, xs = torch.meshgrid(torch.arange(height, device=dev, dtype=dt) + 0.5,
-                            torch.arange(width, device=dev, dtype=dt) + 0.5, indexing="ij")
-    pix = torch.stack([xs.reshape(-1), ys.reshape(-1)], -1)  # [HW,2]
+    """Same rules as the loop, a chunk of pixels at a time (every Gaussian x every pixel)."""
+    pix = pixel_centres(width, height, means2d.device, means2d.dtype)
     outs, alphas = [], []
     for s in range(0, pix.shape[0], pixel_chunk):
-        p = pix[s : s + pixel_chunk]
-        dx = means2d[None, :, 0] - p[:, 0:1]  # [P,N]
-        dy = means2d[None, :, 1] - p[:, 1:2]
-        sigma = 0.5 * (conics[:, 0] * dx * dx + conics[:, 2] * dy * dy) + conics[:, 1] * dx * dy
-        alpha = torch.clamp(opacities * torch.exp(-sigma), max=alpha_max)
-        ok = visible & (sigma >= 0) & (alpha >= ALPHA_THRESHOLD)
-        alpha = alpha * ok
-        t_incl = torch.cumprod(1 - alpha, dim=-1)
-        alpha = alpha * (t_incl > T_MIN)
-        t_excl = torch.cat([torch.ones_like(t_incl[:, :1]), t_incl[:, :-1]], dim=-1)
-        w = alpha * t_excl
-        outs.append(w @ colors)
-        alphas.append(w.sum(-1, keepdim=True))
+        o, a = composite_dense_rows(means2d, conics, opacities, colors, visible, pix[s : s + pixel_chunk],
+                                    alpha_max)
+        outs.append(o)
+        alphas.append(a)
     return torch.cat(outs).reshape(height, width, -1), torch.cat(alphas).reshape(height, width, 1)
 
 

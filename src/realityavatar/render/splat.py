@@ -132,7 +132,7 @@ def rasterize(
     eps2d: float = 0.3,
     radius_clip: float = 0.0,
     alpha_max: float = 0.999,
-    chunk_elements: int = 1 << 20,
+    chunk_elements: int = 1 << 18,
     tile_cull: bool = True,
     check_finite: bool = True,
     **gsplat_kwargs: Any,

@@ -62,7 +62,7 @@ def build_plan(
     width: int,
     height: int,
     tile_size: int = 8,
-    chunk_elements: int = 1 << 20,
+    chunk_elements: int = 1 << 18,
     tile_cull: bool = True,
 ) -> Plan:
     dev = means2d.device
