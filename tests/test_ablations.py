@@ -57,7 +57,7 @@ def _clear_hydra():
 
 @pytest.fixture(scope="module")
 def standin_conf(tmp_path_factory) -> Path:
-    """conf/ with this project's ablation, variant and launcher files and one-line stand-ins for every other option."""
+    """conf/ with this project's ablation, variant, preset and launcher files and one-line stand-ins for every other option."""
     conf = tmp_path_factory.mktemp("conf")
     for group, options in GROUPS.items():
         (conf / group).mkdir()
@@ -68,7 +68,7 @@ def standin_conf(tmp_path_factory) -> Path:
             if group == "gaussians":
                 body["num_points"] = 10000
             (conf / group / f"{opt}.yaml").write_text(yaml.safe_dump(body))
-    for sub in ("ablation", "variant", "hydra/launcher"):
+    for sub in ("ablation", "variant", "preset", "hydra/launcher"):
         (conf / sub).mkdir(parents=True)
         for f in (CONF / sub).glob("*.yaml"):
             (conf / sub / f.name).write_text(f.read_text())

@@ -4,13 +4,21 @@ from __future__ import annotations
 
 import sys
 import time
+import warnings
 from pathlib import Path
 
 import hydra
 import pytorch_lightning as pl
+import torch
 from omegaconf import DictConfig, OmegaConf
 
 from realityavatar.config import choices_of, config_dir
+
+
+# Lightning notices that do not apply here: density control needs manual optimisation, and there is no val loop.
+for _msg in (".*pre-optimization state.*", ".*`validation_step`.*", ".*LeafSpec.*", ".*is not empty.*", ".*litlogger.*",
+             ".*does not have many workers.*"):
+    warnings.filterwarnings("ignore", message=_msg)
 
 
 def run(cfg: DictConfig, choices: dict | None = None) -> dict:
@@ -23,6 +31,8 @@ def run(cfg: DictConfig, choices: dict | None = None) -> dict:
     from realityavatar.evaluate import evaluate_module, format_table
 
     pl.seed_everything(int(cfg.seed), workers=True)
+    if cfg.get("threads"):
+        torch.set_num_threads(int(cfg.threads))
     out_dir = Path(cfg.out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     # The resolved config beside the checkpoint is what evaluate/animate/export rebuild the run from.

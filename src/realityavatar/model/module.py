@@ -13,7 +13,7 @@ from torch import nn
 
 from realityavatar.body.base import BodyModel
 from realityavatar.model.deform import apply_deformation
-from realityavatar.model.skinning import lbs_gaussians, sample_surface
+from realityavatar.model.skinning import lbs_gaussians, pretrain_skinning, sample_surface
 from realityavatar.render import rasterize
 
 # Per-Gaussian parameter groups; component groups use the component's name.
@@ -27,6 +27,7 @@ class Schedule:
 
     deform_start: int = 0
     skin_switch: int = 0
+    skin_pretrain_steps: int = 0  # fit the skinning field to the body's weights before the first step
 
     def deform_on(self, step: int) -> bool:
         return step >= self.deform_start
@@ -142,6 +143,18 @@ class AvatarModule(pl.LightningModule):
         return torch.stack(images), torch.stack(alphas), metas, posed
 
     # ------------------------------------------------------------------ training
+    def on_fit_start(self) -> None:
+        # A skinning field learnt from scratch at the paper's small LR is still far from the body's weights after a
+        # short CPU run, which blurs every frame; a few hundred cheap steps on surface samples fix that up front.
+        if self.global_step == 0 and self.schedule.skin_pretrain_steps > 0:
+            t0 = time.perf_counter()
+            loss = pretrain_skinning(
+                self.skinning, self.body.canonical_vertices().detach(), self.body.faces, self.body.skin_weights,
+                steps=self.schedule.skin_pretrain_steps,
+            )
+            self.run_info["skin_pretrain"] = {"steps": self.schedule.skin_pretrain_steps, "loss": loss,
+                                              "seconds": time.perf_counter() - t0}
+
     def _skin_targets(self):
         if self._surface is None:
             gen = torch.Generator().manual_seed(1234)
