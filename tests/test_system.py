@@ -156,3 +156,18 @@ def test_nan_pose_gives_clear_error(body):
         body(pose, torch.zeros(3))
     with pytest.raises(ValueError, match=r"\[\.\.\.,24,3\]"):
         check_pose(torch.zeros(23, 3), None)
+
+
+def test_animate_writes_video_from_pose_file(trained_run, tmp_path):
+    from realityavatar.animate import main as animate_main
+
+    out, _ = trained_run
+    poses = np.zeros((5, 24, 3), np.float32)
+    poses[:, 16, 2] = np.linspace(0, 1.2, 5)  # raise the left arm
+    np.savez(tmp_path / "wave.npz", poses=poses, transl=np.zeros((5, 3), np.float32))
+    assert animate_main([f"run_dir={out}", f"poses={tmp_path / 'wave.npz'}", "views=0", f"out={tmp_path / 'wave.mp4'}"]) == 0
+    assert (tmp_path / "wave.mp4").stat().st_size > 0
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, poses=np.zeros((5, 23, 3), np.float32))
+    with pytest.raises(ValueError, match="poses"):
+        animate_main([f"run_dir={out}", f"poses={bad}"])

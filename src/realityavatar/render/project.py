@@ -5,21 +5,9 @@ from dataclasses import dataclass
 
 import torch
 
+from realityavatar.geometry import quat_to_matrix as quat_to_rotmat  # one quaternion convention (wxyz) project-wide
+
 ALPHA_THRESHOLD = 1.0 / 255.0
-
-
-def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
-    """quats: [N,4] wxyz, any norm -> [N,3,3]."""
-    q = torch.nn.functional.normalize(quats, dim=-1)
-    w, x, y, z = q.unbind(-1)
-    return torch.stack(
-        [
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-        ],
-        dim=-1,
-    ).reshape(*q.shape[:-1], 3, 3)
 
 
 @dataclass
