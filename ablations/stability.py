@@ -193,8 +193,11 @@ def analyse_run(run: Path, view: int | None, window: int) -> dict:
 
 
 def _mean_std(xs):
+    """Mean and sample std (ddof=1, as ablations/collect.py) of the values that exist."""
     xs = [x for x in xs if x is not None]
-    return (float(np.mean(xs)), float(np.std(xs))) if xs else (float("nan"), float("nan"))
+    if not xs:
+        return float("nan"), float("nan")
+    return float(np.mean(xs)), float(np.std(xs, ddof=1)) if len(xs) > 1 else 0.0
 
 
 def write_report(results: list[dict], out: Path, command: str) -> None:
@@ -259,7 +262,7 @@ def write_report(results: list[dict], out: Path, command: str) -> None:
     for label, rs in by.items():
         sig = list(rs[0]["noise"]["psnr_by_sigma"])
         L.append(f"| {label} | " + " | ".join(f"{np.mean([r['noise']['psnr_by_sigma'][s] for r in rs]):.2f}" for s in sig) + " |")
-    L += ["", "## Seed spread (test metrics from metrics.json)", "", "| variant | seeds | novel view PSNR | novel pose PSNR |", "|---|---|---|---|"]
+    L += ["", "## Seed spread (test metrics from metrics.json; ± = sample std over seeds)", "", "| variant | seeds | novel view PSNR | novel pose PSNR |", "|---|---|---|---|"]
     for label, rs in by.items():
         a, b = _mean_std([r["novel_view_psnr"] for r in rs]), _mean_std([r["novel_pose_psnr"] for r in rs])
         L.append(f"| {label} | {len(rs)} | {a[0]:.2f} ± {a[1]:.2f} | {b[0]:.2f} ± {b[1]:.2f} |")

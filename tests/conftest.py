@@ -8,7 +8,8 @@ from pathlib import Path
 import pytest
 import torch
 
-torch.set_num_threads(min(2, os.cpu_count() or 1))
+# One thread: the suite is dominated by small ops, and 2 OpenMP threads stall badly when anything shares the cores.
+torch.set_num_threads(1)
 
 
 def pytest_collection_modifyitems(config, items):
