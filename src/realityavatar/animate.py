@@ -63,8 +63,6 @@ def render_sequence(module, table: PoseTable, cameras: list[dict], window_len: i
                     frames_to_render=None) -> list[np.ndarray]:
     """Render frames of `table` (all, or `frames_to_render`; windows look back into the whole table) from each
     camera; returns uint8 frames [H, W*len(cameras), 3]."""
-    from realityavatar.render import rasterize
-
     dev = module.device
     frames = []
     for f in (table.frames if frames_to_render is None else frames_to_render):
@@ -75,9 +73,7 @@ def render_sequence(module, table: PoseTable, cameras: list[dict], window_len: i
         for cam in cameras:
             vm = cam["viewmat"][None].to(dev)
             rgb = module.shade(posed, vm, idx)[0]
-            bg = torch.tensor(module.background, device=dev, dtype=rgb.dtype)[None]
-            img, _, _ = rasterize(posed["means"][0], posed["quats"][0], posed["scales"][0], posed["opacities"], rgb,
-                                  vm, cam["K"][None].to(dev), cam["width"], cam["height"], backgrounds=bg, **module.render_cfg)
+            img, _, _ = module.splat(posed, 0, rgb, vm, cam["K"][None].to(dev), cam["width"], cam["height"])
             tiles.append((img[0].clamp(0, 1).cpu().numpy() * 255).round().astype(np.uint8))
         frames.append(np.concatenate(tiles, 1))
     return frames

@@ -37,9 +37,9 @@ def build_module(cfg: DictConfig, body, num_train_frames: int, scene_extent: flo
     color = instantiate(cfg.color, num_frames=max(int(num_train_frames), 1))
     density = instantiate(cfg.density)
     loss = instantiate(cfg.loss)
-    lpips, _ = build_lpips(cfg)
+    lpips, lpips_status = build_lpips(cfg)
     render = OmegaConf.to_container(cfg.render, resolve=True)
-    return AvatarModule(
+    module = AvatarModule(
         body=body,
         gaussians=gaussians,
         encoder=encoder,
@@ -59,6 +59,8 @@ def build_module(cfg: DictConfig, body, num_train_frames: int, scene_extent: flo
         scene_extent=scene_extent,
         lpips=lpips,
     )
+    module.lpips_status = lpips_status  # "computed" or why not, recorded in metrics.json
+    return module
 
 
 def build_data(cfg: DictConfig, body):

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from realityavatar.build import build_data, build_lpips, load_run, write_json
+from realityavatar.build import build_data, load_run, write_json
 
 METRIC_KEYS = ("psnr", "ssim", "lpips", "psnr_masked", "ssim_masked", "lpips_masked")
 
@@ -124,7 +124,7 @@ def main(argv: list[str] | None = None) -> int:
     trainer = pl.Trainer(accelerator=cfg.trainer.accelerator, devices=1, logger=False, enable_progress_bar=False)
     out = Path(run_dir) / "eval"
     metrics = evaluate_module(module, dm, trainer, cfg, out)
-    metrics["lpips"] = build_lpips(cfg)[1]
+    metrics["lpips"] = module.lpips_status
     write_json(out / "metrics.json", {**info.get("metrics_header", {}), **metrics})
     print(format_table({**info.get("metrics_header", {}), **metrics}))
     print(f"wrote {out / 'metrics.json'}")

@@ -27,7 +27,7 @@ def run(cfg: DictConfig, choices: dict | None = None) -> dict:
     from pytorch_lightning.callbacks import ModelCheckpoint
     from pytorch_lightning.loggers import CSVLogger, TensorBoardLogger
 
-    from realityavatar.build import CKPT_NAME, build_data, build_lpips, build_module, git_commit, write_json
+    from realityavatar.build import CKPT_NAME, build_data, build_module, git_commit, write_json
     from realityavatar.evaluate import evaluate_module, format_table
 
     pl.seed_everything(int(cfg.seed), workers=True)
@@ -47,7 +47,6 @@ def run(cfg: DictConfig, choices: dict | None = None) -> dict:
     t0 = time.perf_counter()
     trainer.fit(module, datamodule=dm, ckpt_path=cfg.get("ckpt_path"))
     train_seconds = time.perf_counter() - t0
-    trainer.save_checkpoint(out_dir / CKPT_NAME)
     choices = choices if choices is not None else choices_of(cfg)
     header = {
         "config": choices,
@@ -60,7 +59,7 @@ def run(cfg: DictConfig, choices: dict | None = None) -> dict:
         "num_gaussians": int(module.gaussians.num_points),
         "num_parameters": module.num_parameters(),
         "perceptual": getattr(module.loss_fn, "perceptual_kind", "unknown"),
-        "lpips": build_lpips(cfg)[1],
+        "lpips": module.lpips_status,
         "device": str(module.device),
         "backend": cfg.render.get("backend", "auto"),
     }

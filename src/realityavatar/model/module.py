@@ -80,6 +80,7 @@ class AvatarModule(pl.LightningModule):
         self.scene_extent = float(scene_extent)
         self.skin_samples = int(skin_samples)
         self.lpips = lpips
+        self.lpips_status = "computed" if lpips is not None else "not computed"  # build_module sets the reason
         self.test_records: list[dict] = []
         self._surface = None
         # Facts needed to rebuild the run from its checkpoint (num_train_frames, scene_extent, ...).
@@ -122,6 +123,12 @@ class AvatarModule(pl.LightningModule):
         d_c = (posed["rot"].transpose(-1, -2) @ d[..., None]).squeeze(-1)
         return self.color(self.gaussians.features, F.normalize(d_c, dim=-1), posed["f_mt"], frame_idx)
 
+    def splat(self, posed: dict, b: int, rgb: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor, W: int, H: int):
+        """Rasterize sample b of `posed` with colours rgb [N,3] from one camera (viewmat [1,4,4], K [1,3,3])."""
+        bg = torch.tensor(self.background, dtype=rgb.dtype, device=rgb.device)[None]
+        return rasterize(posed["means"][b], posed["quats"][b], posed["scales"][b], posed["opacities"], rgb,
+                         viewmat, K, W, H, backgrounds=bg, **self.render_cfg)
+
     def render_batch(self, batch: dict, deform: bool = True):
         """Render every sample of a batch from its own camera. Returns rgb [B,H,W,3], alpha [B,H,W,1], metas, posed."""
         poses, transl = batch["poses"], batch["transl"]
@@ -130,13 +137,9 @@ class AvatarModule(pl.LightningModule):
         W, H = int(batch["width"][0]), int(batch["height"][0])
         posed = self.deform(poses, transl, frame_idx, deform=deform)
         rgb = self.shade(posed, viewmats, frame_idx)  # [B,N,3]
-        bg = torch.tensor(self.background, dtype=rgb.dtype, device=rgb.device)[None]
         images, alphas, metas = [], [], []
         for b in range(posed["B"]):
-            img, alpha, meta = rasterize(
-                posed["means"][b], posed["quats"][b], posed["scales"][b], posed["opacities"], rgb[b],
-                viewmats[b : b + 1], Ks[b : b + 1], W, H, backgrounds=bg, **self.render_cfg,
-            )
+            img, alpha, meta = self.splat(posed, b, rgb[b], viewmats[b : b + 1], Ks[b : b + 1], W, H)
             images.append(img[0])
             alphas.append(alpha[0])
             metas.append(meta)
