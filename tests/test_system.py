@@ -15,7 +15,8 @@ from omegaconf import open_dict
 from realityavatar.config import CONFIG_DIR, compose
 
 SMALL = ["trainer=ci", "gaussians.num_points=1500", "eval.save_video=false", "eval.fps_frames=2", "eval.fps_warmup=1"]
-COMPONENT_GROUPS = ("gaussians", "encoder", "temporal", "deformer", "skinning", "color", "density", "loss")
+COMPONENT_GROUPS = ("gaussians", "encoder", "temporal", "deformer", "skinning", "color", "density", "loss",
+                    "silhouette")
 
 
 def _prepare(cfg, out_dir: Path):

@@ -27,9 +27,20 @@ def build_lpips(cfg: DictConfig):
     return net, "computed"
 
 
-def build_module(cfg: DictConfig, body, num_train_frames: int, scene_extent: float) -> AvatarModule:
-    """Instantiate every component from its config group and hand them to the LightningModule."""
-    gaussians = instantiate(cfg.gaussians, body=body)
+def build_module(cfg: DictConfig, body, num_train_frames: int, scene_extent: float, data=None) -> AvatarModule:
+    """Instantiate every component from its config group and hand them to the LightningModule.
+
+    data: the set-up DataModule, for components initialised from the training data (gaussians=hull); None when a
+    run is rebuilt from its checkpoint.
+    """
+    from hydra.utils import get_class
+
+    extra = {}
+    if data is not None and getattr(get_class(cfg.gaussians._target_), "NEEDS_VIEWS", False):
+        from realityavatar.model.hull import hull_views
+
+        extra["views"] = hull_views(data, cfg.gaussians.get("hull_frame"))
+    gaussians = instantiate(cfg.gaussians, body=body, **extra)
     encoder = instantiate(cfg.encoder)
     temporal = instantiate(cfg.temporal)
     deformer = instantiate(cfg.deformer)
@@ -37,6 +48,7 @@ def build_module(cfg: DictConfig, body, num_train_frames: int, scene_extent: flo
     color = instantiate(cfg.color, num_frames=max(int(num_train_frames), 1))
     density = instantiate(cfg.density)
     loss = instantiate(cfg.loss)
+    silhouette = instantiate(cfg.silhouette) if cfg.get("silhouette") is not None else None
     lpips, lpips_status = build_lpips(cfg)
     render = OmegaConf.to_container(cfg.render, resolve=True)
     module = AvatarModule(
@@ -58,6 +70,7 @@ def build_module(cfg: DictConfig, body, num_train_frames: int, scene_extent: flo
         max_steps=int(cfg.iterations),
         scene_extent=scene_extent,
         lpips=lpips,
+        silhouette=silhouette,
     )
     module.lpips_status = lpips_status  # "computed" or why not, recorded in metrics.json
     return module

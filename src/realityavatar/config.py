@@ -8,7 +8,7 @@ from omegaconf import DictConfig, OmegaConf
 
 CONFIG_DIR = Path(__file__).resolve().parents[2] / "conf"
 AXES = (
-    "data", "body", "gaussians", "encoder", "temporal", "deformer", "skinning", "color", "density", "loss",
+    "data", "body", "gaussians", "encoder", "temporal", "deformer", "skinning", "color", "density", "loss", "silhouette",
     "render", "optim", "trainer", "variant", "ablation",
 )
 

@@ -14,7 +14,7 @@ import torch
 
 from realityavatar.build import build_data, load_run, write_json
 
-METRIC_KEYS = ("psnr", "ssim", "lpips", "psnr_masked", "ssim_masked", "lpips_masked")
+METRIC_KEYS = ("psnr", "ssim", "iou", "lpips", "psnr_masked", "ssim_masked", "lpips_masked")
 
 
 def summarise(records: list[dict]) -> dict:
@@ -91,14 +91,14 @@ def evaluate_module(module, dm, trainer, cfg, out_dir: Path) -> dict:
 
 def format_table(metrics: dict) -> str:
     """A short results table for the terminal."""
-    lines = [f"{'split':<12}{'PSNR':>8}{'SSIM':>8}{'LPIPS':>9}{'PSNR(box)':>11}{'SSIM(box)':>11}{'images':>8}"]
+    lines = [f"{'split':<12}{'PSNR':>8}{'SSIM':>8}{'IoU':>7}{'LPIPS':>9}{'PSNR(box)':>11}{'SSIM(box)':>11}{'images':>8}"]
     for split in ("novel_view", "novel_pose"):
         g = lambda k: metrics.get(f"test/{split}/{k}")  # noqa: E731
         if g("psnr") is None:
             continue
         lp = f"{g('lpips'):9.2f}" if g("lpips") is not None else f"{'n/c':>9}"
         lines.append(
-            f"{split:<12}{g('psnr'):8.2f}{g('ssim'):8.4f}{lp}{g('psnr_masked'):11.2f}{g('ssim_masked'):11.4f}{g('num_images'):8d}"
+            f"{split:<12}{g('psnr'):8.2f}{g('ssim'):8.4f}{g('iou') or float('nan'):7.3f}{lp}{g('psnr_masked'):11.2f}{g('ssim_masked'):11.4f}{g('num_images'):8d}"
         )
     lines.append(
         f"Gaussians {metrics.get('num_gaussians')}  parameters {metrics.get('num_parameters')}  "

@@ -70,6 +70,13 @@ def ssim(pred: torch.Tensor, gt: torch.Tensor, window: int = 11, sigma: float = 
     return out[0] if single else out
 
 
+def silhouette_iou(alpha: torch.Tensor, mask: torch.Tensor, threshold: float = 0.5) -> torch.Tensor:
+    """Intersection over union of the predicted silhouette (alpha > threshold) and the mask (> 0.5): [H,W,1] each."""
+    a, m = alpha > threshold, mask > 0.5
+    union = (a | m).sum()
+    return torch.where(union > 0, (a & m).sum() / union.clamp(min=1), torch.ones((), device=alpha.device))
+
+
 def mask_bbox(mask: torch.Tensor, pad: int = 0) -> tuple[int, int, int, int]:
     """mask [H,W] or [H,W,1] -> (y0, y1, x0, x1) of its non-zero box (+pad, clipped); the whole image if empty."""
     m = mask.reshape(mask.shape[0], mask.shape[1], -1).amax(-1) > 0.5

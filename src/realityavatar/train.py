@@ -39,7 +39,7 @@ def run(cfg: DictConfig, choices: dict | None = None) -> dict:
     OmegaConf.save(cfg, out_dir / "config.yaml", resolve=True)
     body = instantiate(cfg.body)
     dm = build_data(cfg, body)
-    module = build_module(cfg, body, dm.num_train_frames, dm.scene_extent)
+    module = build_module(cfg, body, dm.num_train_frames, dm.scene_extent, data=dm)
     module.run_info.update(num_train_frames=dm.num_train_frames, train_frame_ids=list(map(int, dm.train_frame_ids)))
     ckpt_cb = ModelCheckpoint(dirpath=out_dir, filename=Path(CKPT_NAME).stem, save_last=False, every_n_train_steps=max(int(cfg.iterations) // 4, 1), save_top_k=1, enable_version_counter=False)
     loggers = [CSVLogger(out_dir / "logs", name="csv", version=""), TensorBoardLogger(out_dir / "logs", name="tb", version="")]

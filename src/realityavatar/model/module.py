@@ -57,6 +57,7 @@ class AvatarModule(pl.LightningModule):
         scene_extent: float = 1.0,
         skin_samples: int = 1024,
         lpips: nn.Module | None = None,
+        silhouette: nn.Module | None = None,
     ):
         super().__init__()
         self.automatic_optimization = False  # density control edits parameters between optimizer steps
@@ -69,6 +70,7 @@ class AvatarModule(pl.LightningModule):
         self.color = color
         self.density = density
         self.loss_fn = loss
+        self.silhouette = silhouette
         self.optimizer_factory = optimizer
         self.lr = dict(lr)
         self.final_factor = dict(final_factor)
@@ -178,6 +180,15 @@ class AvatarModule(pl.LightningModule):
             rgb, alpha, batch["image"], batch["mask"], skinning=self.skinning, skin_points=skin_pts,
             skin_weights=skin_w, step=step,
         )
+        if self.silhouette is not None:
+            sil: dict[str, torch.Tensor] = {}
+            for b in range(rgb.shape[0]):
+                for k, v in self.silhouette(posed["means"][b], batch["viewmat"][b], batch["K"][b], batch["mask"][b],
+                                            alpha[b]).items():
+                    sil[k] = sil.get(k, 0.0) + v / rgb.shape[0]
+            if sil:
+                total = total + self.silhouette.total(sil)
+                terms.update({k: v.detach() for k, v in sil.items()})
         if not torch.isfinite(total):
             raise FloatingPointError(f"training loss became non-finite at step {step}: {terms}")
         self.manual_backward(total)
@@ -233,7 +244,7 @@ class AvatarModule(pl.LightningModule):
 
     # ------------------------------------------------------------------ evaluation
     def test_step(self, batch, batch_idx, dataloader_idx: int = 0):
-        from realityavatar.metrics import masked_bbox, psnr, ssim
+        from realityavatar.metrics import masked_bbox, psnr, silhouette_iou, ssim
 
         split = batch["split"][0]
         with torch.no_grad():
@@ -248,6 +259,7 @@ class AvatarModule(pl.LightningModule):
                 "psnr": float(psnr(pred, gt)),
                 "ssim": float(ssim(pred, gt)),
             }
+            rec["iou"] = float(silhouette_iou(alpha[b], mask))
             pb, gb = masked_bbox(pred, gt, mask)
             rec["psnr_masked"] = float(psnr(pb, gb))
             rec["ssim_masked"] = float(ssim(pb, gb))
@@ -255,7 +267,7 @@ class AvatarModule(pl.LightningModule):
                 rec["lpips"] = float(self.lpips(pred, gt)) * 1000.0
                 rec["lpips_masked"] = float(self.lpips(pb, gb)) * 1000.0
             self.test_records.append({**rec, "_pred": pred.cpu(), "_gt": gt.cpu()})
-            for k in ("psnr", "ssim", "psnr_masked", "ssim_masked", "lpips", "lpips_masked"):
+            for k in ("psnr", "ssim", "iou", "psnr_masked", "ssim_masked", "lpips", "lpips_masked"):
                 if k in rec:
                     self.log(f"test/{split}/{k}", rec[k], add_dataloader_idx=False, batch_size=1)
 
