@@ -18,6 +18,11 @@ _gsplat_failure: str | None = None  # why gsplat could not be used (warned once)
 _gsplat_module: Any = None
 
 
+def _on_cuda(t: torch.Tensor) -> bool:
+    """Whether gsplat can take this tensor (a seam: tests stand a fake gsplat in for CUDA on the CPU)."""
+    return t.is_cuda
+
+
 def _fail(field: str, expected: str, got: Any) -> None:
     raise ValueError(f"{_WHERE}: `{field}` expected {expected}, got {got}")
 
@@ -155,8 +160,8 @@ def rasterize(
         _fail("backend", f"one of {_BACKENDS}", repr(backend))
     _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree, backgrounds,
                   near, far, render_mode, rasterize_mode, check_finite)
-    use_gsplat = backend == "gsplat" or (backend == "auto" and means.is_cuda)
-    if use_gsplat and not means.is_cuda:
+    use_gsplat = backend == "gsplat" or (backend == "auto" and _on_cuda(means))
+    if use_gsplat and not _on_cuda(means):
         if backend == "gsplat":
             warnings.warn(f"{_WHERE}: backend='gsplat' needs CUDA tensors; using the torch backend", stacklevel=2)
         use_gsplat = False
