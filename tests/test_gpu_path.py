@@ -139,8 +139,13 @@ def fake_gsplat(tmp_path, monkeypatch):
         sys.modules.pop(name, None)
 
 
-def test_gsplat_without_toolkit_falls_back_once(fake_gsplat):
-    gs = fake_gsplat(kernels=False)  # `import gsplat` works, the first kernel call raises AttributeError
+@pytest.mark.parametrize("broken", ["no_kernels", "first_call"])
+def test_gsplat_without_toolkit_falls_back_once(fake_gsplat, broken):
+    # `import gsplat` works without nvcc; gsplat 1.5.3's first kernel call then raises AttributeError on NoneType
+    gs = fake_gsplat(kernels=broken != "no_kernels")
+    if broken == "first_call":
+        gs.raise_on_call = AttributeError("'NoneType' object has no attribute 'fully_fused_projection_fwd' (CUDA "
+                                          "kernels not built: is nvcc installed?)")
     args = _scene()
     with warnings.catch_warnings(record=True) as rec:
         warnings.simplefilter("always")

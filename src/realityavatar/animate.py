@@ -1,6 +1,7 @@
 """Animate a trained avatar: a pose sequence (a dataset split or an .npz file) rendered from chosen cameras to MP4.
 
-Command: `realityavatar-animate run_dir=<run> [poses=<file.npz> | split=novel_pose] [views=0,2] [out=<file.mp4>] [fps=25]`
+Command: `realityavatar-animate run_dir=<run> [poses=<file.npz> | split=novel_pose] [views=0,2] [out=<file.mp4>] [fps=25]
+[device=cuda|cpu]` (default: the GPU when the run trained on one and CUDA is present)
 The .npz holds `poses` [F,24,3] or [F,72] (SMPL axis-angle, pose[0] = global orientation) and `transl` [F,3];
 optionally `Rh`, `Th` [F,3] in the EasyMocap convention (converted with the body model's pelvis).
 """
@@ -82,13 +83,14 @@ def render_sequence(module, table: PoseTable, cameras: list[dict], window_len: i
 def main(argv: list[str] | None = None) -> int:
     import imageio.v2 as imageio
 
-    from realityavatar.build import build_data, load_run
+    from realityavatar.build import build_data, load_run, run_device
 
     args = dict(a.split("=", 1) for a in (sys.argv[1:] if argv is None else argv) if "=" in a)
     if "run_dir" not in args:
         print(__doc__, file=sys.stderr)
         return 2
     cfg, module, info = load_run(args["run_dir"])
+    module.to(run_device(cfg, args.get("device")))
     dm = build_data(cfg, module.body)
     split = args.get("split", "novel_pose")
     if "poses" in args:
