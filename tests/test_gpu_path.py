@@ -3,7 +3,6 @@ gsplat, the backend/device a run records, single-run multi-GPU refusal; plus `gp
 
 from __future__ import annotations
 
-import fcntl
 import json
 import sys
 import textwrap
@@ -129,6 +128,7 @@ def fake_gsplat(tmp_path, monkeypatch):
             monkeypatch.delitem(sys.modules, name)
         monkeypatch.setattr(rast_mod, "_gsplat_failure", None)
         monkeypatch.setattr(rast_mod, "_gsplat_module", None)
+        monkeypatch.setattr(rast_mod, "_gsplat_ran", False)
         monkeypatch.setattr(rast_mod, "_on_cuda", lambda t: True)  # the fake stands in for CUDA
         import gsplat
 
@@ -311,3 +311,23 @@ def test_two_step_gpu_fit_on_ci_scene(scenes_root, tmp_path):
     assert metrics["device"].startswith("cuda") and metrics["backend"] == "gsplat"
     assert metrics["render_fps_device"].startswith("cuda") and metrics["render_fps_backend"] == "gsplat"
     assert metrics["iterations"] == 2 and metrics["test/novel_view/psnr"] > 0
+
+
+# ---------------------------------------------------------------------- the one-command GPU benchmark
+def test_gpu_benchmark_runs_and_skips_cuda_cleanly(tmp_path):
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import gpu
+
+    out = tmp_path / "gpu.json"
+    rc = gpu.main(["--n", "300", "--size", "32", "--repeats", "1", "--out", str(out),
+                   "--tests", "tests/test_gpu_path.py::test_two_step_gpu_fit_on_ci_scene"])
+    res = json.loads(out.read_text())
+    assert rc == 0 and res["environment"]["cuda_available"] == torch.cuda.is_available()
+    assert res["pytest_gpu"]["rc"] == 0 and len(res["pytest_gpu"]["tests"]) == 1
+    timed = {(r["device"], r["method"]) for r in res["render"] if "forward_backward_s" in r}
+    assert ("cpu", "torch") in timed
+    if not torch.cuda.is_available():
+        assert {(r["device"], r["method"]) for r in res["render_skipped"]} == {("cuda", "torch"), ("cuda", "gsplat")}
+        assert res["pytest_gpu"]["skipped"] == 1
+    else:
+        assert {("cuda", "torch"), ("cuda", "gsplat")} <= timed

@@ -2,13 +2,17 @@
 from __future__ import annotations
 
 import contextlib
-import fcntl
 import os
 import warnings
 from pathlib import Path
 from typing import Any
 
 import torch
+
+try:
+    import fcntl
+except ImportError:  # Windows: no build lock
+    fcntl = None
 
 from .project import project_gaussians
 from .sh import eval_sh
@@ -109,6 +113,9 @@ def _extensions_dir() -> Path:
 def _build_lock():
     """Serialise gsplat's first-time JIT build across processes (SLURM arrays, joblib): gsplat 1.5 deletes its build
     directory before building, so two first-time builds clobber each other. The second waits, then loads."""
+    if fcntl is None:
+        yield
+        return
     d = _extensions_dir()
     d.mkdir(parents=True, exist_ok=True)
     with open(d / "realityavatar-gsplat.lock", "a") as f:
@@ -122,7 +129,7 @@ def _build_lock():
 def _load_gsplat() -> Any:
     """Import gsplat and load (or JIT-build) its CUDA kernels once. Any failure is remembered and warned about once;
     the caller then uses the torch backend. `import gsplat` succeeds without kernels, so they are checked here."""
-    global _gsplat_failure, _gsplat_module
+    global _gsplat_module
     if _gsplat_module is not None or _gsplat_failure is not None:
         return _gsplat_module
     try:
