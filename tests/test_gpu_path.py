@@ -70,6 +70,12 @@ def test_training_step_and_evaluation_in_float64(scenes_root, tmp_path):
     metrics = evaluate_module(module, dm, trainer, cfg, tmp_path)
     assert metrics["test/novel_view/psnr"] > 0 and metrics["render_fps"] > 0
     assert metrics["render_fps_device"] == "cpu"
+    # animate: float32 poses and cameras from the data feed the float64 module
+    from realityavatar.animate import dataset_cameras, render_sequence
+
+    frames = render_sequence(module, dm.scene.poses, dataset_cameras(dm, [0]), dm.window_len, dm.window_step,
+                             dm.pose_sequence("novel_pose")[0].tolist()[:1])
+    assert len(frames) == 1 and frames[0].dtype.name == "uint8"
 
 
 # ---------------------------------------------------------------------- gsplat: build failures fall back, others surface
@@ -301,16 +307,27 @@ def test_gsplat_matches_torch_images_alphas_and_means2d_grads(mode):
 
 
 @pytest.mark.gpu
-@pytest.mark.skipif(not _gsplat_usable(), reason="needs CUDA and a working gsplat")
-def test_two_step_gpu_fit_on_ci_scene(scenes_root, tmp_path):
+@pytest.mark.parametrize("backend", [
+    pytest.param("gsplat", marks=pytest.mark.skipif(not _gsplat_usable(), reason="needs CUDA and a working gsplat")),
+    pytest.param("torch", marks=pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")),
+])
+def test_two_step_gpu_fit_on_ci_scene(scenes_root, tmp_path, backend):
+    """The LightningModule on CUDA: skinning pre-fit, steps, test loop, FPS, evaluate and animate from the folder."""
+    from realityavatar.animate import main as animate_main
+    from realityavatar.evaluate import main as evaluate_main
     from realityavatar.train import run
 
-    cfg, choices = _prepare(compose([*TINY, "iterations=2", "trainer=gpu", "render=gsplat",
+    cfg, choices = _prepare(compose([*TINY, "iterations=2", "trainer=gpu", f"render={backend}",
                                      "trainer.enable_progress_bar=false"]), tmp_path)
     metrics = run(cfg, choices)
-    assert metrics["device"].startswith("cuda") and metrics["backend"] == "gsplat"
-    assert metrics["render_fps_device"].startswith("cuda") and metrics["render_fps_backend"] == "gsplat"
+    assert metrics["device"].startswith("cuda") and metrics["backend"] == backend
+    assert metrics["render_fps_device"].startswith("cuda") and metrics["render_fps_backend"] == backend
     assert metrics["iterations"] == 2 and metrics["test/novel_view/psnr"] > 0
+    assert evaluate_main([f"run_dir={tmp_path}", "eval.save_video=false"]) == 0
+    again = json.loads((tmp_path / "eval" / "metrics.json").read_text())
+    assert again["render_fps_device"].startswith("cuda")
+    assert abs(again["test/novel_view/psnr"] - metrics["test/novel_view/psnr"]) < 1e-3
+    assert animate_main([f"run_dir={tmp_path}", "views=0", f"out={tmp_path / 'a.mp4'}"]) == 0
 
 
 # ---------------------------------------------------------------------- the one-command GPU benchmark
@@ -320,7 +337,7 @@ def test_gpu_benchmark_runs_and_skips_cuda_cleanly(tmp_path):
 
     out = tmp_path / "gpu.json"
     rc = gpu.main(["--n", "300", "--size", "32", "--repeats", "1", "--out", str(out),
-                   "--tests", "tests/test_gpu_path.py::test_two_step_gpu_fit_on_ci_scene"])
+                   "--tests", "tests/test_gpu_path.py::test_torch_backend_forward_and_backward_on_cuda_match_cpu"])
     res = json.loads(out.read_text())
     assert rc == 0 and res["environment"]["cuda_available"] == torch.cuda.is_available()
     assert res["pytest_gpu"]["rc"] == 0 and len(res["pytest_gpu"]["tests"]) == 1

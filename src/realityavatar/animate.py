@@ -64,17 +64,17 @@ def render_sequence(module, table: PoseTable, cameras: list[dict], window_len: i
                     frames_to_render=None) -> list[np.ndarray]:
     """Render frames of `table` (all, or `frames_to_render`; windows look back into the whole table) from each
     camera; returns uint8 frames [H, W*len(cameras), 3]."""
-    dev = module.device
+    dev, dt = module.device, module.dtype  # poses and cameras come as float32 CPU tensors
     frames = []
     for f in (table.frames if frames_to_render is None else frames_to_render):
         poses, transl = table.window(int(f), window_len, window_step)
         idx = torch.full((1,), -1, dtype=torch.long, device=dev)
-        posed = module.deform(poses[None].to(dev), transl[None].to(dev), idx)
+        posed = module.deform(poses[None].to(dev, dt), transl[None].to(dev, dt), idx)
         tiles = []
         for cam in cameras:
-            vm = cam["viewmat"][None].to(dev)
+            vm = cam["viewmat"][None].to(dev, dt)
             rgb = module.shade(posed, vm, idx)[0]
-            img, _, _ = module.splat(posed, 0, rgb, vm, cam["K"][None].to(dev), cam["width"], cam["height"])
+            img, _, _ = module.splat(posed, 0, rgb, vm, cam["K"][None].to(dev, dt), cam["width"], cam["height"])
             tiles.append((img[0].clamp(0, 1).cpu().numpy() * 255).round().astype(np.uint8))
         frames.append(np.concatenate(tiles, 1))
     return frames
