@@ -1,6 +1,7 @@
 """Animate a trained avatar: a pose sequence (a dataset split or an .npz file) rendered from chosen cameras to MP4.
 
-Command: `realityavatar-animate run_dir=<run> [poses=<file.npz> | split=novel_pose] [views=0,2] [out=<file.mp4>] [fps=25]`
+Command: `realityavatar-animate run_dir=<run> [poses=<file.npz> | split=novel_pose] [views=0,2] [out=<file.mp4>] [fps=25]
+[device=cuda|cpu]` (default: the GPU when the run trained on one and CUDA is present)
 The .npz holds `poses` [F,24,3] or [F,72] (SMPL axis-angle, pose[0] = global orientation) and `transl` [F,3];
 optionally `Rh`, `Th` [F,3] in the EasyMocap convention (converted with the body model's pelvis).
 """
@@ -63,17 +64,17 @@ def render_sequence(module, table: PoseTable, cameras: list[dict], window_len: i
                     frames_to_render=None) -> list[np.ndarray]:
     """Render frames of `table` (all, or `frames_to_render`; windows look back into the whole table) from each
     camera; returns uint8 frames [H, W*len(cameras), 3]."""
-    dev = module.device
+    dev, dt = module.device, module.dtype  # poses and cameras come as float32 CPU tensors
     frames = []
     for f in (table.frames if frames_to_render is None else frames_to_render):
         poses, transl = table.window(int(f), window_len, window_step)
         idx = torch.full((1,), -1, dtype=torch.long, device=dev)
-        posed = module.deform(poses[None].to(dev), transl[None].to(dev), idx)
+        posed = module.deform(poses[None].to(dev, dt), transl[None].to(dev, dt), idx)
         tiles = []
         for cam in cameras:
-            vm = cam["viewmat"][None].to(dev)
+            vm = cam["viewmat"][None].to(dev, dt)
             rgb = module.shade(posed, vm, idx)[0]
-            img, _, _ = module.splat(posed, 0, rgb, vm, cam["K"][None].to(dev), cam["width"], cam["height"])
+            img, _, _ = module.splat(posed, 0, rgb, vm, cam["K"][None].to(dev, dt), cam["width"], cam["height"])
             tiles.append((img[0].clamp(0, 1).cpu().numpy() * 255).round().astype(np.uint8))
         frames.append(np.concatenate(tiles, 1))
     return frames
@@ -82,13 +83,14 @@ def render_sequence(module, table: PoseTable, cameras: list[dict], window_len: i
 def main(argv: list[str] | None = None) -> int:
     import imageio.v2 as imageio
 
-    from realityavatar.build import build_data, load_run
+    from realityavatar.build import build_data, load_run, run_device
 
     args = dict(a.split("=", 1) for a in (sys.argv[1:] if argv is None else argv) if "=" in a)
     if "run_dir" not in args:
         print(__doc__, file=sys.stderr)
         return 2
     cfg, module, info = load_run(args["run_dir"])
+    module.to(run_device(cfg, args.get("device")))
     dm = build_data(cfg, module.body)
     split = args.get("split", "novel_pose")
     if "poses" in args:

@@ -106,6 +106,15 @@ def load_run(run_dir: str | Path, overrides: list[str] | None = None, ckpt: str 
     return cfg, module, info
 
 
+def run_device(cfg: DictConfig, override: str | None = None) -> torch.device:
+    """The device a trained run renders on: `override` if given, else CUDA when the run's trainer asked for a GPU
+    (accelerator gpu/cuda/auto) and one is present, else the CPU."""
+    if override:
+        return torch.device(override)
+    acc = str(cfg.get("trainer", {}).get("accelerator", "cpu"))
+    return torch.device("cuda" if acc in ("gpu", "cuda", "auto") and torch.cuda.is_available() else "cpu")
+
+
 def git_commit() -> str:
     try:
         root = Path(__file__).resolve().parents[2]

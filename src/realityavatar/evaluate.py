@@ -10,9 +10,8 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import torch
 
-from realityavatar.build import build_data, load_run, write_json
+from realityavatar.build import build_data, load_run, run_device, write_json
 
 METRIC_KEYS = ("psnr", "ssim", "iou", "lpips", "psnr_masked", "ssim_masked", "lpips_masked")
 
@@ -81,8 +80,10 @@ def evaluate_module(module, dm, trainer, cfg, out_dir: Path) -> dict:
     metrics = summarise(records)
     paths = write_outputs(records, Path(out_dir), ev.get("save_images", 8), ev.get("save_video", True))
     batch = next(iter(dm.test_dataloader()[0]))
-    batch = {k: (v.to(module.device) if torch.is_tensor(v) else v) for k, v in batch.items()}
+    module.to(trainer.strategy.root_device)  # time the device the run uses (teardown after test moved it to the CPU)
     metrics["render_fps"] = module.measure_fps(batch, ev.get("fps_warmup", 3), ev.get("fps_frames", 20))
+    metrics["render_fps_device"] = module.run_info["fps"]["device"]
+    metrics["render_fps_backend"] = module.run_info["fps"]["backend"]
     metrics["render_resolution"] = [int(batch["width"][0]), int(batch["height"][0])]
     metrics["outputs"] = paths
     module.test_records = []
@@ -121,7 +122,9 @@ def main(argv: list[str] | None = None) -> int:
     overrides = [a for a in args if not a.startswith("run_dir=")]
     cfg, module, info = load_run(run_dir, overrides)
     dm = build_data(cfg, module.body)
-    trainer = pl.Trainer(accelerator=cfg.trainer.accelerator, devices=1, logger=False, enable_progress_bar=False)
+    # The run's device: its GPU when it trained on one and CUDA is here, else the CPU (a GPU run evaluates anywhere).
+    trainer = pl.Trainer(accelerator=run_device(cfg).type.replace("cuda", "gpu"), devices=1, logger=False,
+                         enable_progress_bar=False)
     out = Path(run_dir) / "eval"
     metrics = evaluate_module(module, dm, trainer, cfg, out)
     metrics["lpips"] = module.lpips_status

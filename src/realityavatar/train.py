@@ -17,7 +17,7 @@ from realityavatar.config import choices_of, config_dir
 
 # Lightning notices that do not apply here: density control needs manual optimisation, and there is no val loop.
 for _msg in (".*pre-optimization state.*", ".*`validation_step`.*", ".*LeafSpec.*", ".*is not empty.*", ".*litlogger.*",
-             ".*does not have many workers.*"):
+             ".*does not have many workers.*", ".*overridden `on_after_batch_transfer`.*"):
     warnings.filterwarnings("ignore", message=_msg)
 
 
@@ -29,6 +29,7 @@ def run(cfg: DictConfig, choices: dict | None = None) -> dict:
 
     from realityavatar.build import CKPT_NAME, build_data, build_module, git_commit, write_json
     from realityavatar.evaluate import evaluate_module, format_table
+    from realityavatar.model.module import check_single_process
 
     pl.seed_everything(int(cfg.seed), workers=True)
     if cfg.get("threads"):
@@ -44,6 +45,7 @@ def run(cfg: DictConfig, choices: dict | None = None) -> dict:
     ckpt_cb = ModelCheckpoint(dirpath=out_dir, filename=Path(CKPT_NAME).stem, save_last=False, every_n_train_steps=max(int(cfg.iterations) // 4, 1), save_top_k=1, enable_version_counter=False)
     loggers = [CSVLogger(out_dir / "logs", name="csv", version=""), TensorBoardLogger(out_dir / "logs", name="tb", version="")]
     trainer = instantiate(cfg.trainer, callbacks=[ckpt_cb], logger=loggers)
+    check_single_process(trainer)  # before fit: a DDP launch would start the other ranks
     t0 = time.perf_counter()
     trainer.fit(module, datamodule=dm, ckpt_path=cfg.get("ckpt_path"))
     train_seconds = time.perf_counter() - t0
@@ -60,8 +62,11 @@ def run(cfg: DictConfig, choices: dict | None = None) -> dict:
         "num_parameters": module.num_parameters(),
         "perceptual": getattr(module.loss_fn, "perceptual_kind", "unknown"),
         "lpips": module.lpips_status,
-        "device": str(module.device),
-        "backend": cfg.render.get("backend", "auto"),
+        # From a real training render: Lightning's teardown has moved the module back to the CPU by now, and gsplat
+        # may have fallen back to torch.
+        "device": module.run_info.get("render", {}).get("device", module.run_info.get("device", str(module.device))),
+        "backend": module.run_info.get("render", {}).get("backend", "none (no training step ran)"),
+        "backend_configured": cfg.render.get("backend", "auto"),
     }
     module.run_info["metrics_header"] = header
     trainer.save_checkpoint(out_dir / CKPT_NAME)
