@@ -190,7 +190,7 @@ def test_numeric_settings_name_the_key(scenes_root, tmp_path):
 
 def _fake_job(d: Path, seed: int, metrics: bool = True) -> None:
     (d / ".hydra").mkdir(parents=True)
-    ov = ["+variant=full", "data=synthetic_ci", f"seed={seed}"]
+    ov = ["+variant=full", f"seed={seed}"]
     (d / ".hydra" / "overrides.yaml").write_text(yaml.safe_dump(ov))
     if metrics:
         (d / "metrics.json").write_text(json.dumps({
@@ -215,6 +215,10 @@ def test_collector_lists_missing_jobs(tmp_path):
     assert "seed=1" in md and "missing" in md.lower()
     assert main([str(sweep), "--out", str(tmp_path / "o2"), "--allow-missing"]) == 0
     assert "seed=1" in (tmp_path / "o2" / "table.md").read_text()
+    shutil.rmtree(sweep / "2")  # the launcher stopped before job 2: the sweep's expansion still lists it
+    assert main([str(sweep), "--out", str(tmp_path / "o3")]) != 0
+    md = (tmp_path / "o3" / "table.md").read_text()
+    assert "seed=2): never started" in md and "(2 of 3)" in md
 
 
 # ------------------------------------------------------------------------------------------- 7. images up front
