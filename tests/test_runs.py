@@ -99,8 +99,10 @@ def test_interrupted_and_resumed_equals_uninterrupted(scenes_root, tmp_path, mon
         _StopAt(m, 7, RuntimeError("simulated crash"))
         with pytest.raises(RuntimeError, match="simulated crash"):
             _run(cut, "iterations=12")
-    assert _state(cut / "last.ckpt")["global_step"] == 6
+    at6 = _state(cut / "last.ckpt")
+    assert at6["global_step"] == 6
     metrics = _run(cut, "iterations=12", "resume=true")
+    assert metrics["train_seconds"] > at6["callbacks"]["RunState"]["train_seconds"] > 0
     a, b = _state(ref / "last.ckpt")["state_dict"], _state(cut / "last.ckpt")["state_dict"]
     assert a.keys() == b.keys()
     for k in a:
@@ -284,12 +286,31 @@ def test_truncated_checkpoint_and_bad_pose_files_are_named(tiny_run, tmp_path):
 
 def test_sigint_keeps_checkpoint_and_exits_130(scenes_root, tmp_path, monkeypatch, capsys):
     out = tmp_path / "int"
-    _StopAt(monkeypatch, 3, KeyboardInterrupt())
+    _StopAt(monkeypatch, 3, KeyboardInterrupt())  # Ctrl-C lands inside a step: the step-3 checkpoint is kept
     with pytest.raises(SystemExit) as e:
         _run(out, "iterations=12")
     assert e.value.code == 130
     assert "checkpoint kept" in capsys.readouterr().err
     assert _state(out / "last.ckpt")["global_step"] == 3
+
+
+def test_sigint_signal_stops_after_the_step_and_saves(scenes_root, tmp_path, monkeypatch, capsys):
+    from realityavatar.model.module import AvatarModule
+
+    orig = AvatarModule.training_step
+
+    def step(module, batch, batch_idx):
+        if module.global_step == 4:
+            os.kill(os.getpid(), signal.SIGINT)  # a real Ctrl-C while step 4 runs
+        return orig(module, batch, batch_idx)
+
+    monkeypatch.setattr(AvatarModule, "training_step", step)
+    out = tmp_path / "sig"
+    with pytest.raises(SystemExit) as e:
+        _run(out, "iterations=12")
+    assert e.value.code == 130 and "checkpoint kept" in capsys.readouterr().err
+    assert _state(out / "last.ckpt")["global_step"] == 5  # step 4 finished, then saved
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
 
 
 def test_stale_scene_temp_folders_are_removed(tmp_path):

@@ -22,10 +22,11 @@ CKPT_NAME = "last.ckpt"
 RUN_MARKERS = (CKPT_NAME, "metrics.json")
 RUN_OUTPUTS = (*RUN_MARKERS, "config.yaml", "per_frame.csv", "logs", "images", "videos", "eval", "animations", "export")
 LOG_CSV = Path("logs") / "csv" / "metrics.csv"
-# Keys a resume may change: the run length (and what derives from it), where/how it runs, evaluation settings.
-RESUMABLE_CHANGES = ("iterations", "schedule.", "density.", "trainer.max_steps", "trainer.enable_progress_bar",
-                     "trainer.default_root_dir", "ckpt_path", "resume", "overwrite", "out_dir", "_overrides",
-                     "_choices", "threads", "test_after_fit", "eval.", "metrics.")
+# Keys a resume may change: the run length (values interpolated from it are compared at the saved length), where
+# the run and its data live, threads, evaluation settings.
+RESUMABLE_CHANGES = ("iterations", "trainer.enable_progress_bar", "trainer.default_root_dir", "data.root", "ckpt_path",
+                     "resume", "overwrite", "out_dir", "_overrides", "_choices", "threads", "test_after_fit", "eval.",
+                     "metrics.")
 
 
 def read_checkpoint(path: str | Path) -> dict:
@@ -59,6 +60,9 @@ def _flat(d, prefix: str = "") -> dict:
 def config_changes(saved: DictConfig | dict, current: DictConfig) -> list[str]:
     """Settings that differ between a run's config.yaml and the resuming config, beyond RESUMABLE_CHANGES."""
     a = _flat(OmegaConf.to_container(saved, resolve=True) if isinstance(saved, DictConfig) else saved)
+    if "iterations" in a:  # more steps is allowed; what derives from it (schedules, LR decay) is compared as saved
+        current = current.copy()
+        current.iterations = a["iterations"]
     b = _flat(OmegaConf.to_container(current, resolve=True))
     keys = sorted(set(a) | set(b))
     return [f"{k}: {a.get(k, '<absent>')!r} -> {b.get(k, '<absent>')!r}" for k in keys
