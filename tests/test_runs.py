@@ -122,6 +122,11 @@ def test_second_run_into_a_run_folder_refuses(tiny_run, tmp_path):
     shutil.copytree(out, folder)
     saved = (folder / "config.yaml").read_text()
     ckpt_bytes = (folder / "last.ckpt").read_bytes()
+    # hydra rewrites .hydra/ before a run starts; a refused run puts the owner's record back
+    (folder / ".hydra-run").mkdir()
+    (folder / ".hydra-run" / "overrides.yaml").write_text("- seed=0\n")
+    (folder / ".hydra").mkdir()
+    (folder / ".hydra" / "overrides.yaml").write_text("- seed=3\n")
     with pytest.raises(FileExistsError, match=r"resume=true.*overwrite=true"):
         _run(folder, "iterations=8", "seed=3")
     # a failing run into the folder does not touch it either
@@ -129,6 +134,7 @@ def test_second_run_into_a_run_folder_refuses(tiny_run, tmp_path):
         _run(folder, "iterations=8", "data.image_scale=0", "overwrite=true")
     assert (folder / "config.yaml").read_text() == saved
     assert (folder / "last.ckpt").read_bytes() == ckpt_bytes
+    assert (folder / ".hydra" / "overrides.yaml").read_text() == "- seed=0\n"
 
 
 def test_config_written_only_once_the_run_is_valid(scenes_root, tmp_path):

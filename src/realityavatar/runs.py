@@ -94,6 +94,7 @@ def claim_run_dir(out_dir: Path, cfg: DictConfig) -> Path | None:
         if saved.is_file():
             changes = config_changes(OmegaConf.load(saved), cfg)
             if changes:
+                restore_hydra_record(out_dir)
                 raise ValueError(f"resume=true: the settings differ from the run in {out_dir} ({'; '.join(changes)}); "
                                  "resume with the same settings, or start a new run (overwrite=true or another "
                                  "hydra.run.dir) with ckpt_path= to start from its checkpoint")
@@ -101,11 +102,31 @@ def claim_run_dir(out_dir: Path, cfg: DictConfig) -> Path | None:
     if held and not overwrite:
         same = ckpt_path and Path(ckpt_path).resolve() == (out_dir / CKPT_NAME).resolve()
         hint = "pass resume=true to continue it" + (" (instead of ckpt_path=)" if same else "")
+        restore_hydra_record(out_dir)
         raise FileExistsError(
             f"{out_dir} already holds a run ({', '.join(held)}): {hint}, overwrite=true to replace it, or choose "
             "another folder (hydra.run.dir=...)"
         )
     return Path(ckpt_path) if ckpt_path else None
+
+
+HYDRA_COPY = ".hydra-run"  # the owning run's copy of hydra's .hydra/, which hydra rewrites before a run starts
+
+
+def keep_hydra_record(out_dir: Path) -> None:
+    """Copy .hydra/ (written by hydra for this run) to .hydra-run/ once the run owns the folder."""
+    src = out_dir / ".hydra"
+    if src.is_dir():
+        shutil.rmtree(out_dir / HYDRA_COPY, ignore_errors=True)
+        shutil.copytree(src, out_dir / HYDRA_COPY)
+
+
+def restore_hydra_record(out_dir: Path) -> None:
+    """Undo hydra's rewrite of .hydra/ by a run that was refused, so the folder's record stays the owner's."""
+    src = out_dir / HYDRA_COPY
+    if src.is_dir():
+        shutil.rmtree(out_dir / ".hydra", ignore_errors=True)
+        shutil.copytree(src, out_dir / ".hydra")
 
 
 def clear_run_outputs(out_dir: Path) -> list[str]:

@@ -32,24 +32,31 @@ def run(cfg: DictConfig, choices: dict | None = None) -> dict:
     written first; evaluation adds to metrics.json and its failures are recorded there and raised at the end.
     """
     from realityavatar.config import check_settings
-    from realityavatar.runs import claim_run_dir, read_checkpoint, run_lock
+    from realityavatar.runs import claim_run_dir, read_checkpoint, restore_hydra_record, run_lock
 
     check_settings(cfg)
     out_dir = Path(cfg.out_dir)
+    owned = {"folder": False}
     with run_lock(out_dir):
-        resume_from = claim_run_dir(out_dir, cfg)
-        prior = read_checkpoint(resume_from) if resume_from is not None else None
-        return _run(cfg, choices, out_dir, resume_from, prior)
+        try:
+            resume_from = claim_run_dir(out_dir, cfg)
+            prior = read_checkpoint(resume_from) if resume_from is not None else None
+            return _run(cfg, choices, out_dir, resume_from, prior, owned)
+        except BaseException:
+            if not owned["folder"]:  # failed before taking the folder: leave the previous run's record as it was
+                restore_hydra_record(out_dir)
+            raise
 
 
-def _run(cfg: DictConfig, choices: dict | None, out_dir: Path, resume_from: Path | None, prior: dict | None) -> dict:
+def _run(cfg: DictConfig, choices: dict | None, out_dir: Path, resume_from: Path | None, prior: dict | None,
+         owned: dict) -> dict:
     from hydra.utils import instantiate
     from pytorch_lightning.callbacks import ModelCheckpoint
     from pytorch_lightning.loggers import CSVLogger, TensorBoardLogger
 
     from realityavatar.build import CKPT_NAME, build_data, build_module, git_commit, write_json
     from realityavatar.evaluate import evaluate_module, format_table
-    from realityavatar.runs import RunState, clear_run_outputs, previous_log_rows, seed_csv_log
+    from realityavatar.runs import RunState, clear_run_outputs, keep_hydra_record, previous_log_rows, seed_csv_log
 
     pl.seed_everything(int(cfg.seed), workers=True)
     if cfg.get("threads"):
@@ -66,6 +73,8 @@ def _run(cfg: DictConfig, choices: dict | None, out_dir: Path, resume_from: Path
             log.warning("overwrite=true: removed the previous run's %s from %s", ", ".join(removed), out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     OmegaConf.save(cfg, out_dir / "config.yaml", resolve=True)
+    keep_hydra_record(out_dir)
+    owned["folder"] = True
     every = max(int(cfg.iterations) // 4, 1)
     ckpt_cb = ModelCheckpoint(dirpath=out_dir, filename=Path(CKPT_NAME).stem, save_last=False, every_n_train_steps=every, save_top_k=1, enable_version_counter=False)
     state = RunState()
