@@ -46,7 +46,8 @@ def _state(path: Path) -> dict:
 
 
 def _log_steps(out: Path) -> list[int]:
-    rows = list(csv.DictReader(open(out / "logs" / "csv" / "metrics.csv")))
+    with open(out / "logs" / "csv" / "metrics.csv") as f:
+        rows = list(csv.DictReader(f))
     return [int(r["step"]) for r in rows if r.get("train/loss")]
 
 
@@ -130,7 +131,7 @@ def test_second_run_into_a_run_folder_refuses(tiny_run, tmp_path):
     with pytest.raises(FileExistsError, match=r"resume=true.*overwrite=true"):
         _run(folder, "iterations=8", "seed=3")
     # a failing run into the folder does not touch it either
-    with pytest.raises(Exception):
+    with pytest.raises(ValueError, match="data.image_scale"):
         _run(folder, "iterations=8", "data.image_scale=0", "overwrite=true")
     assert (folder / "config.yaml").read_text() == saved
     assert (folder / "last.ckpt").read_bytes() == ckpt_bytes
@@ -138,7 +139,7 @@ def test_second_run_into_a_run_folder_refuses(tiny_run, tmp_path):
 
 
 def test_config_written_only_once_the_run_is_valid(scenes_root, tmp_path):
-    with pytest.raises(Exception):
+    with pytest.raises(ValueError, match="data.max_train_frames"):
         _run(tmp_path / "new", "iterations=8", "data.max_train_frames=0")
     assert not (tmp_path / "new" / "config.yaml").exists()
 
@@ -175,7 +176,8 @@ def test_max_frames_per_split(tiny_run):
     assert evaluate_main([f"run_dir={out}", "eval.max_frames_per_split=2"]) == 0
     m = json.loads((out / "eval" / "metrics.json").read_text())
     for split in ("novel_view", "novel_pose"):
-        views = {int(r["view"]) for r in csv.DictReader(open(out / "per_frame.csv")) if r["split"] == split}
+        with open(out / "per_frame.csv") as f:
+            views = {int(r["view"]) for r in csv.DictReader(f) if r["split"] == split}
         assert m[f"test/{split}/num_images"] == 2 * len(views) < full[f"test/{split}/num_images"]
 
 
@@ -242,7 +244,7 @@ def test_bad_training_image_found_before_step_0(scenes_root, tmp_path, damage, b
 
     for p in scenes_root.glob("skirt_spin_ci-*"):
         (shutil.copytree if p.is_dir() else shutil.copy)(p, tmp_path / p.name)
-    victim = sorted((tmp_path / "skirt_spin_ci-train" / "images").glob("*.png"))[-1]
+    victim = max((tmp_path / "skirt_spin_ci-train" / "images").glob("*.png"))
     if damage == "corrupt":
         victim.write_bytes(victim.read_bytes()[:100])
     else:
@@ -358,18 +360,18 @@ def test_sigkill_resume_matches_uninterrupted(scenes_root, tmp_path):
     ref, cut = tmp_path / "ref", tmp_path / "cut"
     py = [sys.executable, "-c", KILL_AT]
     r = subprocess.run([*py, *args, f"hydra.run.dir={ref}"], env={**env, "KILL_AT_STEP": "-1"}, capture_output=True,
-                       text=True, timeout=900)
+                       text=True, timeout=900, check=False)
     assert r.returncode == 0, r.stderr[-3000:]
     r = subprocess.run([*py, *args, f"hydra.run.dir={cut}"], env={**env, "KILL_AT_STEP": "25"}, capture_output=True,
-                       text=True, timeout=900)
+                       text=True, timeout=900, check=False)
     assert r.returncode == -signal.SIGKILL, r.stderr[-3000:]
     assert _state(cut / "last.ckpt")["global_step"] == 20 and not (cut / "metrics.json").exists()
     r = subprocess.run([*py, *args, f"hydra.run.dir={cut}", "resume=true"], env={**env, "KILL_AT_STEP": "-1"},
-                       capture_output=True, text=True, timeout=900)
+                       capture_output=True, text=True, timeout=900, check=False)
     assert r.returncode == 0, r.stderr[-3000:]
     a, b = _state(ref / "last.ckpt")["state_dict"], _state(cut / "last.ckpt")["state_dict"]
     diffs = {k: float((a[k] - b[k]).abs().max()) for k in a if a[k].is_floating_point()}
-    assert max(diffs.values()) <= 1e-6, sorted(diffs.items(), key=lambda kv: -kv[1])[:5]
+    assert max(diffs.values()) <= 1e-6, max(diffs.items(), key=lambda kv: kv[1])
     ma, mb = json.loads((ref / "metrics.json").read_text()), json.loads((cut / "metrics.json").read_text())
     for split in ("novel_view", "novel_pose"):
         assert abs(ma[f"test/{split}/psnr"] - mb[f"test/{split}/psnr"]) <= 0.05

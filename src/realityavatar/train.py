@@ -56,7 +56,13 @@ def _run(cfg: DictConfig, choices: dict | None, out_dir: Path, resume_from: Path
 
     from realityavatar.build import CKPT_NAME, build_data, build_module, git_commit, write_json
     from realityavatar.evaluate import evaluate_module, format_table
-    from realityavatar.runs import RunState, clear_run_outputs, keep_hydra_record, previous_log_rows, seed_csv_log
+    from realityavatar.runs import (
+        RunState,
+        clear_run_outputs,
+        keep_hydra_record,
+        previous_log_rows,
+        seed_csv_log,
+    )
 
     pl.seed_everything(int(cfg.seed), workers=True)
     if cfg.get("threads"):

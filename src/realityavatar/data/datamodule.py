@@ -16,7 +16,14 @@ import torch
 from torch.utils.data import DataLoader, Dataset
 
 from realityavatar.data.poses import PoseTable
-from realityavatar.data.records import SPLITS, ImageRecord, SceneData, SceneFormatError, image_size, load_record
+from realityavatar.data.records import (
+    SPLITS,
+    ImageRecord,
+    SceneData,
+    SceneFormatError,
+    image_size,
+    load_record,
+)
 
 log = logging.getLogger(__name__)
 READERS = ("i3d", "zju")
