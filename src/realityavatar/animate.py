@@ -27,17 +27,33 @@ def load_pose_file(path: str | Path, body) -> PoseTable:
         if "poses" not in z:
             raise KeyError(f"{path}: missing field 'poses' ([F,24,3] or [F,72] axis-angle); fields present: {list(z.keys())}")
         poses = np.asarray(z["poses"], np.float32)
+        if poses.ndim == 0 or poses.shape[0] == 0:
+            raise ValueError(f"{path}: field 'poses' has no frames (shape {poses.shape}); expected [F,24,3] or [F,72] "
+                             "with F >= 1")
         F = poses.shape[0]
-        poses = poses.reshape(F, -1)
-        if poses.shape[1] != 72:
-            raise ValueError(f"{path}: field 'poses' must be [F,24,3] or [F,72], got {z['poses'].shape}")
+        if poses[0].size != 72:
+            raise ValueError(f"{path}: field 'poses' must be [F,24,3] or [F,72], got {poses.shape}")
         poses = poses.reshape(F, 24, 3)
-        transl = np.asarray(z["transl"], np.float32) if "transl" in z else np.zeros((F, 3), np.float32)
-        if transl.shape != (F, 3):
-            raise ValueError(f"{path}: field 'transl' must be [{F},3], got {transl.shape}")
+        if not np.isfinite(poses).all():
+            raise ValueError(f"{path}: field 'poses' has non-finite values (NaN/inf)")
+
+        def per_frame(key: str) -> np.ndarray:
+            a = np.asarray(z[key], np.float32)
+            if a.shape != (F, 3):
+                raise ValueError(f"{path}: field {key!r} must be [{F},3] (one 3-vector per frame of 'poses'), got "
+                                 f"{a.shape}")
+            if not np.isfinite(a).all():
+                raise ValueError(f"{path}: field {key!r} has non-finite values (NaN/inf)")
+            return a
+
+        transl = per_frame("transl") if "transl" in z else np.zeros((F, 3), np.float32)
         p, t = torch.from_numpy(poses), torch.from_numpy(transl)
-        if "Rh" in z and "Th" in z:
-            p, t = rh_th_to_smpl(p, torch.from_numpy(np.asarray(z["Rh"], np.float32)), torch.from_numpy(np.asarray(z["Th"], np.float32)) + t, body.rest_joints[0])
+        if ("Rh" in z) != ("Th" in z):
+            raise ValueError(f"{path}: fields 'Rh' and 'Th' come together (EasyMocap placement); only "
+                             f"{'Rh' if 'Rh' in z else 'Th'} is present")
+        if "Rh" in z:
+            rh, th = per_frame("Rh"), per_frame("Th")
+            p, t = rh_th_to_smpl(p, torch.from_numpy(rh), torch.from_numpy(th) + t, body.rest_joints[0])
     return PoseTable.from_sequence(p, t)
 
 

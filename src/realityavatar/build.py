@@ -6,14 +6,12 @@ import json
 import subprocess
 from pathlib import Path
 
-import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 import realityavatar.config  # noqa: F401  (registers resolvers)
 from realityavatar.model.module import AvatarModule, Schedule
-
-CKPT_NAME = "last.ckpt"
+from realityavatar.runs import CKPT_NAME, read_checkpoint
 
 
 def build_lpips(cfg: DictConfig):
@@ -95,7 +93,7 @@ def load_run(run_dir: str | Path, overrides: list[str] | None = None, ckpt: str 
     ckpt = Path(ckpt) if ckpt else run_dir / CKPT_NAME
     if not ckpt.is_file():
         raise FileNotFoundError(f"checkpoint {ckpt} not found in run folder {run_dir}")
-    state = torch.load(ckpt, map_location="cpu", weights_only=False)
+    state = read_checkpoint(ckpt)
     info = state.get("realityavatar", {})
     if not info:
         raise KeyError(f"{ckpt}: checkpoint has no 'realityavatar' block (not written by realityavatar-train)")

@@ -159,7 +159,9 @@ class AvatarModule(pl.LightningModule):
         self.run_info["device"] = str(self.device)  # Lightning's teardown moves the module back to the CPU
         # A skinning field learnt from scratch at the paper's small LR is still far from the body's weights after a
         # short CPU run, which blurs every frame; a few hundred cheap steps on surface samples fix that up front.
-        if self.global_step == 0 and self.schedule.skin_pretrain_steps > 0:
+        # Once per run: a resumed run restores run_info["skin_pretrain"] from its checkpoint (on_load_checkpoint runs
+        # before this hook, while global_step is still 0) and keeps the checkpoint's skinning weights.
+        if "skin_pretrain" not in self.run_info and self.schedule.skin_pretrain_steps > 0:
             t0 = time.perf_counter()
             loss = pretrain_skinning(
                 self.skinning, self.body.canonical_vertices().detach(), self.body.faces, self.body.skin_weights,
@@ -251,6 +253,11 @@ class AvatarModule(pl.LightningModule):
     def on_load_checkpoint(self, checkpoint: dict) -> None:
         if checkpoint.get("density_state") and hasattr(self.density, "load_state_dict"):
             self.density.load_state_dict(checkpoint["density_state"])
+        saved = checkpoint.get("realityavatar", {})
+        if "skin_pretrain" in saved:  # done in an earlier part of this run (or checkpoint without a pre-fit: none)
+            self.run_info["skin_pretrain"] = saved["skin_pretrain"]
+        elif checkpoint.get("global_step", 0) > 0:
+            self.run_info["skin_pretrain"] = {"steps": 0, "note": "checkpoint predates pre-fit records; not repeated"}
 
     # ------------------------------------------------------------------ evaluation
     def test_step(self, batch, batch_idx, dataloader_idx: int = 0):
