@@ -284,10 +284,13 @@ def test_configs_are_rasterize_kwargs():
     for name in ("torch", "gsplat", "auto"):
         cfg = OmegaConf.to_container(OmegaConf.load(CONF / f"{name}.yaml"))
         assert {"backend", "rasterize_mode", "near", "far", "tile_size", "background"} <= set(cfg)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # gsplat on a CPU tensor falls back with a warning
+        with warnings.catch_warnings(record=True) as rec:
+            warnings.simplefilter("always")
             img, _, meta = rasterize(means, quats, scales, op, colors, vms, Ks, w, h, **cfg)
         assert meta["backend"] == "torch" and img.dtype == torch.float32
+        # render=gsplat on CPU tensors falls back to torch, and says so; torch and auto fall back silently by design
+        fell_back = [r for r in rec if "backend='gsplat' needs CUDA" in str(r.message)]
+        assert len(fell_back) == (1 if name == "gsplat" else 0), (name, [str(r.message) for r in rec])
 
 
 def test_gsplat_fallback_warns_once(monkeypatch):
