@@ -3,12 +3,10 @@
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
-from omegaconf import OmegaConf
 
 import realityavatar.config  # noqa: F401  (registers the int_mul resolver used by the configs)
 from realityavatar.body.base import SMPL_PARENTS, BodyModel
@@ -22,7 +20,6 @@ from realityavatar.model.skinning import SkinningField, lbs_gaussians, pretrain_
 from realityavatar.model.temporal import NoTemporal, RecurrentTemporal
 from realityavatar.render import eval_sh
 
-CONF = Path(__file__).resolve().parents[1] / "conf"
 
 
 class MeshBody(BodyModel):
@@ -279,9 +276,10 @@ def test_lbs_identity_and_pure_rotation():
     m_o, q_o, rot = lbs_gaussians(means, quats, w, A)
     assert torch.allclose(m_o, (R @ means[..., None]).squeeze(-1) + t, atol=1e-5)
     assert torch.allclose(quat_to_matrix(q_o), R @ quat_to_matrix(quats), atol=1e-5)
-    assert torch.allclose(q_o, quat_multiply(matrix_to_quat(R), quats).expand(2, -1, -1), atol=1e-5) or torch.allclose(
-        quat_to_matrix(q_o), quat_to_matrix(quat_multiply(matrix_to_quat(R), quats)), atol=1e-5
-    )
+    # the quaternion itself is q_R ⊗ q (up to sign, which is the same rotation) and unit length
+    expect = quat_multiply(matrix_to_quat(R), quats).expand(2, -1, -1)
+    sign = torch.sign((q_o * expect).sum(-1, keepdim=True))
+    assert torch.allclose(q_o, sign * expect, atol=1e-5) and torch.allclose(q_o.norm(dim=-1), torch.ones(2, 30))
 
 
 def test_lbs_blend_of_two_rotations_gives_a_rotation():
@@ -418,36 +416,3 @@ def test_density_cap_reset_state_and_disabled(body):
     stats = dc.step_post_backward(g, opt, _meta(24, []), step=15, image_size=(64, 64))
     assert stats.get("reset") == 1 and (g.opacities() <= 0.1 + 1e-6).all()
     assert (opt.state[g.opacity_logits]["exp_avg"] == 0).all()
-
-
-# ---------------------------------------------------------------------- configs
-GROUPS = ("gaussians", "encoder", "temporal", "deformer", "skinning", "color", "density", "loss")
-
-
-def _compose(choices: dict) -> OmegaConf:
-    cfg = {"seed": 0, "iterations": 200, "schedule": {"skin_switch": 20}}
-    for group, name in choices.items():
-        cfg[group] = OmegaConf.load(CONF / group / f"{name}.yaml")
-    return OmegaConf.create(cfg)
-
-
-@pytest.mark.parametrize(
-    "group,name",
-    [(grp, p.stem) for grp in GROUPS for p in sorted((CONF / grp).glob("*.yaml"))],
-)
-def test_every_component_config_instantiates(body, group, name):
-    from hydra.utils import instantiate
-
-    choices = {"encoder": "latentbone", "temporal": "lstm", "deformer": "motion_trend", "color": "mlp",
-               "gaussians": "default", "skinning": "mlp", "density": "default", "loss": "default"}
-    choices[group] = name
-    cfg = _compose(choices)
-    if group == "gaussians":
-        cfg.gaussians.num_points = 200
-    kwargs = {"gaussians": {"body": body}, "color": {"num_frames": 3}}.get(group, {})
-    obj = instantiate(cfg[group], **kwargs)
-    assert obj is not None
-    if group == "gaussians":
-        assert obj.feature_dim == cfg.color.feature_dim
-    if group == "temporal":
-        assert obj.out_dim == cfg.temporal.hidden_dim

@@ -47,14 +47,86 @@ def test_every_option_composes(group):
         assert cfg.hydra.runtime.choices[group] == opt
 
 
-@pytest.mark.parametrize("group", COMPONENT_GROUPS)
-def test_every_component_option_instantiates(group, body):
-    for opt in _options(group):
-        cfg = compose([f"{group}={opt}"])
-        node = cfg[group]
-        kwargs = {"body": body} if group == "gaussians" else {"num_frames": 4} if group == "color" else {}
-        obj = instantiate(node, **kwargs)
-        assert obj is not None, f"{group}={opt}"
+def _forward(group: str, obj, cfg, body) -> None:
+    """Run the built component on inputs sized from the composed config and check what it promises."""
+    B, T, N = 2, 3, 300
+    gen = torch.Generator().manual_seed(0)
+    x = body.canonical_vertices().detach()[torch.randint(0, body.rest_vertices.shape[0], (N,), generator=gen)]  # [N,3]
+    if group == "gaussians":
+        assert obj.num_points == N and obj.features.shape == (N, cfg.color.feature_dim)
+        d = torch.cdist(obj.means.detach(), body.canonical_vertices().detach()).min(-1).values
+        assert d.max() < 0.05, "canonical Gaussians do not start on the body surface"
+        assert ((obj.opacities() > 0) & (obj.opacities() < 1)).all()
+    elif group == "encoder":
+        f = obj(torch.randn(B, T, 24, 3, generator=gen) * 0.3, torch.randn(B, T, 3, generator=gen))
+        assert f.shape == (B, T, cfg.encoder.out_dim) == (B, T, cfg.temporal.in_dim)
+        f.square().sum().backward()
+        assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in obj.parameters())
+    elif group == "temporal":
+        h = obj(torch.randn(B, T, cfg.temporal.in_dim, generator=gen))
+        assert h.shape == (B, cfg.deformer.cond_dim)
+    elif group == "deformer":
+        out = obj(x, torch.randn(B, cfg.deformer.cond_dim, generator=gen))
+        assert out["dx"].shape == (B, N, 3) and out["dq"].shape == (B, N, 4)
+        assert out["f_mt"].shape == (B, N, cfg.color.get("fmt_dim", cfg.deformer.feature_dim))
+        assert out["dx"].abs().max() < 1e-5 and out["ds"].abs().max() < 1e-5  # starts at the identity
+        sum(v.square().sum() for v in out.values()).backward()
+    elif group == "skinning":
+        w = obj(x.expand(B, -1, -1))
+        assert w.shape == (B, N, 24) and torch.allclose(w.sum(-1), torch.ones(B, N), atol=1e-5)
+    elif group == "color":
+        feats = torch.randn(N, cfg.color.feature_dim, generator=gen)
+        f_mt = torch.randn(B, N, cfg.deformer.feature_dim, generator=gen)
+        rgb = obj(feats, torch.nn.functional.normalize(torch.randn(B, N, 3), dim=-1), f_mt, torch.tensor([0, -1]))
+        assert rgb.shape == (B, N, 3) and (rgb >= 0).all() and torch.isfinite(rgb).all()
+    elif group == "density":
+        g = instantiate(cfg.gaussians, body=body, num_points=N)
+        opt = torch.optim.Adam([{"params": ps, "name": n} for n, ps in g.param_groups().items()], lr=1e-3)
+        for p in g.parameters():
+            p.grad = torch.ones_like(p)
+        opt.step()
+        means2d = torch.zeros(1, N, 2, requires_grad=True)
+        means2d.grad = torch.full((1, N, 2), 1.0)  # every Gaussian over the threshold
+        meta = [{"means2d": means2d, "radii": torch.ones(1, N, dtype=torch.int32)}]
+        step = int(cfg.density.refine_start) + int(cfg.density.refine_every) if cfg.density.get("enabled") else 10
+        obj.step_post_backward(g, opt, meta, step - 1, (64, 64))  # accumulate
+        stats = obj.step_post_backward(g, opt, meta, step, (64, 64))
+        assert (g.num_points > N) == bool(cfg.density.get("enabled")), stats
+        assert all(opt.state[p]["exp_avg"].shape == p.shape for p in g.parameters())
+    elif group == "loss":
+        rgb, gt = torch.rand(B, 16, 16, 3, generator=gen, requires_grad=True), torch.rand(B, 16, 16, 3, generator=gen)
+        alpha, mask = torch.rand(B, 16, 16, 1, generator=gen), (torch.rand(B, 16, 16, 1, generator=gen) > 0.5).float()
+        field = instantiate(cfg.skinning)
+        total, terms = obj(rgb, alpha, gt, mask, skinning=field, skin_points=x, skin_weights=torch.softmax(torch.randn(N, 24), -1))
+        assert {"l1", "mask", "perceptual", "skin"} <= set(terms) and torch.isfinite(total)
+        total.backward()
+        assert rgb.grad.abs().sum() > 0
+    elif group == "silhouette":
+        K = torch.tensor([[32.0, 0, 16], [0, 32.0, 16], [0, 0, 1]])
+        E = torch.eye(4)
+        E[2, 3] = 3.0
+        mask = torch.zeros(32, 32, 1)
+        mask[8:24, 12:20] = 1
+        means = (x + torch.tensor([1.0, 0.0, 0.0])).requires_grad_()  # partly outside the mask
+        terms = obj(means, E, K, mask, torch.zeros(32, 32, 1))
+        total = obj.total(terms)
+        assert torch.isfinite(total) and total.dim() == 0
+        if terms:
+            total.backward()
+            assert means.grad.abs().sum() > 0
+    else:
+        raise AssertionError(f"no forward check written for group {group}")
+
+
+@pytest.mark.parametrize("group,opt", [(g, o) for g in COMPONENT_GROUPS for o in _options(g)])
+def test_every_component_option_builds_and_runs(group, opt, body):
+    """Every option file of every component group, composed as the command line does, instantiates and runs a
+    forward pass with inputs sized from the config (gaussians=hull without views: the rebuild-from-checkpoint path;
+    its carving is tested in test_dynamics)."""
+    cfg = compose([f"{group}={opt}", "gaussians.num_points=300"])
+    kwargs = {"body": body} if group == "gaussians" else {"num_frames": 4} if group == "color" else {}
+    torch.manual_seed(0)
+    _forward(group, instantiate(cfg[group], **kwargs), cfg, body)
 
 
 def test_unknown_option_names_the_group():
@@ -85,10 +157,12 @@ def test_short_training_lowers_loss_and_writes_outputs(trained_run):
     assert saved["config"]["temporal"] == "lstm"
     assert saved["lpips"].startswith("not computed") and "test/novel_view/lpips" not in saved
     rows = list(csv.DictReader(open(out / "logs" / "csv" / "metrics.csv")))
-    losses = [float(r["train/loss"]) for r in rows if r.get("train/loss")]
-    assert len(losses) >= 4
-    first, last = np.mean(losses[: len(losses) // 3]), np.mean(losses[-(len(losses) // 3):])
-    assert last < first, f"loss did not decrease: {first:.4f} -> {last:.4f}"
+    # The photometric term, not the total: the total also falls by itself when the skinning weight drops at
+    # schedule.skin_switch, which would hide a model that learns nothing.
+    l1 = [float(r["train/l1"]) for r in rows if r.get("train/l1")]
+    assert len(l1) >= 4
+    first, last = np.mean(l1[: len(l1) // 3]), np.mean(l1[-(len(l1) // 3):])
+    assert last < 0.95 * first, f"photometric L1 did not decrease: {first:.4f} -> {last:.4f}"
     assert (out / "per_frame.csv").is_file() and (out / "images" / "novel_pose_grid.png").is_file()
 
 
