@@ -119,7 +119,7 @@ def write_i3d(root, sequence, body, train_frames=(0, 1, 2, 3), pose_frames=(4, 5
                               "distortions": np.zeros(5) if distortions is None else np.asarray(distortions)}
                 infos[name] = {"poses": poses[i], "Rh": Rh[i], "Th": Th[i], "joints": np.zeros((24, 3)),
                                "tpose_joints": body.rest_joints.numpy()}
-                img, mask = draw(project(K, E, pelvis_w[i]), (200, 100 + 20 * v, 50))
+                img, mask = draw(project(K, E, pelvis_w[i]), (200, (100 + 20 * v) % 256, 50))
                 Image.fromarray(img).save(d / "images" / f"{name}.png")
                 Image.fromarray(mask).save(d / "masks" / f"{name}.png")
         with open(d / "cameras.pkl", "wb") as fh:
