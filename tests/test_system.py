@@ -140,9 +140,40 @@ def trained_run(scenes_root, tmp_path_factory):
     from realityavatar.train import run
 
     out = tmp_path_factory.mktemp("run")
-    cfg, choices = _prepare(compose(["data=synthetic_ci", "iterations=60", *SMALL]), out)
+    # density.refine_every=15: refinement fires at steps 15 and 30 (window 6..42), so the run, its checkpoint and
+    # every rebuild from it go through clone/split/prune and a changed Gaussian count.
+    cfg, choices = _prepare(compose(["data=synthetic_ci", "iterations=60", "density.refine_every=15", *SMALL]), out)
     metrics = run(cfg, choices)
     return out, metrics
+
+
+def test_density_control_fires_inside_the_training_loop(trained_run):
+    """Clone/split/prune during a real fit: the Adam state, the parameters and the LR schedule stay consistent."""
+    from realityavatar.model.module import GAUSSIAN_GROUPS
+
+    out, metrics = trained_run
+    rows = list(csv.DictReader(open(out / "logs" / "csv" / "metrics.csv")))
+    fired = {k: sum(float(r[k]) for r in rows if r.get(k)) for k in ("train/density_cloned", "train/density_split",
+                                                                      "train/density_pruned")}
+    assert sum(fired.values()) > 0, f"refinement never changed the Gaussians: {fired}"
+    assert metrics["num_gaussians"] != 1500
+    state = torch.load(out / "last.ckpt", map_location="cpu", weights_only=False)
+    N = metrics["num_gaussians"]
+    assert state["state_dict"]["gaussians.means"].shape[0] == N
+    opt = state["optimizer_states"][0]
+    sched = state["lr_schedulers"][0]
+    assert len(sched["base_lrs"]) == len(opt["param_groups"]) and sched["last_epoch"] == 60
+    cfg = compose(["iterations=60"])
+    for group, base in zip(opt["param_groups"], sched["base_lrs"]):
+        if group["name"] not in GAUSSIAN_GROUPS:
+            continue
+        (idx,) = group["params"]
+        st = opt["state"][idx]
+        shape = tuple(state["state_dict"][f"gaussians.{group['name']}"].shape)
+        assert tuple(st["exp_avg"].shape) == shape == tuple(st["exp_avg_sq"].shape), group["name"]
+        assert st["exp_avg_sq"].abs().sum() > 0, f"{group['name']}: Adam state lost at refinement"
+        f = cfg.optim.final_factor.get(group["name"], cfg.optim.final_factor.default)
+        assert group["lr"] == pytest.approx(base * f ** 1.0, rel=1e-6), f"{group['name']}: LR schedule lost"
 
 
 def test_short_training_lowers_loss_and_writes_outputs(trained_run):
