@@ -17,7 +17,6 @@ import numpy as np
 import torch
 from torch.utils.data import default_collate
 
-from realityavatar.data.poses import PoseTable
 from realityavatar.metrics import psnr, temporal_flicker
 
 NOISE_SIGMAS = (0.0, 0.02, 0.05, 0.1)  # radians added to every joint rotation (pose-fit noise)
@@ -99,8 +98,7 @@ def extreme_poses(module, dm, n: int = 48, seed: int = 0) -> dict:
         windows.append(w)
         trans.append(base_t.expand(T, 3))
     poses_w, transl_w = torch.stack(windows), torch.stack(trans)
-    idx = torch.full((n,), -1, dtype=torch.long)
-    posed = module.deform(poses_w, transl_w, idx)
+    posed = module.deform(poses_w, transl_w)
     joints = module.body.joints(poses_w[:, -1], transl_w[:, -1])  # [n,24,3]
     dist = torch.cdist(posed["means"], joints).min(-1).values  # [n,N] distance to the nearest joint
     finite = bool(torch.isfinite(posed["means"]).all() and torch.isfinite(posed["scales"]).all())

@@ -12,11 +12,13 @@ import realityavatar.config  # noqa: F401  (registers the int_mul resolver used 
 from realityavatar.body.base import SMPL_PARENTS, BodyModel
 from realityavatar.geometry import axis_angle_to_matrix, matrix_to_quat, quat_multiply, quat_to_matrix, rigid
 from realityavatar.model.color import MLPColor, SHColor
-from realityavatar.model.deform import HashEncoding, MotionTrendDecoder, apply_deformation
+from realityavatar.model.deform import MotionTrendDecoder, apply_deformation
+from realityavatar.model.encodings import HashEncoding
 from realityavatar.model.density import DensityControl
 from realityavatar.model.encoders import PART_DIMS, LatentBoneEncoder, pose_features
 from realityavatar.model.gaussians import PARAM_NAMES, CanonicalGaussians
-from realityavatar.model.skinning import SkinningField, lbs_gaussians, pretrain_skinning, sample_surface, skinning_loss
+from realityavatar.geometry import sample_surface
+from realityavatar.model.skinning import SkinningField, lbs_gaussians, pretrain_skinning, skinning_loss
 from realityavatar.model.temporal import NoTemporal, RecurrentTemporal
 from realityavatar.render import eval_sh
 
@@ -223,6 +225,20 @@ def test_motion_trend_decoder_identity_start_and_grads(encoding):
     loss = sum(v.square().sum() for v in out.values())
     loss.backward()
     _all_grads(dec)
+
+
+def test_both_encodings_give_the_means_the_same_gradient_path():
+    """The decoder's encoding sees x_c detached for either encoding, so hash and frequency differ only in features."""
+    torch.manual_seed(0)
+    for encoding in ("hash", "frequency"):
+        dec = MotionTrendDecoder(cond_dim=8, encoding=encoding, hidden_dim=16, feature_dim=4, hash_levels=2,
+                                 hash_log2_table_size=8)
+        with torch.no_grad():
+            dec.out.weight.normal_()  # outputs depend on x_c
+        x = (torch.randn(30, 3) * 0.3).requires_grad_()
+        out = dec(x, torch.randn(2, 8))
+        (out["dx"].sum() + out["f_mt"].sum()).backward()
+        assert x.grad is None or x.grad.abs().max() == 0, encoding
 
 
 def test_apply_deformation_follows_paper_equations():

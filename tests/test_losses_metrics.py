@@ -155,13 +155,13 @@ def _batch(seed=0):
 
 
 def test_avatar_loss_dssim_fallback_and_terms():
-    loss = AvatarLoss(lambda_mask=0.1, lambda_dssim=0.2, lambda_skin_start=10.0, lambda_skin_end=0.1, skin_decay_step=100)
+    loss = AvatarLoss(lambda_mask=0.1, lambda_dssim=0.2, lambda_skin_start=10.0, lambda_skin_end=0.1)
     assert loss.perceptual_kind == "dssim"
     pred, alpha, gt, mask = _batch()
     field = SkinningField(hidden_dim=16, num_layers=1)
     pts, w = torch.randn(32, 3), torch.softmax(torch.randn(32, 24), -1)
-    for step, lam in ((0, 10.0), (100, 0.1)):
-        total, terms = loss(pred, alpha, gt, mask, skinning=field, skin_points=pts, skin_weights=w, step=step)
+    for decayed, lam in ((False, 10.0), (True, 0.1)):  # the module's Schedule.skin_switch decides `decayed`
+        total, terms = loss(pred, alpha, gt, mask, skinning=field, skin_points=pts, skin_weights=w, skin_decayed=decayed)
         expected = terms["l1"] + 0.1 * terms["mask"] + 0.2 * terms["perceptual"] + lam * terms["skin"]
         assert float(total.detach()) == pytest.approx(float(expected), rel=1e-6)
     assert float(terms["l1"]) == pytest.approx(float((pred - gt).abs().mean()), rel=1e-6)

@@ -296,7 +296,7 @@ def test_canonical_gaussians_land_on_the_posed_body_after_skinning_prefit(body):
     verts = body.posed_vertices(pose, transl)  # [V,3] ground truth: the body's own LBS
     poses, transls = pose.expand(1, 3, 24, 3), transl.expand(1, 3, 3)  # a window holding the pose
     with torch.no_grad():
-        posed = module.deform(poses, transls, torch.tensor([0]))
+        posed = module.deform(poses, transls)
     d_canon = torch.cdist(module.gaussians.means, body.canonical_vertices()).min(-1).values  # [N]
     d_posed = torch.cdist(posed["means"][0], verts).min(-1).values
     # distance gained by posing: 0 for a perfect LBS; the learnt weights blur near joints (measured: median ~0,
@@ -322,3 +322,37 @@ def test_canonical_gaussians_land_on_the_posed_body_after_skinning_prefit(body):
     covered = torch.zeros(S, S, dtype=torch.bool)
     covered[uv[:, 1], uv[:, 0]] = True
     assert (alpha[0, ..., 0] > 0.5)[~covered].float().sum() < 0.15 * covered.sum()  # little alpha off the body
+
+
+def test_module_wiring_optimizer_groups_decoder_box_and_sh_export(body, tmp_path):
+    """The module takes its optimizer groups from the components' param_groups(), fits the decoder's box to the
+    initial Gaussians when built, and the SH colour model exports its own coefficients."""
+    from realityavatar.build import build_module
+    from realityavatar.export import export_gaussians, read_ply
+    from realityavatar.render import eval_sh
+
+    cfg = compose(["gaussians.num_points=500", "deformer=motion_trend_hash", "color=sh", "deformer.hash_levels=4",
+                   "deformer.hash_log2_table_size=10"])
+    module = build_module(cfg, body, num_train_frames=2, scene_extent=2.0)
+    groups = {g["name"]: g for g in module.param_groups()}
+    assert set(groups) == {"means", "log_scales", "quats", "opacity_logits", "features", "encoder", "temporal",
+                           "deformer", "deformer_encoding", "skinning"}  # SH colour has no weights: no group
+    assert groups["deformer_encoding"]["params"] == [module.deformer.encoding.table]
+    assert groups["deformer_encoding"]["lr"] == cfg.optim.lr.deformer and groups["means"]["lr"] == 2.0 * cfg.optim.lr.means
+    ids = [id(p) for g in groups.values() for p in g["params"]]
+    assert sorted(ids) == sorted(id(p) for p in module.parameters() if p.requires_grad)  # each exactly once
+    # decoder box: fitted now, around the initial canonical Gaussians (not at its first forward, at deform_start)
+    m = module.gaussians.means.detach()
+    assert bool(module.deformer.bounds_fitted)
+    assert (module.deformer.bbox_min <= m.min(0).values).all() and (module.deformer.bbox_max >= m.max(0).values).all()
+    assert (module.deformer.bbox_max - module.deformer.bbox_min).max() < 1.3 * (m.max(0).values - m.min(0).values).max()
+    # SH export writes the model's coefficients: the PLY's colour along any direction is the model's colour
+    with torch.no_grad():
+        module.gaussians.features.normal_(0, 0.3)
+    ply = read_ply(export_gaussians(module, tmp_path / "sh.ply"))
+    sh = torch.from_numpy(ply["sh"])  # [N,16,3]
+    assert sh.shape == (500, 16, 3) and sh[:, 1:].abs().sum() > 0
+    d = torch.nn.functional.normalize(torch.randn(1, 500, 3), dim=-1)
+    with torch.no_grad():
+        ref = module.color(module.gaussians.features, d, None, torch.tensor([0]))
+    assert torch.allclose(torch.clamp_min(eval_sh(3, sh[None], d) + 0.5, 0.0), ref, atol=1e-5)
