@@ -114,8 +114,8 @@ def _save_fake_lpips(tmp_path, net: str):
 def test_lpips_loads_weights_and_behaves(tmp_path, net, size):
     bb, lin = _save_fake_lpips(tmp_path, net)
     assert lpips_status(str(bb), str(lin)) == "computed"
-    m = build_lpips(net, str(bb), str(lin))
-    assert isinstance(m, LPIPS)
+    m, status = build_lpips(net, str(bb), str(lin))
+    assert isinstance(m, LPIPS) and status == "computed"
     m_dir = LPIPS.from_paths(str(tmp_path), net=net)  # a directory with both files
     assert torch.equal(m_dir.lins[0].weight, m.lins[0].weight)
     assert torch.equal(m.lins[2].weight, torch.load(lin)["lin2.model.1.weight"])
@@ -133,8 +133,9 @@ def test_lpips_not_computed_without_weights(tmp_path):
     assert status.startswith("not computed: no LPIPS weights")
     assert "metrics.lpips_weights" in status
     assert lpips_status(str(tmp_path / "nope.pth"), str(tmp_path / "nope2.pth")).startswith("not computed:")
-    assert build_lpips("vgg", None, None) is None
-    assert build_lpips("vgg", None, str(tmp_path)) is None  # empty directory
+    assert build_lpips("vgg", None, None) == (None, status)
+    m, why = build_lpips("vgg", None, str(tmp_path))  # empty directory: the missing file is named
+    assert m is None and why.startswith("not computed: LPIPS weight file") and "vgg" in why
     with pytest.raises(FileNotFoundError, match="not computed"):
         LPIPS("vgg", "", "")
     bb, _ = _save_fake_lpips(tmp_path, "alex")

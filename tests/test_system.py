@@ -356,3 +356,26 @@ def test_module_wiring_optimizer_groups_decoder_box_and_sh_export(body, tmp_path
     with torch.no_grad():
         ref = module.color(module.gaussians.features, d, None, torch.tensor([0]))
     assert torch.allclose(torch.clamp_min(eval_sh(3, sh[None], d) + 0.5, 0.0), ref, atol=1e-5)
+
+
+def test_frozen_metric_networks_stay_out_of_the_checkpoint(body, tmp_path):
+    """LPIPS and the VGG19 perceptual loss come from weight files: a run trained without them evaluates with them
+    (strict load), and their weights are never written into a checkpoint."""
+    from realityavatar.build import build_module
+    from realityavatar.metrics import vgg_features
+
+    torch.manual_seed(0)
+    torch.save({f"features.{k}": v for k, v in vgg_features("vgg16").state_dict().items()}, tmp_path / "vgg16-397923af.pth")
+    torch.save({f"lin{k}.model.1.weight": torch.rand(1, c, 1, 1) for k, c in enumerate((64, 128, 256, 512, 512))},
+               tmp_path / "vgg.pth")
+    torch.save({f"features.{k}": v for k, v in vgg_features("vgg19").state_dict().items()}, tmp_path / "vgg19.pth")
+    small = ["gaussians.num_points=200", "silhouette=none"]
+    plain = build_module(compose(small), body, num_train_frames=2, scene_extent=1.0)
+    with_nets = build_module(compose([*small, f"metrics.lpips_weights={tmp_path}",
+                                      f"loss.vgg19_weights={tmp_path / 'vgg19.pth'}"]),
+                             body, num_train_frames=2, scene_extent=1.0)
+    assert with_nets.lpips is not None and with_nets.loss_fn.vgg is not None
+    sd_plain, sd_nets = plain.state_dict(), with_nets.state_dict()
+    assert set(sd_plain) == set(sd_nets) and not any(k.startswith(("lpips", "loss_fn")) for k in sd_nets)
+    with_nets.load_state_dict(sd_plain)  # strict: evaluate ... metrics.lpips_weights=... on a run trained without
+    plain.load_state_dict({**sd_plain, "lpips.lins.0.weight": torch.zeros(1, 64, 1, 1)})  # an older checkpoint

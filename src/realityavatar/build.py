@@ -11,20 +11,10 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 import realityavatar.config  # noqa: F401  (registers resolvers)
+from realityavatar.metrics import build_lpips
 from realityavatar.model.module import AvatarModule, Schedule
 
 CKPT_NAME = "last.ckpt"
-
-
-def build_lpips(cfg: DictConfig):
-    """LPIPS network when weights are configured, else None and the reason (reported in metrics.json)."""
-    from realityavatar.metrics import LPIPS, lpips_status
-
-    m = cfg.get("metrics", {}) or {}
-    if not m.get("lpips_weights"):
-        return None, lpips_status()
-    net = LPIPS.from_paths(m["lpips_weights"], m.get("lpips_backbone_weights"))
-    return net, "computed"
 
 
 def build_module(cfg: DictConfig, body, num_train_frames: int, scene_extent: float, data=None) -> AvatarModule:
@@ -49,7 +39,8 @@ def build_module(cfg: DictConfig, body, num_train_frames: int, scene_extent: flo
     density = instantiate(cfg.density)
     loss = instantiate(cfg.loss)
     silhouette = instantiate(cfg.silhouette) if cfg.get("silhouette") is not None else None
-    lpips, lpips_status = build_lpips(cfg)
+    m = cfg.get("metrics", {}) or {}
+    lpips, lpips_status = build_lpips("vgg", m.get("lpips_backbone_weights"), m.get("lpips_weights"))
     render = OmegaConf.to_container(cfg.render, resolve=True)
     module = AvatarModule(
         body=body,

@@ -91,6 +91,10 @@ class AvatarModule(pl.LightningModule):
         self._surface = None
         # Facts needed to rebuild the run from its checkpoint (num_train_frames, scene_extent, ...).
         self.run_info: dict = {"scene_extent": self.scene_extent}
+        # Frozen networks from weight files (LPIPS, the perceptual loss's VGG19) stay out of the checkpoint, so a run
+        # trained with or without them loads strictly into a module built with or without them.
+        self._register_state_dict_hook(_drop_frozen_networks)
+        self.register_load_state_dict_post_hook(_ignore_frozen_networks)
         # The decoder's normalisation box follows the initial canonical Gaussians (not those of its first forward at
         # deform_start, which have moved and been densified); a loaded checkpoint replaces it with the trained box.
         if hasattr(deformer, "fit_bounds") and not bool(getattr(deformer, "bounds_fitted", 1)):
@@ -316,6 +320,19 @@ class AvatarModule(pl.LightningModule):
     def num_parameters(self) -> int:
         """Learnable parameters of the avatar: Gaussians and every network (the body model has none)."""
         return int(sum(p.numel() for p in self.parameters() if p.requires_grad))
+
+
+FROZEN_NETWORKS = ("lpips.", "loss_fn.vgg.")  # state-dict prefixes of networks loaded from weight files
+
+
+def _drop_frozen_networks(module: nn.Module, state_dict: dict, prefix: str, local_metadata: dict) -> None:
+    for key in [k for k in state_dict if k[len(prefix):].startswith(FROZEN_NETWORKS)]:
+        del state_dict[key]
+
+
+def _ignore_frozen_networks(module: nn.Module, incompatible) -> None:
+    for keys in (incompatible.missing_keys, incompatible.unexpected_keys):
+        keys[:] = [k for k in keys if not k.startswith(FROZEN_NETWORKS)]
 
 
 def check_single_process(trainer: Any) -> None:
