@@ -379,3 +379,14 @@ def test_frozen_metric_networks_stay_out_of_the_checkpoint(body, tmp_path):
     assert set(sd_plain) == set(sd_nets) and not any(k.startswith(("lpips", "loss_fn")) for k in sd_nets)
     with_nets.load_state_dict(sd_plain)  # strict: evaluate ... metrics.lpips_weights=... on a run trained without
     plain.load_state_dict({**sd_plain, "lpips.lins.0.weight": torch.zeros(1, 64, 1, 1)})  # an older checkpoint
+
+
+def test_rebuild_overrides_move_interpolated_keys(trained_run):
+    """evaluate/animate/export apply key=value overrides as train does: keys interpolated from them follow."""
+    from realityavatar.build import load_run
+
+    out, _ = trained_run
+    cfg, _, _ = load_run(out, ["seed=5", "iterations=1000"])
+    assert cfg.gaussians.seed == 5 and cfg.density.seed == 5  # ${seed}
+    assert cfg.schedule.deform_start == 100 and cfg.density.refine_start == 100  # ${int_mul:${iterations},0.1}
+    assert cfg.data.root == load_run(out)[0].data.root  # environment values stay those of the run

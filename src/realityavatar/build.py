@@ -10,7 +10,7 @@ import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-import realityavatar.config  # noqa: F401  (registers resolvers)
+from realityavatar.config import RAW_CONFIG_NAME  # importing config also registers the resolvers
 from realityavatar.metrics import build_lpips
 from realityavatar.model.module import AvatarModule, Schedule
 
@@ -80,9 +80,16 @@ def load_run(run_dir: str | Path, overrides: list[str] | None = None, ckpt: str 
     cfg_path = run_dir / "config.yaml"
     if not cfg_path.is_file():
         raise FileNotFoundError(f"{cfg_path} not found: expected a run folder written by realityavatar-train")
-    cfg = OmegaConf.load(cfg_path)
-    if overrides:
+    raw_path = run_dir / RAW_CONFIG_NAME
+    if overrides and raw_path.is_file():
+        # Overrides go into the run's unresolved config, so keys interpolated from them follow (as in train).
+        cfg = OmegaConf.load(raw_path)
         cfg.merge_with_dotlist(list(overrides))
+        OmegaConf.resolve(cfg)
+    else:
+        cfg = OmegaConf.load(cfg_path)
+        if overrides:  # a run folder from before config_unresolved.yaml existed
+            cfg.merge_with_dotlist(list(overrides))
     ckpt = Path(ckpt) if ckpt else run_dir / CKPT_NAME
     if not ckpt.is_file():
         raise FileNotFoundError(f"checkpoint {ckpt} not found in run folder {run_dir}")

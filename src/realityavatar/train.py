@@ -12,7 +12,7 @@ import pytorch_lightning as pl
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from realityavatar.config import choices_of, config_dir
+from realityavatar.config import RAW_CONFIG_NAME, choices_of, config_dir, unresolved_copy
 
 
 # Lightning notices that do not apply here: density control needs manual optimisation, and there is no val loop.
@@ -38,6 +38,7 @@ def run(cfg: DictConfig, choices: dict | None = None) -> dict:
     out_dir.mkdir(parents=True, exist_ok=True)
     # The resolved config beside the checkpoint is what evaluate/animate/export rebuild the run from.
     OmegaConf.save(cfg, out_dir / "config.yaml", resolve=True)
+    OmegaConf.save(unresolved_copy(cfg), out_dir / RAW_CONFIG_NAME)  # what later key=value overrides apply to
     body = instantiate(cfg.body)
     dm = build_data(cfg, body)
     module = build_module(cfg, body, dm.num_train_frames, dm.scene_extent, data=dm)
