@@ -38,7 +38,7 @@ def body():
     return build_body("mannequin")
 
 
-@pytest.mark.parametrize("group", COMPONENT_GROUPS + ("render", "optim", "trainer", "body", "data"))
+@pytest.mark.parametrize("group", COMPONENT_GROUPS + ("render", "optim", "trainer", "body", "data", "callbacks", "logger"))
 def test_every_option_composes(group):
     opts = _options(group)
     assert opts, f"conf/{group} has no options"
@@ -127,6 +127,18 @@ def test_every_component_option_builds_and_runs(group, opt, body):
     kwargs = {"body": body} if group == "gaussians" else {"num_frames": 4} if group == "color" else {}
     torch.manual_seed(0)
     _forward(group, instantiate(cfg[group], **kwargs), cfg, body)
+
+
+def test_callbacks_and_loggers_come_from_their_groups(tmp_path):
+    from pytorch_lightning.callbacks import ModelCheckpoint
+    from pytorch_lightning.loggers import CSVLogger
+
+    cfg, _ = _prepare(compose(["iterations=40"]), tmp_path)
+    ckpt = instantiate(cfg.callbacks.checkpoint)
+    assert isinstance(ckpt, ModelCheckpoint) and ckpt.dirpath == str(tmp_path) and ckpt._every_n_train_steps == 10
+    assert isinstance(instantiate(cfg.logger.csv), CSVLogger)
+    cfg, _ = _prepare(compose(["logger=none", "callbacks.checkpoint=null"]), tmp_path)
+    assert not cfg.logger and cfg.callbacks.checkpoint is None
 
 
 def test_unknown_option_names_the_group():

@@ -24,9 +24,6 @@ for _msg in (".*pre-optimization state.*", ".*`validation_step`.*", ".*LeafSpec.
 def run(cfg: DictConfig, choices: dict | None = None) -> dict:
     """Fit one avatar and evaluate it; returns the metrics that were written to <out_dir>/metrics.json."""
     from hydra.utils import instantiate
-    from pytorch_lightning.callbacks import ModelCheckpoint
-    from pytorch_lightning.loggers import CSVLogger, TensorBoardLogger
-
     from realityavatar.build import CKPT_NAME, build_data, build_module, git_commit, write_json
     from realityavatar.evaluate import evaluate_module, format_table
     from realityavatar.model.module import check_single_process
@@ -43,9 +40,10 @@ def run(cfg: DictConfig, choices: dict | None = None) -> dict:
     dm = build_data(cfg, body)
     module = build_module(cfg, body, dm.num_train_frames, dm.scene_extent, data=dm)
     module.run_info.update(num_train_frames=dm.num_train_frames, train_frame_ids=list(map(int, dm.train_frame_ids)))
-    ckpt_cb = ModelCheckpoint(dirpath=out_dir, filename=Path(CKPT_NAME).stem, save_last=False, every_n_train_steps=max(int(cfg.iterations) // 4, 1), save_top_k=1, enable_version_counter=False)
-    loggers = [CSVLogger(out_dir / "logs", name="csv", version=""), TensorBoardLogger(out_dir / "logs", name="tb", version="")]
-    trainer = instantiate(cfg.trainer, callbacks=[ckpt_cb], logger=loggers)
+    # Callbacks and loggers come from their config groups (conf/callbacks, conf/logger), one entry each.
+    callbacks = [instantiate(c) for c in (cfg.get("callbacks") or {}).values() if c is not None]
+    loggers = [instantiate(c) for c in (cfg.get("logger") or {}).values() if c is not None]
+    trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False)
     check_single_process(trainer)  # before fit: a DDP launch would start the other ranks
     t0 = time.perf_counter()
     trainer.fit(module, datamodule=dm, ckpt_path=cfg.get("ckpt_path"))
