@@ -14,7 +14,7 @@ from realityavatar.geometry import axis_angle_to_matrix, matrix_to_quat, quat_mu
 from realityavatar.model.color import MLPColor, SHColor
 from realityavatar.model.deform import MotionTrendDecoder, apply_deformation
 from realityavatar.model.encodings import HashEncoding
-from realityavatar.model.density import DensityControl
+from realityavatar.model.density import DensityControl, NoDensityControl
 from realityavatar.model.encoders import PART_DIMS, LatentBoneEncoder, pose_features
 from realityavatar.model.gaussians import PARAM_NAMES, CanonicalGaussians
 from realityavatar.geometry import sample_surface
@@ -419,7 +419,7 @@ def test_density_cap_reset_state_and_disabled(body):
         g.log_scales[:] = math.log(0.001)
         g.opacity_logits[:] = 2.0
     opt = _adam_with_state(g)
-    off = DensityControl(enabled=False)
+    off = NoDensityControl()
     assert off.step_post_backward(g, opt, _meta(20, list(range(20))), 10, (64, 64)) == {} and g.num_points == 20
     dc = DensityControl(refine_start=0, refine_stop=100, refine_every=10, reset_every=5, max_points=24, prune_opacity=0.05)
     dc.step_post_backward(g, opt, _meta(20, list(range(20))), step=3, image_size=(64, 64))
