@@ -3,49 +3,39 @@
 from __future__ import annotations
 
 import math
+import sys
+from pathlib import Path
 
-import numpy as np
 import pytest
 import torch
 
 import realityavatar.config  # noqa: F401  (registers the int_mul resolver used by the configs)
-from realityavatar.body.base import SMPL_PARENTS, BodyModel
-from realityavatar.geometry import axis_angle_to_matrix, matrix_to_quat, quat_multiply, quat_to_matrix, rigid
+
+sys.path.insert(0, str(Path(__file__).parent))
+from fixtures_data import RandomBody  # noqa: E402
+
+from realityavatar.geometry import (
+    axis_angle_to_matrix,
+    matrix_to_quat,
+    quat_multiply,
+    quat_to_matrix,
+    rigid,
+    sample_surface,
+)
 from realityavatar.model.color import MLPColor, SHColor
 from realityavatar.model.deform import MotionTrendDecoder, apply_deformation
-from realityavatar.model.encodings import HashEncoding
 from realityavatar.model.density import DensityControl, NoDensityControl
 from realityavatar.model.encoders import PART_DIMS, LatentBoneEncoder, pose_features
+from realityavatar.model.encodings import HashEncoding
 from realityavatar.model.gaussians import PARAM_NAMES, CanonicalGaussians
-from realityavatar.geometry import sample_surface
 from realityavatar.model.skinning import SkinningField, lbs_gaussians, pretrain_skinning, skinning_loss
 from realityavatar.model.temporal import NoTemporal, RecurrentTemporal
 from realityavatar.render import eval_sh
 
 
-
-class MeshBody(BodyModel):
-    """24 made-up joints, each wrapped in a small tetrahedron skinned 100% to it (a mesh with area, for sampling)."""
-
-    name = "meshbody"
-
-    def __init__(self) -> None:
-        super().__init__()
-        rng = np.random.default_rng(3)
-        J = np.zeros((24, 3))
-        J[0] = [0.0, 0.0, 0.0]
-        for j in range(1, 24):
-            J[j] = J[SMPL_PARENTS[j]] + rng.normal(0, 0.15, 3)
-        tet = np.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]], dtype=np.float64) * 0.03
-        verts = (J[:, None, :] + tet[None]).reshape(-1, 3)
-        faces = np.concatenate([np.array([[0, 1, 2], [0, 3, 1], [0, 2, 3], [1, 3, 2]]) + 4 * j for j in range(24)])
-        weights = np.repeat(np.eye(24), 4, axis=0)
-        self._set_buffers(verts, faces, weights, J)
-
-
 @pytest.fixture(scope="module")
-def body() -> MeshBody:
-    return MeshBody()
+def body() -> RandomBody:
+    return RandomBody(seed=3, pelvis=(0.0, 0.0, 0.0), spread=0.15)
 
 
 def _poses(B=2, T=5, seed=0):

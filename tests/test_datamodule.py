@@ -12,7 +12,7 @@ from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
 sys.path.insert(0, str(Path(__file__).parent))
-from fixtures_data import SIZE, TinyBody, project, write_i3d, write_zju
+from fixtures_data import SIZE, RandomBody, project, write_i3d, write_zju
 
 from realityavatar.data.datamodule import AvatarDataModule
 from realityavatar.data.poses import PoseTable
@@ -23,7 +23,7 @@ KEYS = {"image", "mask", "K", "viewmat", "width", "height", "poses", "transl", "
 
 @pytest.fixture(scope="module")
 def body():
-    return TinyBody()
+    return RandomBody()
 
 
 @pytest.fixture(scope="module")

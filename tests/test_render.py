@@ -5,11 +5,14 @@ import math
 import warnings
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 from omegaconf import OmegaConf
 
 import realityavatar.render.splat as rast_mod
+from realityavatar.data.synthetic.cameras import look_at as _look_at
+from realityavatar.geometry import camera_centres
 from realityavatar.render import eval_sh, rasterize, sh_basis
 from realityavatar.render.reference import rasterize_reference
 
@@ -18,16 +21,8 @@ CONF = Path(__file__).resolve().parents[1] / "conf" / "render"
 
 
 def look_at(campos, target, dtype=F64):
-    """World-to-camera OpenCV matrix (z forward, y down) for a camera at campos looking at target (world z up)."""
-    campos, target = torch.tensor(campos, dtype=dtype), torch.tensor(target, dtype=dtype)
-    z = torch.nn.functional.normalize(target - campos, dim=0)
-    x = torch.nn.functional.normalize(torch.linalg.cross(z, torch.tensor([0, 0, 1.0], dtype=dtype)), dim=0)
-    y = torch.linalg.cross(z, x)
-    R = torch.stack([x, y, z])
-    vm = torch.eye(4, dtype=dtype)
-    vm[:3, :3] = R
-    vm[:3, 3] = -R @ campos
-    return vm
+    """The scene generator's OpenCV world-to-camera matrix, here with world z up, as a tensor."""
+    return torch.from_numpy(_look_at(np.asarray(campos, float), np.asarray(target, float), up=(0.0, 0.0, 1.0))).to(dtype)
 
 
 def random_scene(n, seed, cams=1, w=40, h=32, dtype=F64, opaque_frac=0.3):
@@ -314,7 +309,7 @@ def test_sh_basis_orthonormal_and_rasterize_sh():
     means, quats, scales, op, _, vms, Ks, w, h = random_scene(40, seed=9, cams=2)
     sh = torch.randn(40, 16, 3, dtype=F64) * 0.3
     img, _, _ = rasterize(means, quats, scales, op, sh, vms, Ks, w, h, sh_degree=3)
-    campos = torch.linalg.inv(vms)[:, :3, 3]
+    campos = camera_centres(vms)
     cols = torch.clamp_min(eval_sh(3, sh[None], means[None] - campos[:, None]) + 0.5, 0)
     img2, _, _ = rasterize(means, quats, scales, op, cols, vms, Ks, w, h)
     assert torch.allclose(img, img2, atol=1e-12)

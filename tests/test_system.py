@@ -244,7 +244,8 @@ def test_resume_continues_from_checkpoint_step(trained_run, tmp_path):
 
 def test_evaluate_and_export_from_run_folder(trained_run):
     from realityavatar.evaluate import main as evaluate_main
-    from realityavatar.export import main as export_main, read_ply
+    from realityavatar.export import main as export_main
+    from realityavatar.export import read_ply
 
     out, metrics = trained_run
     assert evaluate_main([f"run_dir={out}", "eval.save_video=false"]) == 0

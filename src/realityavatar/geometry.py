@@ -106,6 +106,12 @@ def transform_points(T: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
     return (T[..., :3, :3] @ x[..., None]).squeeze(-1) + T[..., :3, 3]
 
 
+def camera_centres(viewmats: torch.Tensor) -> torch.Tensor:
+    """World-to-camera [...,4,4] -> camera centres in world space [...,3] (C = -Rᵀ t)."""
+    R, t = viewmats[..., :3, :3], viewmats[..., :3, 3:]
+    return -(R.transpose(-1, -2) @ t).squeeze(-1)
+
+
 def sample_surface(
     vertices: torch.Tensor,
     faces: torch.Tensor,

@@ -12,8 +12,8 @@ import torch.nn.functional as F
 from torch import nn
 
 from realityavatar.body.base import BodyModel
+from realityavatar.geometry import camera_centres, sample_surface
 from realityavatar.model.deform import apply_deformation
-from realityavatar.geometry import sample_surface
 from realityavatar.model.skinning import lbs_gaussians, pretrain_skinning
 from realityavatar.render import rasterize
 
@@ -132,7 +132,7 @@ class AvatarModule(pl.LightningModule):
 
     def shade(self, posed: dict, viewmats: torch.Tensor, frame_idx: torch.Tensor) -> torch.Tensor:
         """View-dependent colour of every Gaussian for each sample's camera: [B,N,3]."""
-        cam_centre = -(viewmats[:, :3, :3].transpose(-1, -2) @ viewmats[:, :3, 3:]).squeeze(-1)  # [B,3]
+        cam_centre = camera_centres(viewmats)  # [B,3]
         d = F.normalize(posed["means"] - cam_centre[:, None, :], dim=-1)  # [B,N,3] posed view dir
         # Canonicalise: undo each Gaussian's blended skinning rotation.
         d_c = (posed["rot"].transpose(-1, -2) @ d[..., None]).squeeze(-1)
