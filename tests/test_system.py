@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import csv
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,19 +11,14 @@ import torch
 from hydra.utils import instantiate
 from omegaconf import open_dict
 
-from realityavatar.config import CONFIG_DIR, compose
+from realityavatar.config import CONFIG_DIR, compose, prepare_run
 
 SMALL = ["trainer=ci", "gaussians.num_points=1500", "eval.save_video=false", "eval.fps_frames=2", "eval.fps_warmup=1"]
 COMPONENT_GROUPS = ("gaussians", "encoder", "temporal", "deformer", "skinning", "color", "density", "loss",
                     "silhouette")
 
 
-def _prepare(cfg, out_dir: Path):
-    choices = {k: v for k, v in cfg.hydra.runtime.choices.items() if not k.startswith("hydra") and v is not None}
-    with open_dict(cfg):
-        del cfg["hydra"]
-        cfg.out_dir = str(out_dir)
-    return cfg, choices
+_prepare = prepare_run  # compose() result -> (cfg, choices) for train.run
 
 
 def _options(group: str) -> list[str]:

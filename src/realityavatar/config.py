@@ -44,6 +44,18 @@ def choices_of(cfg: DictConfig) -> dict:
 RAW_CONFIG_NAME = "config_unresolved.yaml"
 
 
+def prepare_run(cfg: DictConfig, out_dir) -> tuple[DictConfig, dict]:
+    """A `compose()` result made into what `train.run` takes, as @hydra.main hands it over: the hydra node dropped,
+    out_dir set; returns it with the chosen option of every group."""
+    from omegaconf import open_dict
+
+    choices = {k: v for k, v in cfg.hydra.runtime.choices.items() if not k.startswith("hydra") and v is not None}
+    with open_dict(cfg):
+        del cfg["hydra"]
+        cfg.out_dir = str(out_dir)
+    return cfg, choices
+
+
 def unresolved_copy(cfg: DictConfig) -> DictConfig:
     """The config with its interpolations kept (`${seed}`, `${int_mul:...}`), so overrides applied to it later move
     every key derived from them; values read from the environment or from hydra's runtime are frozen to what
