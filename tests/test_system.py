@@ -414,3 +414,28 @@ def test_rebuild_overrides_move_interpolated_keys(trained_run):
     assert cfg.gaussians.seed == 5 and cfg.density.seed == 5  # ${seed}
     assert cfg.schedule.deform_start == 100 and cfg.density.refine_start == 100  # ${int_mul:${iterations},0.1}
     assert cfg.data.root == load_run(out)[0].data.root  # environment values stay those of the run
+
+
+def test_checkpoint_with_refined_gaussians_restores_model_and_optimizer(trained_run, body):
+    """The resume path without Lightning's loop: a module built at the configured count takes the checkpoint of a
+    run whose density control changed the count (parameters resize first), then the optimizer state loads onto
+    it and steps."""
+    from realityavatar.build import build_module
+
+    out, metrics = trained_run
+    state = torch.load(out / "last.ckpt", map_location="cpu", weights_only=False)
+    cfg = compose(["data=synthetic_ci", "iterations=60", "density.refine_every=15", *SMALL])
+    module = build_module(cfg, body, state["realityavatar"]["num_train_frames"], state["realityavatar"]["scene_extent"])
+    assert module.gaussians.num_points == 1500 != metrics["num_gaussians"]
+    module.load_state_dict(state["state_dict"])
+    module.on_load_checkpoint(state)
+    assert module.gaussians.num_points == metrics["num_gaussians"]
+    opt = module.configure_optimizers()["optimizer"]
+    opt.load_state_dict(state["optimizer_states"][0])
+    for p in module.parameters():
+        if p.requires_grad:
+            p.grad = torch.zeros_like(p)
+    opt.step()  # a size mismatch between the restored Adam rows and the parameters raises here
+    g = module.gaussians
+    assert all(opt.state[getattr(g, n)]["exp_avg"].shape == getattr(g, n).shape for n in ("means", "features"))
+    assert module.density.grad2d is None or module.density.grad2d.shape[0] == g.num_points
