@@ -9,10 +9,9 @@ from pathlib import Path
 import pytest
 import torch
 
-import realityavatar.config  # noqa: F401  (registers the int_mul resolver used by the configs)
 
 sys.path.insert(0, str(Path(__file__).parent))
-from fixtures_data import RandomBody  # noqa: E402
+from fixtures_data import RandomBody
 
 from realityavatar.geometry import (
     axis_angle_to_matrix,

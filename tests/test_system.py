@@ -175,7 +175,8 @@ def test_density_control_fires_inside_the_training_loop(trained_run):
     from realityavatar.model.module import GAUSSIAN_GROUPS
 
     out, metrics = trained_run
-    rows = list(csv.DictReader(open(out / "logs" / "csv" / "metrics.csv")))
+    with open(out / "logs" / "csv" / "metrics.csv") as fh:
+        rows = list(csv.DictReader(fh))
     fired = {k: sum(float(r[k]) for r in rows if r.get(k)) for k in ("train/density_cloned", "train/density_split",
                                                                       "train/density_pruned")}
     assert sum(fired.values()) > 0, f"refinement never changed the Gaussians: {fired}"

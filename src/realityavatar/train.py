@@ -14,7 +14,6 @@ from omegaconf import DictConfig, OmegaConf
 
 from realityavatar.config import RAW_CONFIG_NAME, choices_of, config_dir, unresolved_copy
 
-
 # Lightning notices that do not apply here: density control needs manual optimisation, and there is no val loop.
 for _msg in (".*pre-optimization state.*", ".*`validation_step`.*", ".*LeafSpec.*", ".*is not empty.*", ".*litlogger.*",
              ".*does not have many workers.*", ".*overridden `on_after_batch_transfer`.*"):
@@ -24,6 +23,7 @@ for _msg in (".*pre-optimization state.*", ".*`validation_step`.*", ".*LeafSpec.
 def run(cfg: DictConfig, choices: dict | None = None) -> dict:
     """Fit one avatar and evaluate it; returns the metrics that were written to <out_dir>/metrics.json."""
     from hydra.utils import instantiate
+
     from realityavatar.build import CKPT_NAME, build_data, build_module, git_commit, write_json
     from realityavatar.evaluate import evaluate_module, format_table
     from realityavatar.model.module import check_single_process

@@ -11,6 +11,7 @@ from torch import nn
 from realityavatar.geometry import quat_multiply, quat_to_matrix
 from realityavatar.model.encodings import FrequencyEncoding, HashEncoding
 
+
 class MotionTrendDecoder(nn.Module):
     """Paper's motion-trend decoder F_mt: enc(x_c) ⊕ h_t -> Δx [B,N,3], Δs [B,N,3] (log), Δq [B,N,4], f_mt [B,N,F].
 
