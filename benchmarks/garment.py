@@ -1,0 +1,92 @@
+"""Cost of the garment-motion mechanisms per training step: silhouette chamfer, deformation graph vs per-Gaussian decoder.
+
+Usage: python benchmarks/garment.py [--threads 1] [--out benchmarks/results/garment_cpu.json]
+Prints seconds and GEMM units (8 float32 matmuls of 1024³ timed in the same process) for forward+backward.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import torch
+
+
+def gemm_unit(repeats: int = 3) -> float:
+    a, b = torch.randn(1024, 1024), torch.randn(1024, 1024)
+    best = float("inf")
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        for _ in range(8):
+            a @ b
+        best = min(best, time.perf_counter() - t0)
+    return best
+
+
+def timeit(fn, repeats: int = 5) -> float:
+    fn()
+    best = float("inf")
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t0)
+    return best
+
+
+def main(argv=None) -> int:
+    from realityavatar.losses import SilhouetteChamfer
+    from realityavatar.model.deform import MotionTrendDecoder, NodeDeformer
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--out", default="benchmarks/results/garment_cpu.json")
+    a = ap.parse_args(argv)
+    torch.set_num_threads(a.threads)
+    torch.manual_seed(0)
+    unit = gemm_unit()
+    rows = []
+    for res in (128, 256):
+        K = torch.tensor([[res * 1.2, 0, res / 2], [0, res * 1.2, res / 2], [0, 0, 1.0]])
+        E = torch.eye(4)
+        E[2, 3] = 2.8
+        yy, xx = torch.meshgrid(torch.arange(res), torch.arange(res), indexing="ij")
+        mask = (((xx - res / 2) / (res * 0.25)) ** 2 + ((yy - res / 2) / (res * 0.4)) ** 2 < 1).float()[..., None]
+        alpha = mask * (xx < res / 2).float()[..., None]  # half of the silhouette uncovered
+        for n in (5000, 10000):
+            means = (torch.randn(n, 3) * 0.3).requires_grad_(True)
+            loss = SilhouetteChamfer()
+
+            def step():
+                loss.total(loss(means, E, K, mask, alpha)).backward()
+
+            rows.append({"part": "silhouette chamfer", "resolution": res, "gaussians": n, "seconds": timeit(step)})
+    for n in (5000, 10000):
+        x = torch.randn(n, 3) * 0.3
+        h = torch.randn(1, 128)
+        for name, dec in (("decoder per Gaussian", MotionTrendDecoder(encoding="frequency")),
+                          ("decoder on 256 graph nodes", NodeDeformer(num_nodes=256, encoding="frequency"))):
+            dec(x, h)  # fit the box / the nodes once, as training does
+
+            def step(dec=dec):
+                out = dec(x, h)
+                (out["dx"].sum() + out["ds"].sum() + out["dq"].sum() + out["f_mt"].sum()).backward()
+
+            rows.append({"part": name, "resolution": None, "gaussians": n, "seconds": timeit(step)})
+    for r in rows:
+        r["gemm_units"] = r["seconds"] / unit
+    print(f"GEMM unit (8 x 1024³ float32 matmuls): {unit * 1000:.1f} ms, {a.threads} thread(s)")
+    print(f"{'part':<28}{'res':>6}{'N':>8}{'ms':>10}{'units':>8}")
+    for r in rows:
+        print(f"{r['part']:<28}{str(r['resolution'] or '-'):>6}{r['gaussians']:>8}{r['seconds'] * 1000:10.1f}"
+              f"{r['gemm_units']:8.3f}")
+    out = Path(a.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps({"gemm_unit_s": unit, "threads": a.threads, "rows": rows}, indent=2))
+    print(f"wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
