@@ -12,7 +12,7 @@ from .tiles import build_plan, composite_tiles
 
 _RENDER_MODES = ("RGB", "D", "ED", "RGB+D", "RGB+ED")
 _RASTER_MODES = ("classic", "antialiased")
-_BACKENDS = ("auto", "torch", "gsplat")
+_BACKENDS = ("auto", "torch", "gsplat", "numba")
 _WHERE = "realityavatar/render/splat.py (rasterize)"
 _gsplat_failure: str | None = None  # why gsplat could not be used (warned once)
 _gsplat_module: Any = None
@@ -169,10 +169,23 @@ def rasterize(
         except (RuntimeError, ImportError, OSError) as exc:  # e.g. the JIT build of its CUDA kernels failed
             _gsplat_failed(exc)
     return _rasterize_torch(means, quats, scales, opacities, colors, viewmats, Ks, width, height,
-                            sh_degree=sh_degree, backgrounds=backgrounds, near=near, far=far,
+                            composite=_cpu_compositor(backend, means), sh_degree=sh_degree, backgrounds=backgrounds, near=near, far=far,
                             render_mode=render_mode, rasterize_mode=rasterize_mode, tile_size=tile_size,
                             eps2d=eps2d, radius_clip=radius_clip, alpha_max=alpha_max,
                             chunk_elements=chunk_elements, tile_cull=tile_cull)
+
+
+def _cpu_compositor(backend: str, means: torch.Tensor) -> str:
+    """'numba' (compiled CPU kernels, numba_backend.py) for backend numba, or auto on CPU; else 'torch'."""
+    if backend not in ("numba", "auto") or means.is_cuda:
+        if backend == "numba":
+            warnings.warn(f"{_WHERE}: backend='numba' needs CPU tensors; using the torch backend", stacklevel=3)
+        return "torch"
+    from .numba_backend import NUMBA_ERROR
+
+    if NUMBA_ERROR is not None and backend == "numba":
+        warnings.warn(f"{_WHERE}: numba unavailable ({NUMBA_ERROR}); using the torch backend", stacklevel=3)
+    return "torch" if NUMBA_ERROR is not None else "numba"
 
 
 def _sh_colors(colors, sh_degree, means, viewmats, C):
@@ -182,7 +195,7 @@ def _sh_colors(colors, sh_degree, means, viewmats, C):
     return torch.clamp_min(eval_sh(int(sh_degree), coeffs, dirs) + 0.5, 0.0)  # [C,N,3]
 
 
-def _rasterize_torch(means, quats, scales, opacities, colors, viewmats, Ks, width, height, *, sh_degree,
+def _rasterize_torch(means, quats, scales, opacities, colors, viewmats, Ks, width, height, *, composite, sh_degree,
                      backgrounds, near, far, render_mode, rasterize_mode, tile_size, eps2d, radius_clip,
                      alpha_max, chunk_elements, tile_cull):
     C = viewmats.shape[0]
@@ -206,10 +219,20 @@ def _rasterize_torch(means, quats, scales, opacities, colors, viewmats, Ks, widt
         if bg is not None:
             bg = bg.new_zeros(C, 1)
 
-    plan = build_plan(proj.means2d, proj.conics, proj.opacities, proj.depths, proj.radii_xy, width, height,
-                      tile_size=8 if tile_size is None else int(tile_size), chunk_elements=chunk_elements, tile_cull=tile_cull)
-    img, alphas = composite_tiles(means2d, proj.conics, proj.opacities, cols.to(means2d.dtype), plan,
-                                  width, height, alpha_max=alpha_max)
+    ts = 8 if tile_size is None else int(tile_size)
+    if composite == "numba":
+        from .numba_backend import composite_numba
+
+        img, alphas, stats = composite_numba(means2d, proj.conics, proj.opacities, cols.to(means2d.dtype),
+                                             proj.depths, proj.radii_xy, width, height, tile_size=ts,
+                                             alpha_max=alpha_max, tile_cull=tile_cull)
+    else:
+        plan = build_plan(proj.means2d, proj.conics, proj.opacities, proj.depths, proj.radii_xy, width, height,
+                          tile_size=ts, chunk_elements=chunk_elements, tile_cull=tile_cull)
+        img, alphas = composite_tiles(means2d, proj.conics, proj.opacities, cols.to(means2d.dtype), plan,
+                                      width, height, alpha_max=alpha_max)
+        stats = {"tile_size": plan.tile_size, "tile_pairs": plan.pairs, "padded_elements": plan.elements,
+                 "n_chunks": len(plan.chunks)}
     if bg is not None:
         img = img + (1.0 - alphas) * bg[:, None, None, :]
     if render_mode in ("ED", "RGB+ED"):
@@ -227,12 +250,9 @@ def _rasterize_torch(means, quats, scales, opacities, colors, viewmats, Ks, widt
         "colors": cols,
         "width": width,
         "height": height,
-        "tile_size": plan.tile_size,
         "n_cameras": C,
-        "tile_pairs": plan.pairs,
-        "padded_elements": plan.elements,
-        "n_chunks": len(plan.chunks),
-        "backend": "torch",
+        **stats,
+        "backend": composite,
     }
     return img, alphas, meta
 

@@ -1,0 +1,343 @@
+"""Compiled CPU compositing (Numba): tile binning, front-to-back forward and back-to-front backward per tile.
+
+Same per-pixel rules as tiles.py and gsplat's rasterize_to_pixels: pixel centres at +0.5, alpha = min(alpha_max,
+o*exp(-sigma)), skip sigma < 0 or alpha < 1/255, stop before the Gaussian that takes T to <= 1e-4. Arithmetic is
+float64 inside the kernels whatever the input dtype. The backward walks each pixel's list back to front from its
+last contributing Gaussian (gsplat's backward), so forward keeps only the final T and that index per pixel.
+Gradients go to per-pair slots (one tile = one thread, no races) and are summed per Gaussian in a second pass,
+so results do not depend on the thread count.
+"""
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+import torch
+
+try:  # the torch backend stays the fallback where numba cannot be imported
+    import numba
+    from numba import njit, prange
+
+    NUMBA_ERROR: str | None = None
+except Exception as exc:  # noqa: BLE001 - ImportError or a broken llvmlite: any means fall back
+    numba = None
+    NUMBA_ERROR = f"{type(exc).__name__}: {exc}"
+
+    def njit(*args, **kwargs):  # keeps the module importable; the kernels are never called
+        return (lambda f: f) if not args or not callable(args[0]) else args[0]
+
+    prange = range
+
+ALPHA_THRESHOLD = 1.0 / 255.0
+T_MIN = 1e-4
+# sigma above log(255*o) + slack means alpha < 1/255 whatever the rounding, so exp() is skipped there;
+# pixels below it still take the exact alpha test.
+_SIGMA_SLACK = 1e-6
+
+
+@njit(cache=True, inline="always")
+def _keep_pair(mx, my, A, B, Cc, o, x0, y0, x1, y1):
+    """tiles._tile_cull for one pair: the exact minimum of sigma over the box of pixel centres vs log(255*o)."""
+    if mx >= x0 and mx <= x1 and my >= y0 and my <= y1:
+        best = 0.0
+    else:
+        best = np.inf
+        for e in range(2):
+            xe = x0 if e == 0 else x1
+            dx = mx - xe
+            dy = min(max(-B * dx / Cc, my - y1), my - y0)
+            best = min(best, 0.5 * (A * dx * dx + Cc * dy * dy) + B * dx * dy)
+        for e in range(2):
+            ye = y0 if e == 0 else y1
+            dy = my - ye
+            dx = min(max(-B * dy / A, mx - x1), mx - x0)
+            best = min(best, 0.5 * (A * dx * dx + Cc * dy * dy) + B * dx * dy)
+    return best <= math.log(max(o, 1e-30) / ALPHA_THRESHOLD) + 1e-3
+
+
+@njit(cache=True)
+def _bin(means2d, radii, conics, opac, order, C, N, width, height, ts, tile_cull):
+    """Tile lists in depth order. means2d [G,2], radii [G,2] int32, conics [G,3], opac [G], order [C,N].
+
+    Returns starts [C*T+1] int64 (list of tile t is ids[starts[t]:starts[t+1]]) and ids [pairs] int32 (G ids).
+    Visiting Gaussians in depth order and appending makes every list depth-sorted without a sort.
+    """
+    tx_n = (width + ts - 1) // ts
+    ty_n = (height + ts - 1) // ts
+    T = tx_n * ty_n
+    counts = np.zeros(C * T + 1, np.int64)
+    fill = np.zeros(C * T + 1, np.int64)
+    ids = np.empty(0, np.int32)
+    for sweep in range(2):
+        if sweep == 1:
+            for t in range(C * T):
+                counts[t + 1] += counts[t]
+            ids = np.empty(counts[C * T], np.int32)
+            fill[:] = counts
+        for cam in range(C):
+            for j in range(N):
+                g = cam * N + order[cam, j]
+                rx, ry = radii[g, 0], radii[g, 1]
+                if rx <= 0 or ry <= 0:
+                    continue
+                mx, my = float(means2d[g, 0]), float(means2d[g, 1])
+                tx0 = int(min(max(math.floor((mx - rx) / ts), 0), tx_n))
+                tx1 = int(min(max(math.ceil((mx + rx) / ts), 0), tx_n))
+                ty0 = int(min(max(math.floor((my - ry) / ts), 0), ty_n))
+                ty1 = int(min(max(math.ceil((my + ry) / ts), 0), ty_n))
+                A, B, Cc, o = float(conics[g, 0]), float(conics[g, 1]), float(conics[g, 2]), float(opac[g])
+                for ty in range(ty0, ty1):
+                    y0 = ty * ts + 0.5
+                    y1 = min(y0 + ts - 1, height - 0.5)
+                    for tx in range(tx0, tx1):
+                        x0 = tx * ts + 0.5
+                        x1 = min(x0 + ts - 1, width - 0.5)
+                        if tile_cull and not _keep_pair(mx, my, A, B, Cc, o, x0, y0, x1, y1):
+                            continue
+                        t = cam * T + ty * tx_n + tx
+                        if sweep == 0:
+                            counts[t + 1] += 1
+                        else:
+                            ids[fill[t]] = g
+                            fill[t] += 1
+    return counts, ids
+
+
+@njit(cache=True, parallel=True)
+def _forward(means2d, conics, opac, colors, starts, ids, C, width, height, ts, alpha_max,
+             img, alpha_out, t_final, last):
+    """img [C,H,W,D], alpha_out [C,H,W] (input dtype); t_final [C,H,W] float64, last [C,H,W] int64 (-1: none)."""
+    tx_n = (width + ts - 1) // ts
+    ty_n = (height + ts - 1) // ts
+    T = tx_n * ty_n
+    P = ts * ts
+    D = colors.shape[1]
+    for t in prange(C * T):
+        cam = t // T
+        ti = t - cam * T
+        oy = (ti // tx_n) * ts
+        ox = (ti - (ti // tx_n) * tx_n) * ts
+        Tp = np.ones(P)
+        acc = np.zeros((P, D))
+        lastp = np.full(P, -1, np.int64)
+        done = np.zeros(P, np.bool_)
+        n_done = 0
+        for p in range(P):  # pixels of an edge tile outside the image: never composited
+            if ox + p % ts >= width or oy + p // ts >= height:
+                done[p] = True
+                n_done += 1
+        for k in range(starts[t], starts[t + 1]):
+            if n_done == P:
+                break
+            g = ids[k]
+            mx, my = float(means2d[g, 0]), float(means2d[g, 1])
+            A, B, Cc, o = float(conics[g, 0]), float(conics[g, 1]), float(conics[g, 2]), float(opac[g])
+            thr = math.log(o / ALPHA_THRESHOLD) + _SIGMA_SLACK if o > 0 else -1.0
+            for p in range(P):
+                if done[p]:
+                    continue
+                dx = mx - (ox + p % ts + 0.5)
+                dy = my - (oy + p // ts + 0.5)
+                sigma = 0.5 * (A * dx * dx + Cc * dy * dy) + B * dx * dy
+                if sigma < 0.0 or sigma > thr:
+                    continue
+                alpha = min(alpha_max, o * math.exp(-sigma))
+                if alpha < ALPHA_THRESHOLD:
+                    continue
+                next_T = Tp[p] * (1.0 - alpha)
+                if next_T <= T_MIN:
+                    done[p] = True
+                    n_done += 1
+                    continue
+                w = alpha * Tp[p]
+                for d in range(D):
+                    acc[p, d] += w * colors[g, d]
+                Tp[p] = next_T
+                lastp[p] = k
+        for p in range(P):
+            x = ox + p % ts
+            y = oy + p // ts
+            if x < width and y < height:
+                for d in range(D):
+                    img[cam, y, x, d] = acc[p, d]
+                alpha_out[cam, y, x] = 1.0 - Tp[p]
+                t_final[cam, y, x] = Tp[p]
+                last[cam, y, x] = lastp[p]
+
+
+@njit(cache=True, parallel=True)
+def _backward(means2d, conics, opac, colors, starts, ids, C, width, height, ts, alpha_max,
+              t_final, last, g_img, g_alpha, pair_grad):
+    """pair_grad [pairs, 6+D] float64 (means2d x,y, conic a,b,c, opacity, colour...), one row per tile-list slot."""
+    tx_n = (width + ts - 1) // ts
+    ty_n = (height + ts - 1) // ts
+    T = tx_n * ty_n
+    P = ts * ts
+    D = colors.shape[1]
+    for t in prange(C * T):
+        cam = t // T
+        ti = t - cam * T
+        oy = (ti // tx_n) * ts
+        ox = (ti - (ti // tx_n) * tx_n) * ts
+        Tp = np.ones(P)
+        tfin = np.ones(P)
+        lastp = np.full(P, -1, np.int64)
+        go = np.zeros((P, D))
+        ga = np.zeros(P)
+        buf = np.zeros((P, D))  # sum of colour * weight of the Gaussians behind, per pixel
+        kmax = -1
+        for p in range(P):
+            x = ox + p % ts
+            y = oy + p // ts
+            if x < width and y < height:
+                tfin[p] = t_final[cam, y, x]
+                Tp[p] = tfin[p]
+                lastp[p] = last[cam, y, x]
+                kmax = max(kmax, lastp[p])
+                for d in range(D):
+                    go[p, d] = g_img[cam, y, x, d]
+                ga[p] = g_alpha[cam, y, x]
+        for k in range(kmax, starts[t] - 1, -1):
+            g = ids[k]
+            mx, my = float(means2d[g, 0]), float(means2d[g, 1])
+            A, B, Cc, o = float(conics[g, 0]), float(conics[g, 1]), float(conics[g, 2]), float(opac[g])
+            thr = math.log(o / ALPHA_THRESHOLD) + _SIGMA_SLACK if o > 0 else -1.0
+            for p in range(P):
+                if lastp[p] < k:
+                    continue
+                dx = mx - (ox + p % ts + 0.5)
+                dy = my - (oy + p // ts + 0.5)
+                sigma = 0.5 * (A * dx * dx + Cc * dy * dy) + B * dx * dy
+                if sigma < 0.0 or sigma > thr:
+                    continue
+                vis = math.exp(-sigma)
+                alpha_raw = o * vis
+                alpha = min(alpha_max, alpha_raw)
+                if alpha < ALPHA_THRESHOLD:
+                    continue
+                ra = 1.0 / (1.0 - alpha)
+                Tp[p] *= ra  # transmittance in front of this Gaussian
+                fac = alpha * Tp[p]
+                v_alpha = tfin[p] * ra * ga[p]
+                for d in range(D):
+                    c = colors[g, d]
+                    pair_grad[k, 6 + d] += fac * go[p, d]
+                    v_alpha += (c * Tp[p] - buf[p, d] * ra) * go[p, d]
+                    buf[p, d] += c * fac
+                if alpha_raw < alpha_max:  # no gradient through the clamp
+                    v_sigma = -alpha * v_alpha
+                    pair_grad[k, 0] += v_sigma * (A * dx + B * dy)
+                    pair_grad[k, 1] += v_sigma * (B * dx + Cc * dy)
+                    pair_grad[k, 2] += 0.5 * v_sigma * dx * dx
+                    pair_grad[k, 3] += v_sigma * dx * dy
+                    pair_grad[k, 4] += 0.5 * v_sigma * dy * dy
+                    pair_grad[k, 5] += vis * v_alpha
+
+
+@njit(cache=True)
+def _reduce(ids, pair_grad, out):
+    """out[g] += pair_grad[k] for every slot k of Gaussian g = ids[k] (serial: ids repeat)."""
+    for k in range(ids.shape[0]):
+        g = ids[k]
+        for j in range(pair_grad.shape[1]):
+            out[g, j] += pair_grad[k, j]
+
+
+def _np(t: torch.Tensor) -> np.ndarray:
+    return t.detach().contiguous().numpy()
+
+
+def set_threads() -> int:
+    """Numba threads follow torch's intra-op setting (the project's `threads`; 1 is the safe shared default)."""
+    n = max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS))
+    numba.set_num_threads(n)
+    return n
+
+
+class NumbaPlan:
+    def __init__(self, starts: np.ndarray, ids: np.ndarray, C: int, width: int, height: int, tile_size: int):
+        self.starts, self.ids = starts, ids
+        self.C, self.width, self.height, self.tile_size = C, width, height, tile_size
+
+    @property
+    def pairs(self) -> int:
+        return int(self.ids.shape[0])
+
+
+def build_plan_numba(means2d, conics, opacities, depths, radii_xy, width, height, tile_size=8,
+                     tile_cull=True) -> NumbaPlan:
+    """Tile lists for [C,N,...] projections (the same pairs and order as tiles.build_plan)."""
+    C, N = depths.shape
+    order = torch.argsort(depths.detach(), dim=1, stable=True)  # [C,N], torch's tie order
+    set_threads()
+    starts, ids = _bin(_np(means2d.reshape(C * N, 2)), _np(radii_xy.reshape(C * N, 2).to(torch.int32)),
+                       _np(conics.reshape(C * N, 3)), _np(opacities.reshape(C * N)), _np(order),
+                       C, N, int(width), int(height), int(tile_size), bool(tile_cull))
+    return NumbaPlan(starts, ids, C, int(width), int(height), int(tile_size))
+
+
+class _CompositeNumba(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means2d, conics, opacities, colors, plan: NumbaPlan, alpha_max: float):
+        # means2d [G,2], conics [G,3], opacities [G], colors [G,D]
+        C, H, W, D = plan.C, plan.height, plan.width, colors.shape[1]
+        arrs = [_np(means2d), _np(conics), _np(opacities), _np(colors)]
+        img = np.empty((C, H, W, D), arrs[0].dtype)
+        alpha = np.empty((C, H, W), arrs[0].dtype)
+        t_final = np.empty((C, H, W), np.float64)
+        last = np.empty((C, H, W), np.int64)
+        set_threads()
+        _forward(*arrs, plan.starts, plan.ids, C, W, H, plan.tile_size, float(alpha_max), img, alpha, t_final, last)
+        ctx.save_for_backward(means2d, conics, opacities, colors)
+        ctx.plan, ctx.alpha_max, ctx.t_final, ctx.last = plan, float(alpha_max), t_final, last
+        return torch.from_numpy(img), torch.from_numpy(alpha)[..., None]
+
+    @staticmethod
+    def backward(ctx, g_img, g_alpha):
+        means2d, conics, opacities, colors = ctx.saved_tensors
+        plan = ctx.plan
+        C, H, W, D = plan.C, plan.height, plan.width, colors.shape[1]
+        G = means2d.shape[0]
+        g_img = torch.zeros(C, H, W, D, dtype=means2d.dtype) if g_img is None else g_img
+        g_alpha = torch.zeros(C, H, W, 1, dtype=means2d.dtype) if g_alpha is None else g_alpha
+        pair_grad = np.zeros((plan.pairs, 6 + D), np.float64)
+        set_threads()
+        _backward(_np(means2d), _np(conics), _np(opacities), _np(colors), plan.starts, plan.ids, C, W, H,
+                  plan.tile_size, ctx.alpha_max, ctx.t_final, ctx.last, _np(g_img), _np(g_alpha[..., 0]), pair_grad)
+        grad = np.zeros((G, 6 + D), np.float64)
+        _reduce(plan.ids, pair_grad, grad)
+        grad = torch.from_numpy(grad).to(means2d.dtype)
+        return grad[:, 0:2], grad[:, 2:5], grad[:, 5], grad[:, 6:], None, None
+
+
+def composite_numba(means2d, conics, opacities, colors, depths, radii_xy, width, height, *, tile_size=8,
+                    alpha_max=0.999, tile_cull=True):
+    """[C,N,...] projections -> premultiplied colours [C,H,W,D], alphas [C,H,W,1] and plan statistics."""
+    if means2d.device.type != "cpu":
+        raise ValueError("realityavatar/render/numba_backend.py: `means2d` expected CPU tensors, got "
+                         f"{means2d.device}")
+    dt = means2d.dtype if means2d.dtype in (torch.float32, torch.float64) else torch.float32
+    C, N, D = colors.shape
+    plan = build_plan_numba(means2d, conics, opacities, depths, radii_xy, width, height, tile_size, tile_cull)
+    img, alpha = _CompositeNumba.apply(
+        means2d.reshape(C * N, 2).to(dt), conics.reshape(C * N, 3).to(dt), opacities.reshape(C * N).to(dt),
+        colors.reshape(C * N, D).to(dt), plan, float(alpha_max),
+    )
+    stats = {"tile_size": plan.tile_size, "tile_pairs": plan.pairs, "padded_elements": plan.pairs * tile_size**2,
+             "n_chunks": 1}
+    return img, alpha, stats
+
+
+def warm_up() -> float:
+    """Compile (or load from numba's cache) every kernel for float32 and float64; returns the seconds it took."""
+    t0 = time.perf_counter()
+    for dt in (torch.float32, torch.float64):
+        m = torch.tensor([[[4.0, 4.0]]], dtype=dt, requires_grad=True)
+        con = torch.tensor([[[0.5, 0.0, 0.5]]], dtype=dt)
+        op = torch.tensor([[0.9]], dtype=dt)
+        col = torch.ones(1, 1, 3, dtype=dt)
+        radii = torch.tensor([[[3, 3]]], dtype=torch.int32)
+        img, a, _ = composite_numba(m, con, op, col, torch.ones(1, 1, dtype=dt), radii, 8, 8)
+        (img.sum() + a.sum()).backward()
+    return time.perf_counter() - t0
