@@ -34,6 +34,7 @@ T_MIN = 1e-4
 # sigma above log(255*o) + slack means alpha < 1/255 whatever the rounding, so exp() is skipped there;
 # pixels below it still take the exact alpha test.
 _SIGMA_SLACK = 1e-6
+_PIX_EPS = 1e-3  # pixels: row/column bounds of an ellipse are widened by this much against rounding
 
 
 @njit(cache=True, inline="always")
@@ -104,6 +105,39 @@ def _bin(means2d, radii, conics, opac, order, C, N, width, height, ts, tile_cull
     return counts, ids
 
 
+@njit(cache=True, inline="always")
+def _rows(my, A, B, Cc, thr, oy, ny):
+    """Tile rows [lo, hi) where sigma <= thr can hold, and q = B^2 - A*Cc (< 0 for a visible Gaussian).
+
+    min over dx of sigma = 0.5*dy^2*(A*Cc - B^2)/A, so rows with dy^2 > 2*A*thr/(A*Cc - B^2) are skipped.
+    """
+    q = B * B - A * Cc
+    if not (A > 0.0 and q < 0.0):
+        return 0, ny, q
+    ry = math.sqrt(2.0 * A * thr / -q) + _PIX_EPS
+    lo = max(my - oy - 0.5 - ry, 0.0)
+    hi = min(max(my - oy - 0.5 + ry + 1.0, 0.0), float(ny))
+    return int(math.ceil(lo)), int(hi), q
+
+
+@njit(cache=True, inline="always")
+def _cols(mx, dy, A, B, q, thr, ox, nx):
+    """Tile columns [lo, hi) of one row where sigma <= thr can hold (the parabola in dx has its minimum at -B*dy/A).
+
+    A small margin (_PIX_EPS pixels) absorbs rounding; every pixel inside still takes the exact test.
+    """
+    if not (A > 0.0 and q < 0.0):
+        return 0, nx
+    disc = 2.0 * A * thr + dy * dy * q
+    if disc < 0.0:
+        return 0, 0
+    hw = math.sqrt(disc) / A + _PIX_EPS
+    cx = mx + B * dy / A - ox - 0.5
+    lo = max(cx - hw, 0.0)
+    hi = min(max(cx + hw + 1.0, 0.0), float(nx))
+    return int(math.ceil(lo)), int(hi)
+
+
 @njit(cache=True, parallel=True)
 def _forward(means2d, conics, opac, colors, starts, ids, C, width, height, ts, alpha_max,
              img, alpha_out, t_final, last):
@@ -118,52 +152,58 @@ def _forward(means2d, conics, opac, colors, starts, ids, C, width, height, ts, a
         ti = t - cam * T
         oy = (ti // tx_n) * ts
         ox = (ti - (ti // tx_n) * tx_n) * ts
+        nx = min(ts, width - ox)  # edge tiles: only pixels inside the image
+        ny = min(ts, height - oy)
         Tp = np.ones(P)
         acc = np.zeros((P, D))
         lastp = np.full(P, -1, np.int64)
         done = np.zeros(P, np.bool_)
-        n_done = 0
-        for p in range(P):  # pixels of an edge tile outside the image: never composited
-            if ox + p % ts >= width or oy + p // ts >= height:
-                done[p] = True
-                n_done += 1
+        col = np.empty(D)
+        n_left = nx * ny
         for k in range(starts[t], starts[t + 1]):
-            if n_done == P:
+            if n_left == 0:
                 break
             g = ids[k]
             mx, my = float(means2d[g, 0]), float(means2d[g, 1])
             A, B, Cc, o = float(conics[g, 0]), float(conics[g, 1]), float(conics[g, 2]), float(opac[g])
-            thr = math.log(o / ALPHA_THRESHOLD) + _SIGMA_SLACK if o > 0 else -1.0
-            for p in range(P):
-                if done[p]:
-                    continue
-                dx = mx - (ox + p % ts + 0.5)
-                dy = my - (oy + p // ts + 0.5)
-                sigma = 0.5 * (A * dx * dx + Cc * dy * dy) + B * dx * dy
-                if sigma < 0.0 or sigma > thr:
-                    continue
-                alpha = min(alpha_max, o * math.exp(-sigma))
-                if alpha < ALPHA_THRESHOLD:
-                    continue
-                next_T = Tp[p] * (1.0 - alpha)
-                if next_T <= T_MIN:
-                    done[p] = True
-                    n_done += 1
-                    continue
-                w = alpha * Tp[p]
+            if not o > 0.0:
+                continue
+            thr = math.log(o / ALPHA_THRESHOLD) + _SIGMA_SLACK
+            for d in range(D):
+                col[d] = colors[g, d]
+            y_lo, y_hi, q = _rows(my, A, B, Cc, thr, oy, ny)
+            for y in range(y_lo, y_hi):
+                dy = my - (oy + y + 0.5)
+                x_lo, x_hi = _cols(mx, dy, A, B, q, thr, ox, nx)
+                for x in range(x_lo, x_hi):
+                    p = y * ts + x
+                    if done[p]:
+                        continue
+                    dx = mx - (ox + x + 0.5)
+                    sigma = 0.5 * (A * dx * dx + Cc * dy * dy) + B * dx * dy
+                    if sigma < 0.0 or sigma > thr:
+                        continue
+                    alpha = min(alpha_max, o * math.exp(-sigma))
+                    if alpha < ALPHA_THRESHOLD:
+                        continue
+                    next_T = Tp[p] * (1.0 - alpha)
+                    if next_T <= T_MIN:
+                        done[p] = True
+                        n_left -= 1
+                        continue
+                    w = alpha * Tp[p]
+                    for d in range(D):
+                        acc[p, d] += w * col[d]
+                    Tp[p] = next_T
+                    lastp[p] = k
+        for y in range(ny):
+            for x in range(nx):
+                p = y * ts + x
                 for d in range(D):
-                    acc[p, d] += w * colors[g, d]
-                Tp[p] = next_T
-                lastp[p] = k
-        for p in range(P):
-            x = ox + p % ts
-            y = oy + p // ts
-            if x < width and y < height:
-                for d in range(D):
-                    img[cam, y, x, d] = acc[p, d]
-                alpha_out[cam, y, x] = 1.0 - Tp[p]
-                t_final[cam, y, x] = Tp[p]
-                last[cam, y, x] = lastp[p]
+                    img[cam, oy + y, ox + x, d] = acc[p, d]
+                alpha_out[cam, oy + y, ox + x] = 1.0 - Tp[p]
+                t_final[cam, oy + y, ox + x] = Tp[p]
+                last[cam, oy + y, ox + x] = lastp[p]
 
 
 @njit(cache=True, parallel=True)
@@ -180,59 +220,79 @@ def _backward(means2d, conics, opac, colors, starts, ids, C, width, height, ts, 
         ti = t - cam * T
         oy = (ti // tx_n) * ts
         ox = (ti - (ti // tx_n) * tx_n) * ts
+        nx = min(ts, width - ox)
+        ny = min(ts, height - oy)
         Tp = np.ones(P)
         tfin = np.ones(P)
         lastp = np.full(P, -1, np.int64)
         go = np.zeros((P, D))
         ga = np.zeros(P)
         buf = np.zeros((P, D))  # sum of colour * weight of the Gaussians behind, per pixel
+        col = np.empty(D)
+        gcol = np.empty(D)
         kmax = -1
-        for p in range(P):
-            x = ox + p % ts
-            y = oy + p // ts
-            if x < width and y < height:
-                tfin[p] = t_final[cam, y, x]
+        for y in range(ny):
+            for x in range(nx):
+                p = y * ts + x
+                tfin[p] = t_final[cam, oy + y, ox + x]
                 Tp[p] = tfin[p]
-                lastp[p] = last[cam, y, x]
+                lastp[p] = last[cam, oy + y, ox + x]
                 kmax = max(kmax, lastp[p])
                 for d in range(D):
-                    go[p, d] = g_img[cam, y, x, d]
-                ga[p] = g_alpha[cam, y, x]
+                    go[p, d] = g_img[cam, oy + y, ox + x, d]
+                ga[p] = g_alpha[cam, oy + y, ox + x]
         for k in range(kmax, starts[t] - 1, -1):
             g = ids[k]
             mx, my = float(means2d[g, 0]), float(means2d[g, 1])
             A, B, Cc, o = float(conics[g, 0]), float(conics[g, 1]), float(conics[g, 2]), float(opac[g])
-            thr = math.log(o / ALPHA_THRESHOLD) + _SIGMA_SLACK if o > 0 else -1.0
-            for p in range(P):
-                if lastp[p] < k:
-                    continue
-                dx = mx - (ox + p % ts + 0.5)
-                dy = my - (oy + p // ts + 0.5)
-                sigma = 0.5 * (A * dx * dx + Cc * dy * dy) + B * dx * dy
-                if sigma < 0.0 or sigma > thr:
-                    continue
-                vis = math.exp(-sigma)
-                alpha_raw = o * vis
-                alpha = min(alpha_max, alpha_raw)
-                if alpha < ALPHA_THRESHOLD:
-                    continue
-                ra = 1.0 / (1.0 - alpha)
-                Tp[p] *= ra  # transmittance in front of this Gaussian
-                fac = alpha * Tp[p]
-                v_alpha = tfin[p] * ra * ga[p]
-                for d in range(D):
-                    c = colors[g, d]
-                    pair_grad[k, 6 + d] += fac * go[p, d]
-                    v_alpha += (c * Tp[p] - buf[p, d] * ra) * go[p, d]
-                    buf[p, d] += c * fac
-                if alpha_raw < alpha_max:  # no gradient through the clamp
-                    v_sigma = -alpha * v_alpha
-                    pair_grad[k, 0] += v_sigma * (A * dx + B * dy)
-                    pair_grad[k, 1] += v_sigma * (B * dx + Cc * dy)
-                    pair_grad[k, 2] += 0.5 * v_sigma * dx * dx
-                    pair_grad[k, 3] += v_sigma * dx * dy
-                    pair_grad[k, 4] += 0.5 * v_sigma * dy * dy
-                    pair_grad[k, 5] += vis * v_alpha
+            if not o > 0.0:
+                continue
+            thr = math.log(o / ALPHA_THRESHOLD) + _SIGMA_SLACK
+            for d in range(D):
+                col[d] = colors[g, d]
+                gcol[d] = 0.0
+            g_mx = g_my = g_a = g_b = g_c = g_o = 0.0
+            y_lo, y_hi, q = _rows(my, A, B, Cc, thr, oy, ny)
+            for y in range(y_lo, y_hi):
+                dy = my - (oy + y + 0.5)
+                x_lo, x_hi = _cols(mx, dy, A, B, q, thr, ox, nx)
+                for x in range(x_lo, x_hi):
+                    p = y * ts + x
+                    if lastp[p] < k:
+                        continue
+                    dx = mx - (ox + x + 0.5)
+                    sigma = 0.5 * (A * dx * dx + Cc * dy * dy) + B * dx * dy
+                    if sigma < 0.0 or sigma > thr:
+                        continue
+                    vis = math.exp(-sigma)
+                    alpha_raw = o * vis
+                    alpha = min(alpha_max, alpha_raw)
+                    if alpha < ALPHA_THRESHOLD:
+                        continue
+                    ra = 1.0 / (1.0 - alpha)
+                    Tp[p] *= ra  # transmittance in front of this Gaussian
+                    fac = alpha * Tp[p]
+                    v_alpha = tfin[p] * ra * ga[p]
+                    for d in range(D):
+                        gcol[d] += fac * go[p, d]
+                        v_alpha += (col[d] * Tp[p] - buf[p, d] * ra) * go[p, d]
+                        buf[p, d] += col[d] * fac
+                    if alpha_raw < alpha_max:  # no gradient through the clamp
+                        v_sigma = -alpha * v_alpha
+                        g_mx += v_sigma * (A * dx + B * dy)
+                        g_my += v_sigma * (B * dx + Cc * dy)
+                        g_a += 0.5 * v_sigma * dx * dx
+                        g_b += v_sigma * dx * dy
+                        g_c += 0.5 * v_sigma * dy * dy
+                        g_o += vis * v_alpha
+            pair_grad[k, 0] = g_mx
+            pair_grad[k, 1] = g_my
+            pair_grad[k, 2] = g_a
+            pair_grad[k, 3] = g_b
+            pair_grad[k, 4] = g_c
+            pair_grad[k, 5] = g_o
+            for d in range(D):
+                pair_grad[k, 6 + d] = gcol[d]
 
 
 @njit(cache=True)
@@ -301,7 +361,7 @@ class _CompositeNumba(torch.autograd.Function):
         G = means2d.shape[0]
         g_img = torch.zeros(C, H, W, D, dtype=means2d.dtype) if g_img is None else g_img
         g_alpha = torch.zeros(C, H, W, 1, dtype=means2d.dtype) if g_alpha is None else g_alpha
-        pair_grad = np.zeros((plan.pairs, 6 + D), np.float64)
+        pair_grad = np.zeros((plan.pairs, 6 + D), np.float64)  # slots past a tile's last pixel stay 0
         set_threads()
         _backward(_np(means2d), _np(conics), _np(opacities), _np(colors), plan.starts, plan.ids, C, W, H,
                   plan.tile_size, ctx.alpha_max, ctx.t_final, ctx.last, _np(g_img), _np(g_alpha[..., 0]), pair_grad)
