@@ -401,3 +401,305 @@ def warm_up() -> float:
         img, a, _ = composite_numba(m, con, op, col, torch.ones(1, 1, dtype=dt), radii, 8, 8)
         (img.sum() + a.sum()).backward()
     return time.perf_counter() - t0
+
+
+# ---- projection (project.py's EWA rules) with a hand-written backward -------------------------------------------
+
+
+@njit(cache=True)
+def _mm(A, B, out, ta=False, tb=False):
+    """out = A @ B for small matrices (optionally transposed), as loops: numba's matmul calls BLAS, slow at 3x3."""
+    n = A.shape[1] if ta else A.shape[0]
+    k = A.shape[0] if ta else A.shape[1]
+    m = B.shape[0] if tb else B.shape[1]
+    for i in range(n):
+        for j in range(m):
+            acc = 0.0
+            for t in range(k):
+                acc += (A[t, i] if ta else A[i, t]) * (B[j, t] if tb else B[t, j])
+            out[i, j] = acc
+    return out
+
+
+@njit(cache=True, inline="always")
+def _rotmat(w, x, y, z):
+    return (1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y))
+
+
+@njit(cache=True)
+def _scratch():
+    """Small work arrays, allocated once per block of Gaussians (per-Gaussian allocations cost more than the math)."""
+    return (np.empty(4), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)),
+            np.empty(3), np.empty((2, 3)), np.empty((2, 3)), np.empty((2, 2)))
+
+
+@njit(cache=True)
+def _cam_cov(means, quats, scales, W, t, n, q, Rq, M, S, Sc, tmp, p):
+    """Fills unit quaternion q, Rq, M = Rq diag(s), world covariance S, camera covariance Sc, camera-space mean p.
+
+    Returns the quaternion's norm (F.normalize's eps)."""
+    nrm = 0.0
+    for i in range(4):
+        q[i] = quats[n, i]
+        nrm += q[i] * q[i]
+    nrm = max(math.sqrt(nrm), 1e-12)
+    for i in range(4):
+        q[i] /= nrm
+    r = _rotmat(q[0], q[1], q[2], q[3])
+    for i in range(3):
+        for j in range(3):
+            Rq[i, j] = r[3 * i + j]
+            M[i, j] = r[3 * i + j] * scales[n, j]
+    _mm(M, M, S, tb=True)
+    _mm(W, S, tmp)
+    _mm(tmp, W, Sc, tb=True)
+    for i in range(3):
+        p[i] = W[i, 0] * means[n, 0] + W[i, 1] * means[n, 1] + W[i, 2] * means[n, 2] + t[i]
+    return nrm
+
+
+@njit(cache=True, inline="always")
+def _jacobian(p, K, width, height, near, far, J):
+    x, y, z = p[0], p[1], p[2]
+    in_range = z >= near and z <= far
+    zz = z if in_range else 1.0
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    tan_fovx, tan_fovy = 0.5 * width / fx, 0.5 * height / fy
+    lim_xp, lim_xn = (width - cx) / fx + 0.3 * tan_fovx, cx / fx + 0.3 * tan_fovx
+    lim_yp, lim_yn = (height - cy) / fy + 0.3 * tan_fovy, cy / fy + 0.3 * tan_fovy
+    rz = 1.0 / zz
+    u, v = x * rz, y * rz
+    uc, vc = min(lim_xp, max(-lim_xn, u)), min(lim_yp, max(-lim_yn, v))
+    tx, ty = zz * uc, zz * vc
+    J[0, 0] = fx * rz
+    J[0, 1] = 0.0
+    J[0, 2] = -fx * tx * rz * rz
+    J[1, 0] = 0.0
+    J[1, 1] = fy * rz
+    J[1, 2] = -fy * ty * rz * rz
+    u_free = u > -lim_xn and u < lim_xp  # gradient passes the clamp
+    v_free = v > -lim_yn and v < lim_yp
+    return in_range, zz, rz, uc, vc, tx, ty, u_free, v_free
+
+
+@njit(cache=True, inline="always")
+def _cov2d(J, Sc, tmp23):
+    _mm(J, Sc, tmp23)
+    c00 = c01 = c10 = c11 = 0.0
+    for t in range(3):
+        c00 += tmp23[0, t] * J[0, t]
+        c01 += tmp23[0, t] * J[1, t]
+        c10 += tmp23[1, t] * J[0, t]
+        c11 += tmp23[1, t] * J[1, t]
+    return c00, 0.5 * (c01 + c10), c11
+
+
+_BLOCK = 256
+
+
+@njit(cache=True, parallel=True)
+def _project_fwd(means, quats, scales, opac, viewmats, Ks, width, height, near, far, eps2d, radius_clip,
+                 antialiased, means2d, conics, depths, opac_out, comp, radii, visible):
+    C, N = viewmats.shape[0], means.shape[0]
+    for blk in prange((N + _BLOCK - 1) // _BLOCK):
+        q, Rq, M, S, Sc, tmp, p, J, tmp23, _ = _scratch()
+        for n in range(blk * _BLOCK, min(N, (blk + 1) * _BLOCK)):
+            for c in range(C):
+                _cam_cov(means, quats, scales, viewmats[c, :3, :3], viewmats[c, :3, 3], n, q, Rq, M, S, Sc, tmp, p)
+                in_range, zz, rz, uc, vc, tx, ty, u_free, v_free = _jacobian(p, Ks[c], width, height, near, far, J)
+                a, b, cc = _cov2d(J, Sc, tmp23)
+                mx = Ks[c, 0, 0] * p[0] * rz + Ks[c, 0, 2]
+                my = Ks[c, 1, 1] * p[1] * rz + Ks[c, 1, 2]
+                det_orig = a * cc - b * b
+                a2, c2 = a + eps2d, cc + eps2d
+                det = a2 * c2 - b * b
+                vis = in_range and det > 0
+                if not vis:
+                    det = 1.0
+                o = float(opac[n])
+                if antialiased:
+                    cm = math.sqrt(max(det_orig / det, 0.0))
+                    comp[c, n] = cm
+                    o = o * cm
+                opac_out[c, n] = o
+                vis = vis and o >= ALPHA_THRESHOLD
+                ext = min(math.sqrt(2.0 * math.log(max(o, ALPHA_THRESHOLD) / ALPHA_THRESHOLD)), 3.33)
+                rx = math.ceil(ext * math.sqrt(max(a2, 0.0)))
+                ry = math.ceil(ext * math.sqrt(max(c2, 0.0)))
+                vis = vis and not (rx <= radius_clip and ry <= radius_clip)
+                vis = vis and not (mx + rx <= 0 or mx - rx >= width or my + ry <= 0 or my - ry >= height)
+                vis = vis and math.isfinite(rx) and math.isfinite(ry)
+                visible[c, n] = vis
+                if vis:
+                    means2d[c, n, 0], means2d[c, n, 1] = mx, my
+                    conics[c, n, 0], conics[c, n, 1], conics[c, n, 2] = c2 / det, -b / det, a2 / det
+                    depths[c, n] = p[2]
+                    radii[c, n, 0], radii[c, n, 1] = int(rx), int(ry)
+                else:
+                    means2d[c, n, 0] = means2d[c, n, 1] = 0.0
+                    conics[c, n, 0] = conics[c, n, 1] = conics[c, n, 2] = 0.0
+                    depths[c, n] = 0.0
+                    radii[c, n, 0] = radii[c, n, 1] = 0
+
+
+@njit(cache=True, parallel=True)
+def _project_bwd(means, quats, scales, opac, viewmats, Ks, width, height, near, far, eps2d, antialiased, visible,
+                 g_m2, g_con, g_dep, g_op, g_comp, d_means, d_quats, d_scales, d_opac):
+    """Gradients of project.py's outputs (means2d, conics, depths, opacities, compensations) w.r.t. its inputs."""
+    C, N = viewmats.shape[0], means.shape[0]
+    for blk in prange((N + _BLOCK - 1) // _BLOCK):
+        q, Rq, M, S, Sc, tmp, p, J, tmp23, dcov = _scratch()
+        dJ, dSc, dS = np.empty((2, 3)), np.empty((3, 3)), np.empty((3, 3))
+        dM_sum, tmp2 = np.empty((3, 3)), np.empty((3, 3))
+        dp, dq_n = np.empty(3), np.empty(4)
+        for n in range(blk * _BLOCK, min(N, (blk + 1) * _BLOCK)):
+            dM_sum[:] = 0.0
+            nrm = 1.0
+            for c in range(C):
+                W = viewmats[c, :3, :3]
+                nrm = _cam_cov(means, quats, scales, W, viewmats[c, :3, 3], n, q, Rq, M, S, Sc, tmp, p)
+                in_range, zz, rz, uc, vc, tx, ty, u_free, v_free = _jacobian(p, Ks[c], width, height, near, far, J)
+                fx, fy = Ks[c, 0, 0], Ks[c, 1, 1]
+                a, b, cc = _cov2d(J, Sc, tmp23)
+                det_orig = a * cc - b * b
+                a2, c2 = a + eps2d, cc + eps2d
+                det = a2 * c2 - b * b
+                det_kept = in_range and det > 0
+                if not det_kept:
+                    det = 1.0
+                da = db = dc = 0.0  # w.r.t. cov2d's a, b, c (a2 = a + eps2d has the same gradient)
+                ddet = 0.0
+                dp[:] = 0.0
+                drz = 0.0
+                if visible[c, n]:
+                    g0, g1, g2 = g_con[c, n, 0], g_con[c, n, 1], g_con[c, n, 2]
+                    dc += g0 / det
+                    db -= g1 / det
+                    da += g2 / det
+                    ddet += (-g0 * c2 + g1 * b - g2 * a2) / (det * det)
+                    dp[0] += g_m2[c, n, 0] * fx * rz
+                    dp[1] += g_m2[c, n, 1] * fy * rz
+                    drz += g_m2[c, n, 0] * fx * p[0] + g_m2[c, n, 1] * fy * p[1]
+                    dp[2] += g_dep[c, n]
+                if antialiased:
+                    r = det_orig / det
+                    cm = math.sqrt(max(r, 0.0))
+                    gc = g_comp[c, n] + g_op[c, n] * opac[n]
+                    d_opac[n] += g_op[c, n] * cm
+                    if r >= 0.0 and cm > 0.0:
+                        dr = gc * 0.5 / cm
+                        ddo = dr / det
+                        if det_kept:
+                            ddet -= dr * det_orig / (det * det)
+                        da += ddo * cc
+                        dc += ddo * a
+                        db -= 2.0 * b * ddo
+                else:
+                    d_opac[n] += g_op[c, n]
+                if det_kept:
+                    da += ddet * c2
+                    dc += ddet * a2
+                    db -= 2.0 * b * ddet
+                dcov[0, 0], dcov[0, 1], dcov[1, 0], dcov[1, 1] = da, 0.5 * db, 0.5 * db, dc
+                _mm(dcov, J, tmp23)
+                _mm(tmp23, Sc, dJ)
+                for i in range(3):
+                    for j in range(3):
+                        dSc[i, j] = (J[0, i] * dcov[0, 0] + J[1, i] * dcov[1, 0]) * J[0, j] + \
+                                    (J[0, i] * dcov[0, 1] + J[1, i] * dcov[1, 1]) * J[1, j]
+                drz += 2.0 * (dJ[0, 0] * fx + dJ[1, 1] * fy - 2.0 * rz * (dJ[0, 2] * fx * tx + dJ[1, 2] * fy * ty))
+                dtx = -2.0 * dJ[0, 2] * fx * rz * rz
+                dty = -2.0 * dJ[1, 2] * fy * rz * rz
+                dzz = dtx * uc + dty * vc
+                if u_free:
+                    du = dtx * zz
+                    dp[0] += du * rz
+                    drz += du * p[0]
+                if v_free:
+                    dv = dty * zz
+                    dp[1] += dv * rz
+                    drz += dv * p[1]
+                dzz -= drz * rz * rz
+                if in_range:
+                    dp[2] += dzz
+                for j in range(3):
+                    d_means[n, j] += W[0, j] * dp[0] + W[1, j] * dp[1] + W[2, j] * dp[2]
+                _mm(W, dSc, tmp2, ta=True)
+                _mm(tmp2, W, dS)
+                _mm(dS, M, tmp2)
+                for i in range(3):
+                    for j in range(3):
+                        dM_sum[i, j] += 2.0 * tmp2[i, j]
+            # M = Rq diag(s): scales and rotation entries (q, Rq are the same for every camera)
+            for j in range(3):
+                d_scales[n, j] = dM_sum[0, j] * Rq[0, j] + dM_sum[1, j] * Rq[1, j] + dM_sum[2, j] * Rq[2, j]
+            for i in range(3):
+                for j in range(3):
+                    tmp2[i, j] = dM_sum[i, j] * scales[n, j]
+            dR = tmp2
+            w, x, y, z = q[0], q[1], q[2], q[3]
+            dq_n[0] = 2 * (-z * dR[0, 1] + y * dR[0, 2] + z * dR[1, 0] - x * dR[1, 2] - y * dR[2, 0] + x * dR[2, 1])
+            dq_n[1] = 2 * (y * dR[0, 1] + z * dR[0, 2] + y * dR[1, 0] - 2 * x * dR[1, 1] - w * dR[1, 2]
+                           + z * dR[2, 0] + w * dR[2, 1] - 2 * x * dR[2, 2])
+            dq_n[2] = 2 * (-2 * y * dR[0, 0] + x * dR[0, 1] + w * dR[0, 2] + x * dR[1, 0] + z * dR[1, 2]
+                           - w * dR[2, 0] + z * dR[2, 1] - 2 * y * dR[2, 2])
+            dq_n[3] = 2 * (-2 * z * dR[0, 0] - w * dR[0, 1] + x * dR[0, 2] + w * dR[1, 0] - 2 * z * dR[1, 1]
+                           + y * dR[1, 2] + x * dR[2, 0] + y * dR[2, 1])
+            dot = q[0] * dq_n[0] + q[1] * dq_n[1] + q[2] * dq_n[2] + q[3] * dq_n[3]
+            raw = 0.0
+            for i in range(4):
+                raw += quats[n, i] * quats[n, i]
+            for i in range(4):  # through F.normalize (its eps branch divides by a constant)
+                d_quats[n, i] = (dq_n[i] - q[i] * dot) / nrm if math.sqrt(raw) > 1e-12 else dq_n[i] / nrm
+
+
+class _ProjectNumba(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means, quats, scales, opacities, viewmats, Ks, width, height, near, far, eps2d, radius_clip,
+                antialiased):
+        C, N = viewmats.shape[0], means.shape[0]
+        dt = means.dtype
+        a = [_np(t.to(torch.float64)) for t in (means, quats, scales, opacities, viewmats, Ks)]
+        m2, con = np.empty((C, N, 2), np.float64), np.empty((C, N, 3), np.float64)
+        dep, op, comp = np.empty((C, N)), np.empty((C, N)), np.ones((C, N))
+        radii, vis = np.empty((C, N, 2), np.int32), np.empty((C, N), np.bool_)
+        set_threads()
+        _project_fwd(*a, int(width), int(height), float(near), float(far), float(eps2d), float(radius_clip),
+                     bool(antialiased), m2, con, dep, op, comp, radii, vis)
+        ctx.args = (int(width), int(height), float(near), float(far), float(eps2d), bool(antialiased))
+        ctx.save_for_backward(means, quats, scales, opacities, viewmats, Ks)
+        vis_t = torch.from_numpy(vis)
+        ctx.vis = vis
+        ctx.mark_non_differentiable(vis_t)
+        out = [torch.from_numpy(x).to(dt) for x in (m2, con, dep, op, comp)]
+        return (*out, torch.from_numpy(radii), vis_t)
+
+    @staticmethod
+    def backward(ctx, g_m2, g_con, g_dep, g_op, g_comp, _g_radii, _g_vis):
+        means, quats, scales, opacities, viewmats, Ks = ctx.saved_tensors
+        C, N = viewmats.shape[0], means.shape[0]
+        a = [_np(t.to(torch.float64)) for t in (means, quats, scales, opacities, viewmats, Ks)]
+        gs = []
+        for g, shape in ((g_m2, (C, N, 2)), (g_con, (C, N, 3)), (g_dep, (C, N)), (g_op, (C, N)), (g_comp, (C, N))):
+            gs.append(np.zeros(shape) if g is None else _np(g.to(torch.float64)))
+        d = [np.zeros(x.shape) for x in a[:4]]
+        set_threads()
+        _project_bwd(*a, *ctx.args, ctx.vis, *gs, *d)
+        dt = means.dtype
+        return (*[torch.from_numpy(x).to(dt) for x in d], None, None, None, None, None, None, None, None, None)
+
+
+def project_gaussians_numba(means, quats, scales, opacities, viewmats, Ks, width, height, near, far, eps2d=0.3,
+                            radius_clip=0.0, antialiased=False):
+    """project.project_gaussians in compiled kernels (float64 inside); the torch version where cameras need grads."""
+    from .project import Projection, project_gaussians
+
+    if viewmats.requires_grad or Ks.requires_grad:
+        return project_gaussians(means, quats, scales, opacities, viewmats, Ks, width, height, near, far,
+                                 eps2d=eps2d, radius_clip=radius_clip, antialiased=antialiased)
+    m2, con, dep, op, comp, radii, vis = _ProjectNumba.apply(
+        means, quats, scales, opacities, viewmats, Ks, width, height, near, far, eps2d, radius_clip, antialiased)
+    return Projection(means2d=m2, conics=con, depths=dep, opacities=op, radii_xy=radii, visible=vis,
+                      compensations=comp if antialiased else None)

@@ -199,8 +199,12 @@ def _rasterize_torch(means, quats, scales, opacities, colors, viewmats, Ks, widt
                      backgrounds, near, far, render_mode, rasterize_mode, tile_size, eps2d, radius_clip,
                      alpha_max, chunk_elements, tile_cull):
     C = viewmats.shape[0]
-    proj = project_gaussians(means, quats, scales, opacities, viewmats, Ks, width, height, near, far,
-                             eps2d=eps2d, radius_clip=radius_clip, antialiased=rasterize_mode == "antialiased")
+    if composite == "numba":
+        from .numba_backend import project_gaussians_numba as project
+    else:
+        project = project_gaussians
+    proj = project(means, quats, scales, opacities, viewmats, Ks, width, height, near, far,
+                   eps2d=eps2d, radius_clip=radius_clip, antialiased=rasterize_mode == "antialiased")
     means2d = proj.means2d
     if means2d.requires_grad:
         means2d.retain_grad()  # densification reads meta["means2d"].grad (gsplat's absgrad=False)
