@@ -38,8 +38,8 @@ _PIX_EPS = 1e-3  # pixels: row/column bounds of an ellipse are widened by this m
 
 
 @njit(cache=True, inline="always")
-def _keep_pair(mx, my, A, B, Cc, o, x0, y0, x1, y1):
-    """tiles._tile_cull for one pair: the exact minimum of sigma over the box of pixel centres vs log(255*o)."""
+def _keep_pair(mx, my, A, B, Cc, lim, x0, y0, x1, y1):
+    """tiles._tile_cull for one pair: the exact minimum of sigma over the box of pixel centres vs lim = log(255*o)+1e-3."""
     if mx >= x0 and mx <= x1 and my >= y0 and my <= y1:
         best = 0.0
     else:
@@ -54,7 +54,7 @@ def _keep_pair(mx, my, A, B, Cc, o, x0, y0, x1, y1):
             dy = my - ye
             dx = min(max(-B * dy / A, mx - x1), mx - x0)
             best = min(best, 0.5 * (A * dx * dx + Cc * dy * dy) + B * dx * dy)
-    return best <= math.log(max(o, 1e-30) / ALPHA_THRESHOLD) + 1e-3
+    return best <= lim
 
 
 @njit(cache=True)
@@ -87,14 +87,15 @@ def _bin(means2d, radii, conics, opac, order, C, N, width, height, ts, tile_cull
                 tx1 = int(min(max(math.ceil((mx + rx) / ts), 0), tx_n))
                 ty0 = int(min(max(math.floor((my - ry) / ts), 0), ty_n))
                 ty1 = int(min(max(math.ceil((my + ry) / ts), 0), ty_n))
-                A, B, Cc, o = float(conics[g, 0]), float(conics[g, 1]), float(conics[g, 2]), float(opac[g])
+                A, B, Cc = float(conics[g, 0]), float(conics[g, 1]), float(conics[g, 2])
+                lim = math.log(max(float(opac[g]), 1e-30) / ALPHA_THRESHOLD) + 1e-3
                 for ty in range(ty0, ty1):
                     y0 = ty * ts + 0.5
                     y1 = min(y0 + ts - 1, height - 0.5)
                     for tx in range(tx0, tx1):
                         x0 = tx * ts + 0.5
                         x1 = min(x0 + ts - 1, width - 0.5)
-                        if tile_cull and not _keep_pair(mx, my, A, B, Cc, o, x0, y0, x1, y1):
+                        if tile_cull and not _keep_pair(mx, my, A, B, Cc, lim, x0, y0, x1, y1):
                             continue
                         t = cam * T + ty * tx_n + tx
                         if sweep == 0:
