@@ -50,7 +50,8 @@ def test_matches_dense_reference(mode, alpha_max, tile_size, chunk):
     means, quats, scales, op, colors, vms, Ks, w, h = random_scene(150, seed=3, cams=2)
     bg = torch.tensor([[0.1, 0.2, 0.3], [0.9, 0.5, 0.0]], dtype=F64)
     img, alpha, meta = rasterize(means, quats, scales, op, colors, vms, Ks, w, h, rasterize_mode=mode,
-                                 backgrounds=bg, alpha_max=alpha_max, tile_size=tile_size, chunk_elements=chunk)
+                                 backgrounds=bg, alpha_max=alpha_max, tile_size=tile_size, chunk_elements=chunk,
+                                 backend="torch")  # the numba backend: tests/test_render_compiled.py
     ref, ref_alpha, _ = rasterize_reference(means, quats, scales, op, colors, vms, Ks, w, h,
                                             rasterize_mode=mode, backgrounds=bg, alpha_max=alpha_max)
     assert img.shape == (2, h, w, 3) and alpha.shape == (2, h, w, 1)
@@ -287,7 +288,15 @@ def test_configs_are_rasterize_kwargs():
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # gsplat on a CPU tensor falls back with a warning
             img, _, meta = rasterize(means, quats, scales, op, colors, vms, Ks, w, h, **cfg)
-        assert meta["backend"] == "torch" and img.dtype == torch.float32
+        # auto on CPU: the compiled numba kernels where numba imports, else the torch backend
+        expect = {"torch": "torch", "gsplat": "torch", "auto": "numba" if _has_numba() else "torch"}[name]
+        assert meta["backend"] == expect and img.dtype == torch.float32
+
+
+def _has_numba():
+    from realityavatar.render.numba_backend import NUMBA_ERROR
+
+    return NUMBA_ERROR is None
 
 
 def test_gsplat_fallback_warns_once(monkeypatch):

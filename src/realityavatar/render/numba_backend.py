@@ -106,41 +106,60 @@ def _bin(means2d, radii, conics, opac, order, C, N, width, height, ts, tile_cull
     return counts, ids
 
 
-@njit(cache=True, inline="always")
-def _rows(my, A, B, Cc, thr, oy, ny):
-    """Tile rows [lo, hi) where sigma <= thr can hold, and q = B^2 - A*Cc (< 0 for a visible Gaussian).
+@njit(cache=True, parallel=True)
+def _prep(conics, opac, out):
+    """Per-Gaussian constants of the pixel loops, out [G,4]: thr, 1/A, q = B^2 - A*Cc and the row half-extent.
 
-    min over dx of sigma = 0.5*dy^2*(A*Cc - B^2)/A, so rows with dy^2 > 2*A*thr/(A*Cc - B^2) are skipped.
+    sigma <= thr = log(255*o) + slack is necessary for alpha >= 1/255. min over dx of sigma is
+    0.5*dy^2*(A*Cc - B^2)/A, so only rows with |dy| <= sqrt(2*A*thr/-q) can hold such pixels. ry < 0: no pixel can;
+    ry = inf: not a positive-definite conic, every pixel takes the exact test.
     """
-    q = B * B - A * Cc
-    if not (A > 0.0 and q < 0.0):
-        return 0, ny, q
-    ry = math.sqrt(2.0 * A * thr / -q) + _PIX_EPS
+    for g in prange(opac.shape[0]):
+        A, B, Cc, o = float(conics[g, 0]), float(conics[g, 1]), float(conics[g, 2]), float(opac[g])
+        q = B * B - A * Cc
+        if not o > 0.0:
+            out[g, 0], out[g, 1], out[g, 2], out[g, 3] = -1.0, 0.0, q, -1.0
+            continue
+        thr = math.log(o / ALPHA_THRESHOLD) + _SIGMA_SLACK
+        out[g, 0] = thr
+        if A > 0.0 and q < 0.0:
+            out[g, 1] = 1.0 / A
+            out[g, 2] = q
+            out[g, 3] = math.sqrt(2.0 * A * thr / -q) + _PIX_EPS if thr >= 0.0 else -1.0
+        else:
+            out[g, 1], out[g, 2], out[g, 3] = 0.0, q, np.inf
+
+
+@njit(cache=True, inline="always")
+def _rows(my, ry, oy, ny):
+    """Tile rows [lo, hi) within ry of the Gaussian's centre."""
+    if ry == np.inf:
+        return 0, ny
     lo = max(my - oy - 0.5 - ry, 0.0)
     hi = min(max(my - oy - 0.5 + ry + 1.0, 0.0), float(ny))
-    return int(math.ceil(lo)), int(hi), q
+    return int(math.ceil(lo)), int(hi)
 
 
 @njit(cache=True, inline="always")
-def _cols(mx, dy, A, B, q, thr, ox, nx):
+def _cols(mx, dy, A, B, inv_a, q, thr, ox, nx, ry):
     """Tile columns [lo, hi) of one row where sigma <= thr can hold (the parabola in dx has its minimum at -B*dy/A).
 
     A small margin (_PIX_EPS pixels) absorbs rounding; every pixel inside still takes the exact test.
     """
-    if not (A > 0.0 and q < 0.0):
+    if ry == np.inf:
         return 0, nx
     disc = 2.0 * A * thr + dy * dy * q
     if disc < 0.0:
         return 0, 0
-    hw = math.sqrt(disc) / A + _PIX_EPS
-    cx = mx + B * dy / A - ox - 0.5
+    hw = math.sqrt(disc) * inv_a + _PIX_EPS
+    cx = mx + B * dy * inv_a - ox - 0.5
     lo = max(cx - hw, 0.0)
     hi = min(max(cx + hw + 1.0, 0.0), float(nx))
     return int(math.ceil(lo)), int(hi)
 
 
 @njit(cache=True, parallel=True)
-def _forward(means2d, conics, opac, colors, starts, ids, C, width, height, ts, alpha_max,
+def _forward(means2d, conics, opac, colors, prep, starts, ids, C, width, height, ts, alpha_max,
              img, alpha_out, t_final, last):
     """img [C,H,W,D], alpha_out [C,H,W] (input dtype); t_final [C,H,W] float64, last [C,H,W] int64 (-1: none)."""
     tx_n = (width + ts - 1) // ts
@@ -167,15 +186,15 @@ def _forward(means2d, conics, opac, colors, starts, ids, C, width, height, ts, a
             g = ids[k]
             mx, my = float(means2d[g, 0]), float(means2d[g, 1])
             A, B, Cc, o = float(conics[g, 0]), float(conics[g, 1]), float(conics[g, 2]), float(opac[g])
-            if not o > 0.0:
+            thr, inv_a, q, ry = prep[g, 0], prep[g, 1], prep[g, 2], prep[g, 3]
+            if ry < 0.0:
                 continue
-            thr = math.log(o / ALPHA_THRESHOLD) + _SIGMA_SLACK
             for d in range(D):
                 col[d] = colors[g, d]
-            y_lo, y_hi, q = _rows(my, A, B, Cc, thr, oy, ny)
+            y_lo, y_hi = _rows(my, ry, oy, ny)
             for y in range(y_lo, y_hi):
                 dy = my - (oy + y + 0.5)
-                x_lo, x_hi = _cols(mx, dy, A, B, q, thr, ox, nx)
+                x_lo, x_hi = _cols(mx, dy, A, B, inv_a, q, thr, ox, nx, ry)
                 for x in range(x_lo, x_hi):
                     p = y * ts + x
                     if done[p]:
@@ -208,7 +227,7 @@ def _forward(means2d, conics, opac, colors, starts, ids, C, width, height, ts, a
 
 
 @njit(cache=True, parallel=True)
-def _backward(means2d, conics, opac, colors, starts, ids, C, width, height, ts, alpha_max,
+def _backward(means2d, conics, opac, colors, prep, starts, ids, C, width, height, ts, alpha_max,
               t_final, last, g_img, g_alpha, pair_grad):
     """pair_grad [pairs, 6+D] float64 (means2d x,y, conic a,b,c, opacity, colour...), one row per tile-list slot."""
     tx_n = (width + ts - 1) // ts
@@ -246,17 +265,17 @@ def _backward(means2d, conics, opac, colors, starts, ids, C, width, height, ts, 
             g = ids[k]
             mx, my = float(means2d[g, 0]), float(means2d[g, 1])
             A, B, Cc, o = float(conics[g, 0]), float(conics[g, 1]), float(conics[g, 2]), float(opac[g])
-            if not o > 0.0:
+            thr, inv_a, q, ry = prep[g, 0], prep[g, 1], prep[g, 2], prep[g, 3]
+            if ry < 0.0:
                 continue
-            thr = math.log(o / ALPHA_THRESHOLD) + _SIGMA_SLACK
             for d in range(D):
                 col[d] = colors[g, d]
                 gcol[d] = 0.0
             g_mx = g_my = g_a = g_b = g_c = g_o = 0.0
-            y_lo, y_hi, q = _rows(my, A, B, Cc, thr, oy, ny)
+            y_lo, y_hi = _rows(my, ry, oy, ny)
             for y in range(y_lo, y_hi):
                 dy = my - (oy + y + 0.5)
-                x_lo, x_hi = _cols(mx, dy, A, B, q, thr, ox, nx)
+                x_lo, x_hi = _cols(mx, dy, A, B, inv_a, q, thr, ox, nx, ry)
                 for x in range(x_lo, x_hi):
                     p = y * ts + x
                     if lastp[p] < k:
@@ -348,10 +367,13 @@ class _CompositeNumba(torch.autograd.Function):
         alpha = np.empty((C, H, W), arrs[0].dtype)
         t_final = np.empty((C, H, W), np.float64)
         last = np.empty((C, H, W), np.int64)
+        prep = np.empty((arrs[0].shape[0], 4))
         set_threads()
-        _forward(*arrs, plan.starts, plan.ids, C, W, H, plan.tile_size, float(alpha_max), img, alpha, t_final, last)
+        _prep(arrs[1], arrs[2], prep)
+        _forward(*arrs, prep, plan.starts, plan.ids, C, W, H, plan.tile_size, float(alpha_max), img, alpha, t_final,
+                 last)
         ctx.save_for_backward(means2d, conics, opacities, colors)
-        ctx.plan, ctx.alpha_max, ctx.t_final, ctx.last = plan, float(alpha_max), t_final, last
+        ctx.plan, ctx.alpha_max, ctx.t_final, ctx.last, ctx.prep = plan, float(alpha_max), t_final, last, prep
         return torch.from_numpy(img), torch.from_numpy(alpha)[..., None]
 
     @staticmethod
@@ -364,7 +386,7 @@ class _CompositeNumba(torch.autograd.Function):
         g_alpha = torch.zeros(C, H, W, 1, dtype=means2d.dtype) if g_alpha is None else g_alpha
         pair_grad = np.zeros((plan.pairs, 6 + D), np.float64)  # slots past a tile's last pixel stay 0
         set_threads()
-        _backward(_np(means2d), _np(conics), _np(opacities), _np(colors), plan.starts, plan.ids, C, W, H,
+        _backward(_np(means2d), _np(conics), _np(opacities), _np(colors), ctx.prep, plan.starts, plan.ids, C, W, H,
                   plan.tile_size, ctx.alpha_max, ctx.t_final, ctx.last, _np(g_img), _np(g_alpha[..., 0]), pair_grad)
         grad = np.zeros((G, 6 + D), np.float64)
         _reduce(plan.ids, pair_grad, grad)

@@ -1,4 +1,4 @@
-"""`rasterize`: gsplat-1.5-style Gaussian splatting with a pure-torch tiled backend and a gsplat (CUDA) backend."""
+"""`rasterize`: gsplat-1.5-style Gaussian splatting: pure-torch tiled backend, compiled CPU (numba) and gsplat (CUDA)."""
 from __future__ import annotations
 
 import warnings
@@ -141,8 +141,9 @@ def rasterize(
 
     meta: means2d [C,N,2] (grad retained), radii [C,N] int32 (max of the x/y half-extents, 0 = culled),
     radii_xy [C,N,2] (gsplat 1.5's per-axis radii), depths [C,N], conics [C,N,3], opacities [C,N] (after
-    antialiasing compensation), visible [C,N] bool, backend ("torch" | "gsplat"), plus torch-backend statistics.
-    `tile_size` defaults to 8 for torch (faster on CPU) and 16 for gsplat; `alpha_max`, `chunk_elements` and `tile_cull` tune the torch backend; gsplat's own extra options
+    antialiasing compensation), visible [C,N] bool, backend ("torch" | "numba" | "gsplat"), plus tile statistics.
+    backend="auto": gsplat for CUDA tensors, numba on CPU where it imports, else torch.
+    `tile_size` defaults to 8 for torch/numba (faster on CPU) and 16 for gsplat; `alpha_max`, `chunk_elements` and `tile_cull` tune the torch backend; gsplat's own extra options
     go through `gsplat_kwargs` (ignored by the torch backend).
     """
     if backgrounds is None and background is not None:
