@@ -180,6 +180,7 @@ def _forward(means2d, conics, opac, colors, prep, starts, ids, C, width, height,
         done = np.zeros(P, np.bool_)
         col = np.empty(D)
         n_left = nx * ny
+        row_left = np.full(ts, nx, np.int64)  # pixels of each row still compositing
         for k in range(starts[t], starts[t + 1]):
             if n_left == 0:
                 break
@@ -193,6 +194,8 @@ def _forward(means2d, conics, opac, colors, prep, starts, ids, C, width, height,
                 col[d] = colors[g, d]
             y_lo, y_hi = _rows(my, ry, oy, ny)
             for y in range(y_lo, y_hi):
+                if row_left[y] == 0:
+                    continue
                 dy = my - (oy + y + 0.5)
                 x_lo, x_hi = _cols(mx, dy, A, B, inv_a, q, thr, ox, nx, ry)
                 for x in range(x_lo, x_hi):
@@ -210,6 +213,7 @@ def _forward(means2d, conics, opac, colors, prep, starts, ids, C, width, height,
                     if next_T <= T_MIN:
                         done[p] = True
                         n_left -= 1
+                        row_left[y] -= 1
                         continue
                     w = alpha * Tp[p]
                     for d in range(D):
@@ -251,12 +255,14 @@ def _backward(means2d, conics, opac, colors, prep, starts, ids, C, width, height
         col = np.empty(D)
         gcol = np.empty(D)
         kmax = -1
+        row_last = np.full(ts, -1, np.int64)  # last contributing slot of any pixel in the row
         for y in range(ny):
             for x in range(nx):
                 p = y * ts + x
                 tfin[p] = t_final[cam, oy + y, ox + x]
                 Tp[p] = tfin[p]
                 lastp[p] = last[cam, oy + y, ox + x]
+                row_last[y] = max(row_last[y], lastp[p])
                 kmax = max(kmax, lastp[p])
                 for d in range(D):
                     go[p, d] = g_img[cam, oy + y, ox + x, d]
@@ -274,6 +280,8 @@ def _backward(means2d, conics, opac, colors, prep, starts, ids, C, width, height
             g_mx = g_my = g_a = g_b = g_c = g_o = 0.0
             y_lo, y_hi = _rows(my, ry, oy, ny)
             for y in range(y_lo, y_hi):
+                if row_last[y] < k:
+                    continue
                 dy = my - (oy + y + 0.5)
                 x_lo, x_hi = _cols(mx, dy, A, B, inv_a, q, thr, ox, nx, ry)
                 for x in range(x_lo, x_hi):
@@ -429,7 +437,7 @@ def warm_up() -> float:
 # ---- projection (project.py's EWA rules) with a hand-written backward -------------------------------------------
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _mm(A, B, out, ta=False, tb=False):
     """out = A @ B for small matrices (optionally transposed), as loops: numba's matmul calls BLAS, slow at 3x3."""
     n = A.shape[1] if ta else A.shape[0]
@@ -458,7 +466,7 @@ def _scratch():
             np.empty(3), np.empty((2, 3)), np.empty((2, 3)), np.empty((2, 2)))
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _cam_cov(means, quats, scales, W, t, n, q, Rq, M, S, Sc, tmp, p):
     """Fills unit quaternion q, Rq, M = Rq diag(s), world covariance S, camera covariance Sc, camera-space mean p.
 
