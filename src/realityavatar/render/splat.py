@@ -143,7 +143,7 @@ def rasterize(
     radii_xy [C,N,2] (gsplat 1.5's per-axis radii), depths [C,N], conics [C,N,3], opacities [C,N] (after
     antialiasing compensation), visible [C,N] bool, backend ("torch" | "numba" | "gsplat"), plus tile statistics.
     backend="auto": gsplat for CUDA tensors, numba on CPU where it imports, else torch.
-    `tile_size` defaults to 8 for torch/numba (faster on CPU) and 16 for gsplat; `alpha_max`, `chunk_elements` and `tile_cull` tune the torch backend; gsplat's own extra options
+    `tile_size` defaults to 8 for torch, 16 for numba and gsplat; `alpha_max`, `chunk_elements` and `tile_cull` tune the torch backend; gsplat's own extra options
     go through `gsplat_kwargs` (ignored by the torch backend).
     """
     if backgrounds is None and background is not None:
@@ -224,7 +224,7 @@ def _rasterize_torch(means, quats, scales, opacities, colors, viewmats, Ks, widt
         if bg is not None:
             bg = bg.new_zeros(C, 1)
 
-    ts = 8 if tile_size is None else int(tile_size)
+    ts = (16 if composite == "numba" else 8) if tile_size is None else int(tile_size)  # measured fastest each
     if composite == "numba":
         from .numba_backend import composite_numba
 
