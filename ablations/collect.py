@@ -115,6 +115,10 @@ def _footnotes(runs: Runs, table: pd.DataFrame, cells_md: list[list[str]], prov:
         notes.append(f"n/c: LPIPS not computed ({why}).")
     if any(c == "n/a" for row in cells_md for c in row):
         notes.append("n/a: metric absent from metrics.json.")
+    if runs.problems:
+        listed = "; ".join(f"{Path(p['job']).name} ({p['overrides']}): {p['reason']}" for p in runs.problems)
+        notes.append(f"Missing or failed jobs, not in the table ({len(runs.problems)} of "
+                     f"{len(runs.problems) + len(runs.frame)}): {listed}.")
     notes.append(f"Commit(s): {', '.join(prov['commits'])}.")
     notes.append("Command(s): " + "; ".join(prov["commands"]) + ".")
     if latex:
@@ -218,6 +222,11 @@ def collect(dirs: list[str | Path] | str | Path, out: str | Path | None = None, 
     runs.frame[keep].assign(overrides=runs.frame["overrides"].map(" ".join)).to_csv(out / "runs.csv", index=False)
     write_markdown(out / "table.md", runs, cells["md"], _footnotes(runs, table, cells["md"], prov, False), prov)
     write_latex(out / "table.tex", runs, cells["tex"], _footnotes(runs, table, cells["md"], prov, True), prov, name)
+    if runs.problems:
+        pd.DataFrame(runs.problems).to_csv(out / "missing.csv", index=False)
+    elif (out / "missing.csv").exists():
+        (out / "missing.csv").unlink()
+    csv.attrs["problems"] = runs.problems
     return csv, out
 
 
@@ -229,10 +238,18 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--prefer", choices=("eval", "train"), default="eval",
                    help="per job, take <job>/eval/metrics.json from a re-evaluation (default) or the training one")
     p.add_argument("--name", default=None, help="table name (default: the ablation config name)")
+    p.add_argument("--allow-missing", action="store_true",
+                   help="exit 0 even when jobs are missing or failed (they are listed in the footnote either way)")
     a = p.parse_args(argv)
-    _, out = collect(a.dirs, a.out, a.reference, a.prefer, a.name)
+    table, out = collect(a.dirs, a.out, a.reference, a.prefer, a.name)
     print((out / "table.md").read_text())
     print(f"wrote {out}/table.csv, table.md, table.tex, per_scene.csv, runs.csv")
+    problems = table.attrs.get("problems", [])
+    if problems:
+        print(f"collect: {len(problems)} job(s) missing or failed (listed in {out}/missing.csv and the footnote)"
+              + ("" if a.allow_missing else "; the table is incomplete: exit 1 (--allow-missing to accept)"),
+              file=sys.stderr)
+        return 0 if a.allow_missing else 1
     return 0
 
 

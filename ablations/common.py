@@ -67,6 +67,65 @@ def find_metrics_files(root: Path, prefer: str = "eval") -> list[Path]:
     return chosen
 
 
+def _expected_jobs(root: Path) -> list[list[str]] | None:
+    """The job override lists the sweep in `root` expands to (hydra's basic sweeper over multirun.yaml's sweeper
+    params and command-line overrides), or None when multirun.yaml is absent or cannot be expanded."""
+    mr = root / "multirun.yaml"
+    if not mr.is_file():
+        return None
+    try:
+        from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+        from hydra.core.override_parser.overrides_parser import OverridesParser
+
+        h = (yaml.safe_load(mr.read_text()) or {}).get("hydra", {}) or {}
+        params = [f"{k}={v}" for k, v in ((h.get("sweeper") or {}).get("params") or {}).items()]
+        task = list((h.get("overrides") or {}).get("task") or [])
+        parsed = OverridesParser.create().parse_overrides(params + task)
+        return [list(job) for batch in BasicSweeper.split_arguments(parsed, None) for job in batch]
+    except Exception:  # noqa: BLE001 - a sweep we cannot expand: report the job folders only
+        return None
+
+
+def job_problems(root: Path, prefer: str = "eval") -> list[dict]:
+    """Jobs of the multirun in `root` without a usable result, each {"job", "overrides", "reason"}: a job folder
+    (with .hydra/) without metrics.json (failed or still running), a metrics.json whose evaluation failed or never
+    finished, and jobs the sweep expands to that never got a folder (the launcher stopped first)."""
+    root = Path(root)
+    problems, seen = [], []
+    for hyd in sorted(root.rglob(".hydra"), key=_natural_key):
+        job = hyd.parent
+        if job == root or not (hyd / "overrides.yaml").is_file():
+            continue
+        overrides = [str(o) for o in (yaml.safe_load((hyd / "overrides.yaml").read_text()) or [])]
+        seen.append(overrides)
+        files = [job / "eval" / "metrics.json", job / "metrics.json"]
+        files = files if prefer == "eval" else files[::-1]
+        f = next((f for f in files if f.is_file()), None)
+        reason = None
+        if f is None:
+            reason = "no metrics.json (the job failed, was killed or is still running)"
+        else:
+            try:
+                m = json.loads(f.read_text())
+            except (OSError, json.JSONDecodeError):
+                m = {}
+            if isinstance(m, dict) and (m.get("evaluation_errors") or m.get("evaluation") in ("pending", "failed")):
+                errs = m.get("evaluation_errors") or {}
+                reason = "evaluation " + ("did not finish" if m.get("evaluation") == "pending" and not errs else
+                                          "failed: " + "; ".join(f"{k}: {v}" for k, v in errs.items()))
+        if reason:
+            problems.append({"job": str(job), "overrides": " ".join(overrides), "reason": reason})
+    expected = _expected_jobs(root)
+    if expected is not None:
+        have = [sorted(o) for o in seen]
+        if all(sorted(o) in [sorted(e) for e in expected] for o in seen):  # a sweep that matches its folders
+            for i, job in enumerate(expected):
+                if sorted(job) not in have:
+                    problems.append({"job": f"{root}/<job {i}>", "overrides": " ".join(job),
+                                     "reason": "never started (no job folder)"})
+    return problems
+
+
 def _sweep_root(path: Path) -> Path | None:
     for d in path.parents:
         if (d / "multirun.yaml").is_file():
@@ -144,6 +203,7 @@ class Runs:
     axes: list[str]                    # override keys that vary between runs (seed and scene excluded)
     labels: list[str] = field(default_factory=list)   # row labels in sweep order, reference first
     reference: str | None = None
+    problems: list[dict] = field(default_factory=list)  # jobs missing or failed (job_problems), not in `frame`
 
     @property
     def scenes(self) -> list[str]:
@@ -167,9 +227,12 @@ def load_runs(dirs: list[str | Path] | str | Path, prefer: str = "eval", referen
     """Read every run under `dirs` and label it. The reference row is `reference` if given, else the `full`
     variant when present, else the first row in sweep order."""
     dirs = [dirs] if isinstance(dirs, (str, Path)) else list(dirs)
-    rows = [read_run(f) for d in dirs for f in find_metrics_files(Path(d), prefer)]
+    problems = [p for d in dirs for p in job_problems(Path(d), prefer)]
+    failed = {p["job"] for p in problems}
+    rows = [read_run(f) for d in dirs for f in find_metrics_files(Path(d), prefer) if str(_job_dir(f)) not in failed]
     if not rows:
-        raise FileNotFoundError(f"no metrics.json under {', '.join(map(str, dirs))}")
+        why = f" ({len(problems)} job(s) missing or failed: {problems[0]['reason']})" if problems else ""
+        raise FileNotFoundError(f"no usable metrics.json under {', '.join(map(str, dirs))}{why}")
     parsed = [dict(parse_override(o) for o in r["overrides"] if not o.lstrip("+~").startswith("hydra")) for r in rows]
     keys: list[str] = []
     for p in parsed:
@@ -195,7 +258,7 @@ def load_runs(dirs: list[str | Path] | str | Path, prefer: str = "eval", referen
     if reference not in labels:
         raise ValueError(f"reference row {reference!r} is not one of the rows {labels}")
     labels = [reference] + [lab for lab in labels if lab != reference]
-    return Runs(frame=frame, axes=axes, labels=labels, reference=reference)
+    return Runs(frame=frame, axes=axes, labels=labels, reference=reference, problems=problems)
 
 
 def _clean(x: float) -> float:

@@ -35,15 +35,21 @@ EXPECTED = {
     "speed": (18, {"iterations": {"500", "1000", "2000"}, "data.image_scale": {"0.5", "1.0"}, "render": {"torch"},
                    "seed": SEEDS}),
     "tiny": (2, {"+variant": {"full", "no_lstm"}, "seed": {"0"}, "data": {"synthetic_ci"}, "trainer": {"ci"}}),
+    "dynamics": (15, {"+garment": {"all", "no_silhouette", "no_hull", "no_graph", "none"}, "seed": SEEDS,
+                      "data": {"synthetic_sweep"}}),
 }
+# conf/garment option -> (silhouette, gaussians, deformer) it selects
+GARMENT_CHOICES = {"all": ("chamfer", "hull", "motion_trend_nodes"), "no_silhouette": ("none", "hull", "motion_trend_nodes"),
+                   "no_hull": ("chamfer", "default", "motion_trend_nodes"), "no_graph": ("chamfer", "hull", "motion_trend"),
+                   "none": ("none", "default", "motion_trend")}
 VARIANT_CHOICES = {"full": ("latentbone", "lstm"), "no_zc": ("no_zc", "lstm"),
                    "no_lstm": ("latentbone", "none"), "no_split": ("no_split", "lstm")}
 # Option names fixed by the project; a stand-in tree with exactly these lets the sweep files be checked on
 # their own, independent of the other groups' contents.
 GROUPS = {
     "data": ["synthetic_ci", "synthetic_demo", "synthetic_sweep"], "body": ["mannequin", "smpl"],
-    "gaussians": ["default"], "encoder": ["latentbone", "no_split", "no_zc"], "temporal": ["lstm", "gru", "none"],
-    "deformer": ["motion_trend"], "skinning": ["mlp"], "color": ["mlp", "sh"], "density": ["default", "off"],
+    "gaussians": ["default", "hull"], "encoder": ["latentbone", "no_split", "no_zc"], "temporal": ["lstm", "gru", "none"],
+    "deformer": ["motion_trend", "motion_trend_nodes"], "silhouette": ["chamfer", "none"], "skinning": ["mlp"], "color": ["mlp", "sh"], "density": ["default", "off"],
     "loss": ["default"], "render": ["torch", "gsplat", "auto"], "optim": ["default"], "trainer": ["cpu", "gpu", "ci"],
 }
 
@@ -68,7 +74,7 @@ def standin_conf(tmp_path_factory) -> Path:
             if group == "gaussians":
                 body["num_points"] = 10000
             (conf / group / f"{opt}.yaml").write_text(yaml.safe_dump(body))
-    for sub in ("ablation", "variant", "preset", "hydra/launcher"):
+    for sub in ("ablation", "variant", "garment", "preset", "hydra/launcher"):
         (conf / sub).mkdir(parents=True)
         for f in (CONF / sub).glob("*.yaml"):
             (conf / sub / f.name).write_text(f.read_text())
@@ -113,6 +119,8 @@ def test_sweep_expands_to_expected_jobs(standin_conf, name):
         assert str(cfg.seed) == ov["seed"]
         if "+variant" in ov:
             assert (choices["encoder"], choices["temporal"]) == VARIANT_CHOICES[ov["+variant"]]
+        if "+garment" in ov:
+            assert (choices["silhouette"], choices["gaussians"], choices["deformer"]) == GARMENT_CHOICES[ov["+garment"]]
         for key in ("temporal", "color", "density", "render", "trainer", "data"):
             if key in ov:
                 assert choices[key] == ov[key]
@@ -155,6 +163,8 @@ def test_sweep_jobs_compose_in_the_real_tree(name):
         ov = dict(o.split("=", 1) for o in job)
         if "+variant" in ov:
             assert (choices["encoder"], choices["temporal"]) == VARIANT_CHOICES[ov["+variant"]]
+        if "+garment" in ov:
+            assert (choices["silhouette"], choices["gaussians"], choices["deformer"]) == GARMENT_CHOICES[ov["+garment"]]
         for key in ("temporal", "color", "density", "render", "trainer", "data"):
             if key in ov:
                 assert choices[key] == ov[key]

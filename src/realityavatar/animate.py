@@ -1,6 +1,7 @@
 """Animate a trained avatar: a pose sequence (a dataset split or an .npz file) rendered from chosen cameras to MP4.
 
-Command: `realityavatar-animate run_dir=<run> [poses=<file.npz> | split=novel_pose] [views=0,2] [out=<file.mp4>] [fps=25]`
+Command: `realityavatar-animate run_dir=<run> [poses=<file.npz> | split=novel_pose] [views=0,2] [out=<file.mp4>] [fps=25]
+[device=cuda|cpu]` (default: the GPU when the run trained on one and CUDA is present)
 The .npz holds `poses` [F,24,3] or [F,72] (SMPL axis-angle, pose[0] = global orientation) and `transl` [F,3];
 optionally `Rh`, `Th` [F,3] in the EasyMocap convention (converted with the body model's pelvis).
 """
@@ -26,17 +27,33 @@ def load_pose_file(path: str | Path, body) -> PoseTable:
         if "poses" not in z:
             raise KeyError(f"{path}: missing field 'poses' ([F,24,3] or [F,72] axis-angle); fields present: {list(z.keys())}")
         poses = np.asarray(z["poses"], np.float32)
+        if poses.ndim == 0 or poses.shape[0] == 0:
+            raise ValueError(f"{path}: field 'poses' has no frames (shape {poses.shape}); expected [F,24,3] or [F,72] "
+                             "with F >= 1")
         F = poses.shape[0]
-        poses = poses.reshape(F, -1)
-        if poses.shape[1] != 72:
-            raise ValueError(f"{path}: field 'poses' must be [F,24,3] or [F,72], got {z['poses'].shape}")
+        if poses[0].size != 72:
+            raise ValueError(f"{path}: field 'poses' must be [F,24,3] or [F,72], got {poses.shape}")
         poses = poses.reshape(F, 24, 3)
-        transl = np.asarray(z["transl"], np.float32) if "transl" in z else np.zeros((F, 3), np.float32)
-        if transl.shape != (F, 3):
-            raise ValueError(f"{path}: field 'transl' must be [{F},3], got {transl.shape}")
+        if not np.isfinite(poses).all():
+            raise ValueError(f"{path}: field 'poses' has non-finite values (NaN/inf)")
+
+        def per_frame(key: str) -> np.ndarray:
+            a = np.asarray(z[key], np.float32)
+            if a.shape != (F, 3):
+                raise ValueError(f"{path}: field {key!r} must be [{F},3] (one 3-vector per frame of 'poses'), got "
+                                 f"{a.shape}")
+            if not np.isfinite(a).all():
+                raise ValueError(f"{path}: field {key!r} has non-finite values (NaN/inf)")
+            return a
+
+        transl = per_frame("transl") if "transl" in z else np.zeros((F, 3), np.float32)
         p, t = torch.from_numpy(poses), torch.from_numpy(transl)
-        if "Rh" in z and "Th" in z:
-            p, t = rh_th_to_smpl(p, torch.from_numpy(np.asarray(z["Rh"], np.float32)), torch.from_numpy(np.asarray(z["Th"], np.float32)) + t, body.rest_joints[0])
+        if ("Rh" in z) != ("Th" in z):
+            raise ValueError(f"{path}: fields 'Rh' and 'Th' come together (EasyMocap placement); only "
+                             f"{'Rh' if 'Rh' in z else 'Th'} is present")
+        if "Rh" in z:
+            rh, th = per_frame("Rh"), per_frame("Th")
+            p, t = rh_th_to_smpl(p, torch.from_numpy(rh), torch.from_numpy(th) + t, body.rest_joints[0])
     return PoseTable.from_sequence(p, t)
 
 
@@ -63,17 +80,17 @@ def render_sequence(module, table: PoseTable, cameras: list[dict], window_len: i
                     frames_to_render=None) -> list[np.ndarray]:
     """Render frames of `table` (all, or `frames_to_render`; windows look back into the whole table) from each
     camera; returns uint8 frames [H, W*len(cameras), 3]."""
-    dev = module.device
+    dev, dt = module.device, module.dtype  # poses and cameras come as float32 CPU tensors
     frames = []
     for f in (table.frames if frames_to_render is None else frames_to_render):
         poses, transl = table.window(int(f), window_len, window_step)
         idx = torch.full((1,), -1, dtype=torch.long, device=dev)
-        posed = module.deform(poses[None].to(dev), transl[None].to(dev), idx)
+        posed = module.deform(poses[None].to(dev, dt), transl[None].to(dev, dt), idx)
         tiles = []
         for cam in cameras:
-            vm = cam["viewmat"][None].to(dev)
+            vm = cam["viewmat"][None].to(dev, dt)
             rgb = module.shade(posed, vm, idx)[0]
-            img, _, _ = module.splat(posed, 0, rgb, vm, cam["K"][None].to(dev), cam["width"], cam["height"])
+            img, _, _ = module.splat(posed, 0, rgb, vm, cam["K"][None].to(dev, dt), cam["width"], cam["height"])
             tiles.append((img[0].clamp(0, 1).cpu().numpy() * 255).round().astype(np.uint8))
         frames.append(np.concatenate(tiles, 1))
     return frames
@@ -82,13 +99,14 @@ def render_sequence(module, table: PoseTable, cameras: list[dict], window_len: i
 def main(argv: list[str] | None = None) -> int:
     import imageio.v2 as imageio
 
-    from realityavatar.build import build_data, load_run
+    from realityavatar.build import build_data, load_run, run_device
 
     args = dict(a.split("=", 1) for a in (sys.argv[1:] if argv is None else argv) if "=" in a)
     if "run_dir" not in args:
         print(__doc__, file=sys.stderr)
         return 2
     cfg, module, info = load_run(args["run_dir"])
+    module.to(run_device(cfg, args.get("device")))
     dm = build_data(cfg, module.body)
     split = args.get("split", "novel_pose")
     if "poses" in args:

@@ -6,14 +6,12 @@ import json
 import subprocess
 from pathlib import Path
 
-import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 import realityavatar.config  # noqa: F401  (registers resolvers)
 from realityavatar.model.module import AvatarModule, Schedule
-
-CKPT_NAME = "last.ckpt"
+from realityavatar.runs import CKPT_NAME, read_checkpoint
 
 
 def build_lpips(cfg: DictConfig):
@@ -27,9 +25,20 @@ def build_lpips(cfg: DictConfig):
     return net, "computed"
 
 
-def build_module(cfg: DictConfig, body, num_train_frames: int, scene_extent: float) -> AvatarModule:
-    """Instantiate every component from its config group and hand them to the LightningModule."""
-    gaussians = instantiate(cfg.gaussians, body=body)
+def build_module(cfg: DictConfig, body, num_train_frames: int, scene_extent: float, data=None) -> AvatarModule:
+    """Instantiate every component from its config group and hand them to the LightningModule.
+
+    data: the set-up DataModule, for components initialised from the training data (gaussians=hull); None when a
+    run is rebuilt from its checkpoint.
+    """
+    from hydra.utils import get_class
+
+    extra = {}
+    if data is not None and getattr(get_class(cfg.gaussians._target_), "NEEDS_VIEWS", False):
+        from realityavatar.model.hull import hull_views
+
+        extra["views"] = hull_views(data, cfg.gaussians.get("hull_frame"))
+    gaussians = instantiate(cfg.gaussians, body=body, **extra)
     encoder = instantiate(cfg.encoder)
     temporal = instantiate(cfg.temporal)
     deformer = instantiate(cfg.deformer)
@@ -37,6 +46,7 @@ def build_module(cfg: DictConfig, body, num_train_frames: int, scene_extent: flo
     color = instantiate(cfg.color, num_frames=max(int(num_train_frames), 1))
     density = instantiate(cfg.density)
     loss = instantiate(cfg.loss)
+    silhouette = instantiate(cfg.silhouette) if cfg.get("silhouette") is not None else None
     lpips, lpips_status = build_lpips(cfg)
     render = OmegaConf.to_container(cfg.render, resolve=True)
     module = AvatarModule(
@@ -58,6 +68,7 @@ def build_module(cfg: DictConfig, body, num_train_frames: int, scene_extent: flo
         max_steps=int(cfg.iterations),
         scene_extent=scene_extent,
         lpips=lpips,
+        silhouette=silhouette,
     )
     module.lpips_status = lpips_status  # "computed" or why not, recorded in metrics.json
     return module
@@ -82,7 +93,7 @@ def load_run(run_dir: str | Path, overrides: list[str] | None = None, ckpt: str 
     ckpt = Path(ckpt) if ckpt else run_dir / CKPT_NAME
     if not ckpt.is_file():
         raise FileNotFoundError(f"checkpoint {ckpt} not found in run folder {run_dir}")
-    state = torch.load(ckpt, map_location="cpu", weights_only=False)
+    state = read_checkpoint(ckpt)
     info = state.get("realityavatar", {})
     if not info:
         raise KeyError(f"{ckpt}: checkpoint has no 'realityavatar' block (not written by realityavatar-train)")
@@ -91,6 +102,15 @@ def load_run(run_dir: str | Path, overrides: list[str] | None = None, ckpt: str 
     module.load_state_dict(state["state_dict"])
     module.eval()
     return cfg, module, info
+
+
+def run_device(cfg: DictConfig, override: str | None = None) -> torch.device:
+    """The device a trained run renders on: `override` if given, else CUDA when the run's trainer asked for a GPU
+    (accelerator gpu/cuda/auto) and one is present, else the CPU."""
+    if override:
+        return torch.device(override)
+    acc = str(cfg.get("trainer", {}).get("accelerator", "cpu"))
+    return torch.device("cuda" if acc in ("gpu", "cuda", "auto") and torch.cuda.is_available() else "cpu")
 
 
 def git_commit() -> str:

@@ -8,7 +8,7 @@ from omegaconf import DictConfig, OmegaConf
 
 CONFIG_DIR = Path(__file__).resolve().parents[2] / "conf"
 AXES = (
-    "data", "body", "gaussians", "encoder", "temporal", "deformer", "skinning", "color", "density", "loss",
+    "data", "body", "gaussians", "encoder", "temporal", "deformer", "skinning", "color", "density", "loss", "silhouette",
     "render", "optim", "trainer", "variant", "ablation",
 )
 
@@ -48,3 +48,62 @@ def compose(overrides: list[str] | None = None, config_name: str = "train") -> D
 
     with initialize_config_dir(config_dir=config_dir(), version_base="1.3"):
         return hydra_compose(config_name=config_name, overrides=list(overrides or []), return_hydra_config=True)
+
+
+# Numeric settings checked before anything is built: key -> (rule, what is expected). Keys absent from a config
+# (an option file without them) are skipped; interpolated keys derived from these are not checked separately.
+def _is_int(v) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _is_num(v) -> bool:
+    import math
+
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+SETTINGS = {
+    "iterations": (lambda v: _is_int(v) and v >= 1, "a whole number of training steps >= 1"),
+    "seed": (lambda v: _is_int(v) and v >= 0, "a whole number >= 0"),
+    "threads": (lambda v: v is None or (_is_int(v) and v >= 1), "null or a whole number >= 1"),
+    "data.image_scale": (lambda v: _is_num(v) and 0 < v <= 8, "a number in (0, 8] (1.0 = full resolution)"),
+    "data.batch_size": (lambda v: _is_int(v) and v >= 1, "a whole number >= 1"),
+    "data.num_workers": (lambda v: _is_int(v) and v >= 0, "a whole number >= 0"),
+    "data.window_len": (lambda v: _is_int(v) and v >= 1, "a whole number >= 1"),
+    "data.window_step": (lambda v: _is_int(v) and v >= 0, "a whole number >= 0"),
+    "data.max_train_frames": (lambda v: v is None or (_is_int(v) and v >= 1), "null or a whole number >= 1"),
+    "data.frame_subsample": (lambda v: _is_int(v) and v >= 1, "a whole number >= 1"),
+    "data.train_frame_subsample": (lambda v: _is_int(v) and v >= 1, "a whole number >= 1"),
+    "data.val_items": (lambda v: _is_int(v) and v >= 0, "a whole number >= 0"),
+    "gaussians.num_points": (lambda v: _is_int(v) and v >= 1, "a whole number >= 1"),
+    "schedule.skin_pretrain_steps": (lambda v: _is_int(v) and v >= 0, "a whole number >= 0"),
+    "eval.max_frames_per_split": (lambda v: v is None or (_is_int(v) and v >= 1), "null (every frame) or a whole number >= 1"),
+    "eval.save_images": (lambda v: _is_int(v) and v >= 0, "a whole number >= 0 (0 = no image grids)"),
+    "eval.save_video": (lambda v: isinstance(v, bool), "true or false"),
+    "eval.fps_warmup": (lambda v: _is_int(v) and v >= 0, "a whole number >= 0"),
+    "eval.fps_frames": (lambda v: _is_int(v) and v >= 1, "a whole number >= 1"),
+    "resume": (lambda v: isinstance(v, bool), "true or false"),
+    "overwrite": (lambda v: isinstance(v, bool), "true or false"),
+}
+
+
+def check_settings(cfg: DictConfig, prefix: str = "") -> None:
+    """Raise ValueError naming the key as typed on the command line (`iterations=...`) for every bad setting in
+    SETTINGS (all problems at once); `prefix` limits the check to one section, e.g. "eval."."""
+    from omegaconf.errors import OmegaConfBaseException
+
+    problems = []
+    for key, (ok, expected) in SETTINGS.items():
+        if not key.startswith(prefix):
+            continue
+        try:
+            value = OmegaConf.select(cfg, key, default="<absent>", throw_on_missing=True)
+        except OmegaConfBaseException as e:
+            problems.append(f"{key}: cannot be resolved ({e}); expected {expected}")
+            continue
+        if isinstance(value, str) and value == "<absent>":
+            continue
+        if not ok(value):
+            problems.append(f"{key}={value!r}: expected {expected}")
+    if problems:
+        raise ValueError("; ".join(problems))

@@ -10,11 +10,10 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import torch
 
-from realityavatar.build import build_data, load_run, write_json
+from realityavatar.build import build_data, load_run, run_device, write_json
 
-METRIC_KEYS = ("psnr", "ssim", "lpips", "psnr_masked", "ssim_masked", "lpips_masked")
+METRIC_KEYS = ("psnr", "ssim", "iou", "lpips", "psnr_masked", "ssim_masked", "lpips_masked")
 
 
 def summarise(records: list[dict]) -> dict:
@@ -31,7 +30,8 @@ def summarise(records: list[dict]) -> dict:
 
 
 def write_outputs(records: list[dict], out_dir: Path, save_images: int = 8, save_video: bool = True, fps: int = 10) -> dict:
-    """Per-frame CSV, a prediction|ground-truth|error grid per split, an MP4 per split. Returns written paths."""
+    """Per-frame CSV, a prediction|ground-truth|error grid of `save_images` images per split (0: none), an MP4 per
+    split. Returns written paths."""
     import imageio.v2 as imageio
 
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -49,16 +49,17 @@ def write_outputs(records: list[dict], out_dir: Path, save_images: int = 8, save
         rows = sorted([r for r in records if r["split"] == split], key=lambda r: (r["view"], r["frame"]))
         if not rows:
             continue
-        pick = np.linspace(0, len(rows) - 1, min(save_images, len(rows))).round().astype(int)
-        tiles = []
-        for i in pick:
-            pred, gt = rows[i]["_pred"].numpy(), rows[i]["_gt"].numpy()
-            err = np.abs(pred - gt).mean(-1, keepdims=True).repeat(3, -1) * 4
-            tiles.append(np.concatenate([pred, gt, np.clip(err, 0, 1)], 1))
-        grid = (np.concatenate(tiles, 0) * 255).round().astype(np.uint8)
-        p = out_dir / "images" / f"{split}_grid.png"
-        imageio.imwrite(p, grid)
-        paths[f"{split}_grid"] = str(p)
+        if save_images > 0:
+            pick = np.linspace(0, len(rows) - 1, min(save_images, len(rows))).round().astype(int)
+            tiles = []
+            for i in pick:
+                pred, gt = rows[i]["_pred"].numpy(), rows[i]["_gt"].numpy()
+                err = np.abs(pred - gt).mean(-1, keepdims=True).repeat(3, -1) * 4
+                tiles.append(np.concatenate([pred, gt, np.clip(err, 0, 1)], 1))
+            grid = (np.concatenate(tiles, 0) * 255).round().astype(np.uint8)
+            p = out_dir / "images" / f"{split}_grid.png"
+            imageio.imwrite(p, grid)
+            paths[f"{split}_grid"] = str(p)
         if save_video:
             view0 = rows[0]["view"]
             frames = [np.concatenate([r["_pred"].numpy(), r["_gt"].numpy()], 1) for r in rows if r["view"] == view0]
@@ -72,33 +73,68 @@ def write_outputs(records: list[dict], out_dir: Path, save_images: int = 8, save
     return paths
 
 
+def split_loader(dm, split: str, max_frames: int | None = None):
+    """Test loader of one split; with `max_frames`, only that many evenly spaced frames (every camera of each)."""
+    ds = dm.datasets[split]
+    frames = sorted({r.frame for r in ds.records})
+    if max_frames is None or len(frames) <= int(max_frames):
+        return dm._loader(ds, shuffle=False)
+    keep = {frames[i] for i in np.linspace(0, len(frames) - 1, int(max_frames)).round().astype(int)}
+    idx = [i for i, r in enumerate(ds.records) if r.frame in keep]
+    return dm._loader(torch.utils.data.Subset(ds, idx), shuffle=False)
+
+
 def evaluate_module(module, dm, trainer, cfg, out_dir: Path) -> dict:
-    """Run the test loop on novel_view and novel_pose, write outputs, return the metric dict."""
-    module.test_records = []
+    """Test every split (novel_view, novel_pose), write outputs, return the metric dict.
+
+    Each stage (each split's test loop, the per-frame CSV / grids / videos, the FPS measurement) runs on its own: a
+    failing stage is recorded under "evaluation_errors" ({stage: message}) and the others still report.
+    """
+    from realityavatar.config import check_settings
+
+    check_settings(cfg, prefix="eval.")
     ev = cfg.get("eval", {}) or {}
-    trainer.test(module, dataloaders=dm.test_dataloader(), verbose=False)
-    records = module.test_records
-    metrics = summarise(records)
-    paths = write_outputs(records, Path(out_dir), ev.get("save_images", 8), ev.get("save_video", True))
-    batch = next(iter(dm.test_dataloader()[0]))
-    batch = {k: (v.to(module.device) if torch.is_tensor(v) else v) for k, v in batch.items()}
-    metrics["render_fps"] = module.measure_fps(batch, ev.get("fps_warmup", 3), ev.get("fps_frames", 20))
-    metrics["render_resolution"] = [int(batch["width"][0]), int(batch["height"][0])]
-    metrics["outputs"] = paths
+    records, errors = [], {}
+    for split in dm.test_split_names:
+        module.test_records = []
+        try:
+            trainer.test(module, dataloaders=split_loader(dm, split, ev.get("max_frames_per_split")), verbose=False)
+            records += module.test_records
+        except Exception as e:  # noqa: BLE001 - recorded; the other split still runs
+            errors[f"test/{split}"] = f"{type(e).__name__}: {e}"
     module.test_records = []
+    metrics = summarise(records)
+    if ev.get("max_frames_per_split") is not None:
+        metrics["eval_max_frames_per_split"] = int(ev["max_frames_per_split"])
+    try:
+        metrics["outputs"] = write_outputs(records, Path(out_dir), ev.get("save_images", 8), ev.get("save_video", True))
+    except Exception as e:  # noqa: BLE001
+        errors["outputs"] = f"{type(e).__name__}: {e}"
+    if dm.test_split_names:
+        try:
+            batch = next(iter(split_loader(dm, dm.test_split_names[0], 1)))
+            module.to(trainer.strategy.root_device)  # time the run's device (teardown after test moved it to the CPU)
+            metrics["render_fps"] = module.measure_fps(batch, ev.get("fps_warmup", 3), ev.get("fps_frames", 20))
+            metrics["render_fps_device"] = module.run_info["fps"]["device"]
+            metrics["render_fps_backend"] = module.run_info["fps"]["backend"]
+            metrics["render_resolution"] = [int(batch["width"][0]), int(batch["height"][0])]
+        except Exception as e:  # noqa: BLE001
+            errors["render_fps"] = f"{type(e).__name__}: {e}"
+    if errors:
+        metrics["evaluation_errors"] = errors
     return metrics
 
 
 def format_table(metrics: dict) -> str:
     """A short results table for the terminal."""
-    lines = [f"{'split':<12}{'PSNR':>8}{'SSIM':>8}{'LPIPS':>9}{'PSNR(box)':>11}{'SSIM(box)':>11}{'images':>8}"]
+    lines = [f"{'split':<12}{'PSNR':>8}{'SSIM':>8}{'IoU':>7}{'LPIPS':>9}{'PSNR(box)':>11}{'SSIM(box)':>11}{'images':>8}"]
     for split in ("novel_view", "novel_pose"):
         g = lambda k: metrics.get(f"test/{split}/{k}")  # noqa: E731
         if g("psnr") is None:
             continue
         lp = f"{g('lpips'):9.2f}" if g("lpips") is not None else f"{'n/c':>9}"
         lines.append(
-            f"{split:<12}{g('psnr'):8.2f}{g('ssim'):8.4f}{lp}{g('psnr_masked'):11.2f}{g('ssim_masked'):11.4f}{g('num_images'):8d}"
+            f"{split:<12}{g('psnr'):8.2f}{g('ssim'):8.4f}{g('iou') or float('nan'):7.3f}{lp}{g('psnr_masked'):11.2f}{g('ssim_masked'):11.4f}{g('num_images'):8d}"
         )
     lines.append(
         f"Gaussians {metrics.get('num_gaussians')}  parameters {metrics.get('num_parameters')}  "
@@ -113,6 +149,8 @@ def format_table(metrics: dict) -> str:
 def main(argv: list[str] | None = None) -> int:
     import pytorch_lightning as pl
 
+    from realityavatar.config import check_settings
+
     args = list(sys.argv[1:] if argv is None else argv)
     run_dir = next((a.split("=", 1)[1] for a in args if a.startswith("run_dir=")), None)
     if run_dir is None:
@@ -120,14 +158,21 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     overrides = [a for a in args if not a.startswith("run_dir=")]
     cfg, module, info = load_run(run_dir, overrides)
+    check_settings(cfg, prefix="eval.")
     dm = build_data(cfg, module.body)
-    trainer = pl.Trainer(accelerator=cfg.trainer.accelerator, devices=1, logger=False, enable_progress_bar=False)
+    # The run's device: its GPU when it trained on one and CUDA is here, else the CPU (a GPU run evaluates anywhere).
+    trainer = pl.Trainer(accelerator=run_device(cfg).type.replace("cuda", "gpu"), devices=1, logger=False,
+                         enable_progress_bar=False)
     out = Path(run_dir) / "eval"
     metrics = evaluate_module(module, dm, trainer, cfg, out)
     metrics["lpips"] = module.lpips_status
     write_json(out / "metrics.json", {**info.get("metrics_header", {}), **metrics})
     print(format_table({**info.get("metrics_header", {}), **metrics}))
     print(f"wrote {out / 'metrics.json'}")
+    if metrics.get("evaluation_errors"):
+        for stage, err in metrics["evaluation_errors"].items():
+            print(f"realityavatar-evaluate: {stage} failed: {err}", file=sys.stderr)
+        return 1
     return 0
 
 

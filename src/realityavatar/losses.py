@@ -125,3 +125,85 @@ class AvatarLoss(nn.Module):
             total = total + self.lambda_skin(step) * terms["skin"]
         terms = {k: v.detach() for k, v in terms.items()}
         return total, terms
+
+
+def project_points(points: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """points [N,3] world, viewmat [4,4] world-to-camera (OpenCV), K [3,3] -> pixel coords [N,2], depth [N]."""
+    cam = points @ viewmat[:3, :3].T + viewmat[:3, 3]  # [N,3]
+    z = cam[:, 2]
+    zc = z.clamp(min=1e-3)
+    uv = torch.stack([K[0, 0] * cam[:, 0] / zc + K[0, 2], K[1, 1] * cam[:, 1] / zc + K[1, 2]], -1)
+    return uv, z
+
+
+def mask_distance(mask: torch.Tensor) -> torch.Tensor:
+    """mask [H,W] (1 inside) -> Euclidean distance in pixels of every pixel to the nearest mask pixel [H,W]."""
+    from scipy.ndimage import distance_transform_edt
+
+    m = (mask.detach() > 0.5).cpu().numpy()
+    if not m.any():
+        return torch.zeros_like(mask)
+    return torch.from_numpy(distance_transform_edt(~m)).to(mask)
+
+
+class SilhouetteChamfer(nn.Module):
+    """Long-range silhouette supervision: a 2D chamfer between projected Gaussian centres and the mask.
+
+    Photometric and per-pixel mask losses reach a Gaussian only through pixels its footprint covers, so a
+    Gaussian 30 cm from a flared hem gets no pull towards it. Two terms, in image heights squared:
+    - outside: every projected centre outside the mask is pulled in along the mask's distance field
+      (a visual-hull condition: every point of the subject projects inside every camera's silhouette);
+    - coverage: mask pixels the prediction leaves uncovered (alpha < `covered_alpha`; at most `max_pixels`,
+      sampled) pull their nearest projected centre.
+    """
+
+    def __init__(self, weight: float = 10.0, outside_weight: float = 1.0, coverage_weight: float = 1.0,
+                 covered_alpha: float = 0.5, max_pixels: int = 1024, near: float = 0.05) -> None:
+        super().__init__()
+        if weight < 0 or outside_weight < 0 or coverage_weight < 0:
+            raise ValueError("silhouette: weights must be >= 0")
+        self.weight, self.outside_weight, self.coverage_weight = float(weight), float(outside_weight), float(coverage_weight)
+        self.covered_alpha, self.max_pixels, self.near = float(covered_alpha), int(max_pixels), float(near)
+
+    def forward(self, means: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor, mask: torch.Tensor,
+                alpha: torch.Tensor) -> dict[str, torch.Tensor]:
+        """means [N,3] posed, viewmat [4,4], K [3,3], mask / alpha [H,W,1] -> {"sil_outside", "sil_coverage"}."""
+        H, W = mask.shape[:2]
+        uv, z = project_points(means, viewmat, K)
+        front = z > self.near
+        uv, scale = uv[front], float(H)
+        # Outside: distance field sampled bilinearly inside the image, plus the distance to the image beyond it.
+        dist = mask_distance(mask[..., 0])  # [H,W] pixels
+        lim = uv.new_tensor([W - 1.0, H - 1.0])
+        inside = torch.minimum(torch.maximum(uv, uv.new_zeros(2)), lim)
+        grid = (inside / lim * 2 - 1)[None, None]  # [1,1,N,2] in grid_sample's [-1,1] (align_corners=True)
+        d_in = F.grid_sample(dist[None, None], grid, mode="bilinear", align_corners=True)[0, 0, 0]  # [N]
+        d = d_in + (uv - inside).norm(dim=-1)
+        out = {"sil_outside": ((d / scale) ** 2).mean() if d.numel() else means.new_zeros(())}
+        # Coverage: uncovered mask pixels -> their nearest projected centre.
+        need = ((mask[..., 0] > 0.5) & (alpha[..., 0].detach() < self.covered_alpha)).nonzero()  # [P,2] (y,x)
+        if need.shape[0] and uv.shape[0]:
+            if need.shape[0] > self.max_pixels:
+                need = need[torch.randperm(need.shape[0], device=need.device)[: self.max_pixels]]
+            pix = need.flip(-1).to(uv.dtype)  # [P,2] (x,y)
+            d2 = torch.cdist(pix, uv.detach())  # [P,N]
+            nearest = d2.argmin(1)
+            out["sil_coverage"] = (((uv[nearest] - pix) / scale) ** 2).sum(-1).mean()
+        else:
+            out["sil_coverage"] = means.new_zeros(())
+        return out
+
+    def total(self, terms: dict[str, torch.Tensor]) -> torch.Tensor:
+        return self.weight * (self.outside_weight * terms["sil_outside"] + self.coverage_weight * terms["sil_coverage"])
+
+
+class NoSilhouette(nn.Module):
+    """Ablation: no long-range silhouette term (only the per-pixel mask loss supervises the silhouette)."""
+
+    weight = 0.0
+
+    def forward(self, means, viewmat, K, mask, alpha) -> dict[str, torch.Tensor]:
+        return {}
+
+    def total(self, terms: dict[str, torch.Tensor]) -> torch.Tensor:
+        return torch.zeros(())

@@ -5,6 +5,7 @@ Images are float [H,W,3] or [B,H,W,3] in [0,1]; batched inputs give one value pe
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 from typing import Literal
@@ -12,6 +13,17 @@ from typing import Literal
 import torch
 import torch.nn.functional as F
 from torch import nn
+
+
+@contextlib.contextmanager
+def no_tf32():
+    """Full float32 matmuls and convolutions inside (CUDA's TF32 keeps 10 mantissa bits), restored after."""
+    mm, conv = torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32
+    torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = False
+    try:
+        yield
+    finally:
+        torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32 = mm, conv
 
 
 def _batched(x: torch.Tensor, name: str) -> tuple[torch.Tensor, bool]:
@@ -26,7 +38,7 @@ def psnr(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
     """10 log10(1 / MSE) over all pixels and channels of each image (data range 1); inf for identical images."""
     p, single = _batched(pred, "pred")
     g, _ = _batched(gt, "gt")
-    mse = ((p.float() - g.float()) ** 2).flatten(1).mean(1)
+    mse = ((p.double() - g.double()) ** 2).flatten(1).mean(1)  # float64: the same number on any device
     out = torch.where(mse > 0, -10.0 * torch.log10(mse.clamp_min(1e-30)), torch.full_like(mse, math.inf))
     return out[0] if single else out
 
@@ -35,7 +47,7 @@ def _gaussian_window(size: int = 11, sigma: float = 1.5, device=None) -> torch.T
     x = torch.arange(size, dtype=torch.float64, device=device) - (size - 1) / 2
     g = torch.exp(-(x**2) / (2 * sigma**2))
     g = g / g.sum()
-    return (g[:, None] * g[None, :]).float()  # [size,size]
+    return g[:, None] * g[None, :]  # [size,size] float64
 
 
 def ssim(pred: torch.Tensor, gt: torch.Tensor, window: int = 11, sigma: float = 1.5) -> torch.Tensor:
@@ -50,8 +62,9 @@ def ssim(pred: torch.Tensor, gt: torch.Tensor, window: int = 11, sigma: float = 
     """
     p, single = _batched(pred, "pred")
     g, _ = _batched(gt, "gt")
-    x = p.float().permute(0, 3, 1, 2)  # [B,C,H,W]
-    y = g.float().permute(0, 3, 1, 2)
+    # float64: convolutions on CUDA would otherwise run in TF32 (cudnn's default) and change the metric
+    x = p.double().permute(0, 3, 1, 2)  # [B,C,H,W]
+    y = g.double().permute(0, 3, 1, 2)
     H, W = x.shape[-2:]
     if H < window or W < window:
         ph, pw = max(window - H, 0), max(window - W, 0)
@@ -68,6 +81,13 @@ def ssim(pred: torch.Tensor, gt: torch.Tensor, window: int = 11, sigma: float = 
     s = ((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx * mx + my * my + c1) * (sxx + syy + c2))
     out = s.flatten(1).mean(1)
     return out[0] if single else out
+
+
+def silhouette_iou(alpha: torch.Tensor, mask: torch.Tensor, threshold: float = 0.5) -> torch.Tensor:
+    """Intersection over union of the predicted silhouette (alpha > threshold) and the mask (> 0.5): [H,W,1] each."""
+    a, m = alpha > threshold, mask > 0.5
+    union = (a | m).sum()
+    return torch.where(union > 0, (a & m).sum() / union.clamp(min=1), torch.ones((), device=alpha.device))
 
 
 def mask_bbox(mask: torch.Tensor, pad: int = 0) -> tuple[int, int, int, int]:
@@ -248,13 +268,14 @@ class LPIPS(nn.Module):
     def forward(self, pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
         p, single = _batched(pred, "pred")
         g, _ = _batched(gt, "gt")
-        x = (p.float().permute(0, 3, 1, 2) * 2 - 1 - self.shift) / self.scale
-        y = (g.float().permute(0, 3, 1, 2) * 2 - 1 - self.shift) / self.scale
+        x = (p.to(self.shift).permute(0, 3, 1, 2) * 2 - 1 - self.shift) / self.scale  # the network's dtype
+        y = (g.to(self.shift).permute(0, 3, 1, 2) * 2 - 1 - self.shift) / self.scale
         total = 0.0
-        for lin, fx, fy in zip(self.lins, self._taps(x), self._taps(y)):
-            nx = fx / (fx.pow(2).sum(1, keepdim=True).sqrt() + 1e-10)
-            ny = fy / (fy.pow(2).sum(1, keepdim=True).sqrt() + 1e-10)
-            total = total + lin((nx - ny) ** 2).mean((1, 2, 3))
+        with no_tf32():
+            for lin, fx, fy in zip(self.lins, self._taps(x), self._taps(y)):
+                nx = fx / (fx.pow(2).sum(1, keepdim=True).sqrt() + 1e-10)
+                ny = fy / (fy.pow(2).sum(1, keepdim=True).sqrt() + 1e-10)
+                total = total + lin((nx - ny) ** 2).mean((1, 2, 3))
         return total[0] if single else total
 
 

@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
+import logging
 import sys
-import time
 import warnings
 from pathlib import Path
 
@@ -14,39 +14,91 @@ from omegaconf import DictConfig, OmegaConf
 
 from realityavatar.config import choices_of, config_dir
 
+log = logging.getLogger(__name__)
+
 
 # Lightning notices that do not apply here: density control needs manual optimisation, and there is no val loop.
 for _msg in (".*pre-optimization state.*", ".*`validation_step`.*", ".*LeafSpec.*", ".*is not empty.*", ".*litlogger.*",
-             ".*does not have many workers.*"):
+             ".*does not have many workers.*", ".*overridden `on_after_batch_transfer`.*"):
     warnings.filterwarnings("ignore", message=_msg)
 
 
 def run(cfg: DictConfig, choices: dict | None = None) -> dict:
-    """Fit one avatar and evaluate it; returns the metrics that were written to <out_dir>/metrics.json."""
+    """Fit one avatar and evaluate it; returns the metrics that were written to <out_dir>/metrics.json.
+
+    Order, so that a failure loses nothing that exists: settings are checked, the run folder is claimed (a folder
+    holding another run refuses unless resume=true or overwrite=true), data and images are validated, and only then
+    is config.yaml written and training started. After training, last.ckpt and metrics.json (training facts) are
+    written first; evaluation adds to metrics.json and its failures are recorded there and raised at the end.
+    """
+    from realityavatar.config import check_settings
+    from realityavatar.runs import claim_run_dir, read_checkpoint, restore_hydra_record, run_lock
+
+    check_settings(cfg)
+    out_dir = Path(cfg.out_dir)
+    owned = {"folder": False}
+    with run_lock(out_dir):
+        try:
+            resume_from = claim_run_dir(out_dir, cfg)
+            prior = read_checkpoint(resume_from) if resume_from is not None else None
+            return _run(cfg, choices, out_dir, resume_from, prior, owned)
+        except BaseException:
+            if not owned["folder"]:  # failed before taking the folder: leave the previous run's record as it was
+                restore_hydra_record(out_dir)
+            raise
+
+
+def _run(cfg: DictConfig, choices: dict | None, out_dir: Path, resume_from: Path | None, prior: dict | None,
+         owned: dict) -> dict:
     from hydra.utils import instantiate
     from pytorch_lightning.callbacks import ModelCheckpoint
     from pytorch_lightning.loggers import CSVLogger, TensorBoardLogger
 
     from realityavatar.build import CKPT_NAME, build_data, build_module, git_commit, write_json
     from realityavatar.evaluate import evaluate_module, format_table
+    from realityavatar.model.module import check_single_process
+    from realityavatar.runs import (
+        RunState,
+        clear_run_outputs,
+        keep_hydra_record,
+        previous_log_rows,
+        seed_csv_log,
+    )
 
     pl.seed_everything(int(cfg.seed), workers=True)
     if cfg.get("threads"):
         torch.set_num_threads(int(cfg.threads))
-    out_dir = Path(cfg.out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    # The resolved config beside the checkpoint is what evaluate/animate/export rebuild the run from.
-    OmegaConf.save(cfg, out_dir / "config.yaml", resolve=True)
     body = instantiate(cfg.body)
-    dm = build_data(cfg, body)
-    module = build_module(cfg, body, dm.num_train_frames, dm.scene_extent)
+    dm = build_data(cfg, body)  # checks every image and mask of the selected splits
+    module = build_module(cfg, body, dm.num_train_frames, dm.scene_extent, data=dm)
     module.run_info.update(num_train_frames=dm.num_train_frames, train_frame_ids=list(map(int, dm.train_frame_ids)))
-    ckpt_cb = ModelCheckpoint(dirpath=out_dir, filename=Path(CKPT_NAME).stem, save_last=False, every_n_train_steps=max(int(cfg.iterations) // 4, 1), save_top_k=1, enable_version_counter=False)
-    loggers = [CSVLogger(out_dir / "logs", name="csv", version=""), TensorBoardLogger(out_dir / "logs", name="tb", version="")]
-    trainer = instantiate(cfg.trainer, callbacks=[ckpt_cb], logger=loggers)
-    t0 = time.perf_counter()
-    trainer.fit(module, datamodule=dm, ckpt_path=cfg.get("ckpt_path"))
-    train_seconds = time.perf_counter() - t0
+    # The run is valid: take the folder. The resolved config beside the checkpoint is what evaluate/animate/export
+    # rebuild the run from.
+    if cfg.get("overwrite") and resume_from is None:
+        removed = clear_run_outputs(out_dir)
+        if removed:
+            log.warning("overwrite=true: removed the previous run's %s from %s", ", ".join(removed), out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    OmegaConf.save(cfg, out_dir / "config.yaml", resolve=True)
+    keep_hydra_record(out_dir)
+    owned["folder"] = True
+    every = max(int(cfg.iterations) // 4, 1)
+    ckpt_cb = ModelCheckpoint(dirpath=out_dir, filename=Path(CKPT_NAME).stem, save_last=False, every_n_train_steps=every, save_top_k=1, enable_version_counter=False)
+    state = RunState()
+    csv_logger = CSVLogger(out_dir / "logs", name="csv", version="", flush_logs_every_n_steps=every)
+    seed_csv_log(csv_logger, previous_log_rows(resume_from, int(prior["global_step"])) if prior else [])
+    loggers = [csv_logger, TensorBoardLogger(out_dir / "logs", name="tb", version="")]
+    trainer = instantiate(cfg.trainer, callbacks=[state, ckpt_cb], logger=loggers)
+    check_single_process(trainer)  # before fit: a DDP launch would start the other ranks
+    try:
+        trainer.fit(module, datamodule=dm, ckpt_path=str(resume_from) if resume_from else None)
+    except SystemExit:
+        if trainer.interrupted:  # Lightning turns a KeyboardInterrupt inside a step into exit(1)
+            _interrupted(out_dir, trainer, saved=False)
+        raise
+    if state.interrupted:  # Ctrl-C: stopped cleanly after a step
+        trainer.save_checkpoint(out_dir / CKPT_NAME)
+        _interrupted(out_dir, trainer, saved=True)
     choices = choices if choices is not None else choices_of(cfg)
     header = {
         "config": choices,
@@ -54,24 +106,61 @@ def run(cfg: DictConfig, choices: dict | None = None) -> dict:
         "seed": int(cfg.seed),
         "commit": git_commit(),
         "scene": getattr(dm, "sequence", None),
-        "train_seconds": train_seconds,
+        "train_seconds": state.train_seconds(),
         "iterations": int(trainer.global_step),
         "num_gaussians": int(module.gaussians.num_points),
         "num_parameters": module.num_parameters(),
         "perceptual": getattr(module.loss_fn, "perceptual_kind", "unknown"),
         "lpips": module.lpips_status,
-        "device": str(module.device),
-        "backend": cfg.render.get("backend", "auto"),
+        # From a real training render: Lightning's teardown has moved the module back to the CPU by now, and gsplat
+        # may have fallen back to torch.
+        "device": module.run_info.get("render", {}).get("device", module.run_info.get("device", str(module.device))),
+        "backend": module.run_info.get("render", {}).get("backend", "none (no training step ran)"),
+        "backend_configured": cfg.render.get("backend", "auto"),
     }
+    if prior is not None:
+        header["resumed_from"] = {"checkpoint": str(resume_from), "step": int(prior["global_step"])}
     module.run_info["metrics_header"] = header
     trainer.save_checkpoint(out_dir / CKPT_NAME)
+    # Training results first: whatever happens during evaluation, the run's facts are on disk.
     metrics = dict(header)
-    if cfg.get("test_after_fit", True):
-        metrics.update(evaluate_module(module, dm, trainer, cfg, out_dir))
+    metrics["evaluation"] = "pending" if cfg.get("test_after_fit", True) else "skipped (test_after_fit=false)"
     write_json(out_dir / "metrics.json", metrics)
+    if cfg.get("test_after_fit", True):
+        try:
+            metrics.update(evaluate_module(module, dm, trainer, cfg, out_dir))
+        except Exception as e:  # noqa: BLE001 - recorded, then raised below
+            metrics.setdefault("evaluation_errors", {})["evaluate"] = f"{type(e).__name__}: {e}"
+        metrics["evaluation"] = "failed" if metrics.get("evaluation_errors") else "done"
+        write_json(out_dir / "metrics.json", metrics)
     print(format_table(metrics))
     print(f"run folder: {out_dir}  (metrics.json, {CKPT_NAME}, per_frame.csv, images/, videos/, logs/)")
+    if metrics.get("evaluation_errors"):
+        errs = "; ".join(f"{k}: {v}" for k, v in metrics["evaluation_errors"].items())
+        raise EvaluationError(f"training finished but evaluation failed ({errs}); the training results are kept in "
+                              f"{out_dir / 'metrics.json'} and {out_dir / CKPT_NAME}; re-evaluate with "
+                              f"`realityavatar-evaluate run_dir={out_dir}`")
     return metrics
+
+
+class EvaluationError(RuntimeError):
+    """Evaluation after training failed; metrics.json holds the training facts and whatever evaluation produced."""
+
+
+def _interrupted(out_dir: Path, trainer, saved: bool) -> None:
+    from realityavatar.build import CKPT_NAME
+
+    ckpt = out_dir / CKPT_NAME
+    if ckpt.is_file():
+        from realityavatar.runs import read_checkpoint
+
+        step = read_checkpoint(ckpt)["global_step"] if not saved else trainer.global_step
+        print(f"interrupted at step {trainer.global_step}; checkpoint kept: {ckpt} (step {step}). Continue with "
+              f"`realityavatar-train hydra.run.dir={out_dir} resume=true` and the same settings", file=sys.stderr)
+    else:
+        print(f"interrupted at step {trainer.global_step}, before the first checkpoint: nothing to resume in {out_dir}",
+              file=sys.stderr)
+    raise SystemExit(130)
 
 
 @hydra.main(config_path=config_dir(), config_name="train", version_base="1.3")
@@ -88,9 +177,9 @@ def _hydra_main(cfg: DictConfig) -> float | None:
 def main() -> None:
     try:
         _hydra_main()
-    except KeyboardInterrupt:
+    except KeyboardInterrupt:  # outside a training step (set-up, evaluation)
         print("interrupted; the last checkpoint and logs are kept", file=sys.stderr)
-        raise SystemExit(130)
+        raise SystemExit(130) from None
 
 
 if __name__ == "__main__":

@@ -41,9 +41,10 @@ def check_pose(pose: torch.Tensor, transl: torch.Tensor | None, where: str = "po
             raise ValueError(f"{where}: translation has non-finite values (NaN/inf)")
 
 
-def canonical_pose(dtype=torch.float32, leg_angle_deg: float = 30.0, arm_angle_deg: float = 0.0) -> torch.Tensor:
+def canonical_pose(dtype=torch.float32, leg_angle_deg: float = 30.0, arm_angle_deg: float = 0.0,
+                   device: torch.device | str | None = None) -> torch.Tensor:
     """Star/A pose [24,3]: legs rotated apart about the forward (z) axis so the inner thighs separate."""
-    pose = torch.zeros(NUM_JOINTS, 3, dtype=dtype)
+    pose = torch.zeros(NUM_JOINTS, 3, dtype=dtype, device=device)
     a = math.radians(leg_angle_deg)
     pose[1, 2] = a  # left hip
     pose[2, 2] = -a  # right hip
@@ -127,7 +128,8 @@ class BodyModel(nn.Module):
         return self.lbs(self.rest_vertices.to(pose.dtype), self.skin_weights.to(pose.dtype), A)
 
     def canonical_pose(self) -> torch.Tensor:
-        return canonical_pose()
+        """[24,3] on the body's device and in its dtype (Lightning moves the buffers before on_fit_start)."""
+        return canonical_pose(dtype=self.rest_joints.dtype, device=self.rest_joints.device)
 
     def canonical_vertices(self) -> torch.Tensor:
         return self.posed_vertices(self.canonical_pose())

@@ -16,7 +16,14 @@ import torch
 from torch.utils.data import DataLoader, Dataset
 
 from realityavatar.data.poses import PoseTable
-from realityavatar.data.records import SPLITS, ImageRecord, SceneData, image_size, load_record
+from realityavatar.data.records import (
+    SPLITS,
+    ImageRecord,
+    SceneData,
+    SceneFormatError,
+    image_size,
+    load_record,
+)
 
 log = logging.getLogger(__name__)
 READERS = ("i3d", "zju")
@@ -83,6 +90,53 @@ class AvatarDataset(Dataset):
         }
 
 
+class EpochShuffle(torch.utils.data.Sampler):
+    """Random order that depends only on (seed, epoch), with a position: a resumed run continues the epoch it
+    stopped in with the samples it had not seen yet, in the order the uninterrupted run would have used."""
+
+    def __init__(self, n: int, seed: int) -> None:
+        self.n, self.seed = int(n), int(seed)
+        self.epoch, self.consumed = 0, 0  # consumed: samples of `epoch` already handed out
+
+    def set_epoch(self, epoch: int) -> None:  # Lightning calls this at every epoch start
+        if int(epoch) != self.epoch:
+            self.epoch, self.consumed = int(epoch), 0
+
+    def __len__(self) -> int:
+        return self.n
+
+    def __iter__(self):
+        if self.consumed >= self.n:  # the previous pass finished without set_epoch: next epoch
+            self.epoch, self.consumed = self.epoch + 1, 0
+        g = torch.Generator().manual_seed(self.seed * 1_000_003 + self.epoch)
+        order = torch.randperm(self.n, generator=g).tolist()
+        while self.consumed < self.n:
+            i = order[self.consumed]
+            self.consumed += 1
+            yield i
+
+    def state_dict(self) -> dict:
+        return {"epoch": self.epoch, "consumed": self.consumed, "n": self.n, "seed": self.seed}
+
+    def load_state_dict(self, state: dict) -> None:
+        if state.get("n") != self.n or state.get("seed") != self.seed:
+            log.warning("training data changed since the checkpoint (%s samples, seed %s, now %s, %s): the resumed "
+                        "epoch starts over", state.get("n"), state.get("seed"), self.n, self.seed)
+            return
+        self.epoch, self.consumed = int(state["epoch"]), int(state["consumed"])
+
+
+class ResumableLoader(DataLoader):
+    """A DataLoader whose position Lightning saves in the checkpoint and restores on resume (its sampler's state)."""
+
+    def state_dict(self) -> dict:
+        return self.sampler.state_dict() if hasattr(self.sampler, "state_dict") else {}
+
+    def load_state_dict(self, state: dict) -> None:
+        if state and hasattr(self.sampler, "load_state_dict"):
+            self.sampler.load_state_dict(state)
+
+
 class AvatarDataModule(pl.LightningDataModule):
     """Train / val (a few novel-view images) / test ([novel_view, novel_pose]) loaders over one sequence.
 
@@ -123,6 +177,8 @@ class AvatarDataModule(pl.LightningDataModule):
         zju_train_frames: Sequence[int] = (0, 0, 1),
         zju_novel_view_frames: Sequence[int] | None = None,
         zju_novel_pose_frames: Sequence[int] | None = None,
+        check_images: bool = True,
+        shuffle_seed: int | None = None,
     ) -> None:
         super().__init__()
         if reader not in READERS:
@@ -131,6 +187,10 @@ class AvatarDataModule(pl.LightningDataModule):
             raise ValueError(f"data.window_len must be >= 1 and data.window_step >= 0, got {window_len}, {window_step}")
         if frame_subsample < 1 or train_frame_subsample < 1:
             raise ValueError("data.frame_subsample and data.train_frame_subsample must be >= 1")
+        if not (isinstance(image_scale, (int, float)) and 0 < float(image_scale) < float("inf")):
+            raise ValueError(f"data.image_scale must be a number > 0 (1.0 = full resolution), got {image_scale!r}")
+        if max_train_frames is not None and int(max_train_frames) < 1:
+            raise ValueError(f"data.max_train_frames must be null or >= 1, got {max_train_frames!r}")
         self.root, self.sequence, self.reader = str(root), str(sequence), reader
         self.train_views = None if train_views is None else [int(v) for v in train_views]
         self.test_views = None if test_views is None else [int(v) for v in test_views]
@@ -152,6 +212,8 @@ class AvatarDataModule(pl.LightningDataModule):
             "novel_view": None if zju_novel_view_frames is None else list(zju_novel_view_frames),
             "novel_pose": None if zju_novel_pose_frames is None else list(zju_novel_pose_frames),
         }
+        self.check_images = bool(check_images)
+        self.shuffle_seed = shuffle_seed  # None: torch.initial_seed() at set-up (the run's seed_everything seed)
         self.scene: SceneData | None = None
         self.datasets: dict[str, AvatarDataset] = {}
         self.test_split_names: list[str] = []
@@ -243,6 +305,10 @@ class AvatarDataModule(pl.LightningDataModule):
               "cache_images": self.cache_images}
         self.datasets = {s: AvatarDataset(recs, scene.poses, s, **kw) for s, recs in selected.items() if recs}
         self.test_split_names = [s for s in ("novel_view", "novel_pose") if s in self.datasets]
+        if self.shuffle_seed is None:
+            self.shuffle_seed = int(torch.initial_seed()) % (2**31)
+        if self.check_images:
+            self._check_images()
         if not self.test_split_names:
             log.warning("%s: no novel_view or novel_pose images; testing is skipped", scene.source)
         log.info(
@@ -250,6 +316,40 @@ class AvatarDataModule(pl.LightningDataModule):
             ", ".join(f"{s} {len(d)} images" for s, d in self.datasets.items()), self.num_train_frames,
             self.width, self.height, self.scene_extent,
         )
+
+    def _check_images(self) -> None:
+        """Decode every image and mask of the selected splits before training (kept in memory with cache_images),
+        so a corrupt, missing or wrongly sized file stops the run before step 0; all problems are listed together."""
+        import time
+
+        t0 = time.perf_counter()
+        problems: list[str] = []
+        sizes: dict[int, tuple[tuple[int, int], Path]] = {}  # camera -> decoded (H, W) and the first file
+        n = 0
+        for split, ds in self.datasets.items():
+            for i, rec in enumerate(ds.records):
+                try:
+                    img, _, _ = ds._decoded(i)
+                except (OSError, ValueError) as e:
+                    problems.append(f"{split}: {e}")
+                    continue
+                n += 1
+                hw = tuple(img.shape[:2])
+                first = sizes.setdefault(rec.view, (hw, rec.image_path))
+                if first[0] != hw:
+                    problems.append(f"{split}: image {rec.image_path} is {hw[1]}x{hw[0]} (at data.image_scale "
+                                    f"{self.image_scale}) but camera {rec.view}'s images are {first[0][1]}x"
+                                    f"{first[0][0]} ({first[1]})")
+        seconds = time.perf_counter() - t0
+        if problems:
+            source = self.scene.source
+            self.scene, self.datasets, self.test_split_names = None, {}, []  # a later setup() reads again
+            more = f" (and {len(problems) - 20} more)" if len(problems) > 20 else ""
+            raise SceneFormatError(f"{source}: {len(problems)} bad image/mask file(s) in the selected "
+                                   f"splits{more}:\n  " + "\n  ".join(problems[:20]))
+        log.info("checked %d images and masks of %s in %.1f s (decodable, sizes match)%s", n,
+                 ", ".join(self.datasets), seconds, "; kept in memory" if self.cache_images else "")
+        self.image_check_seconds = seconds
 
     @staticmethod
     def _extent(train: list[ImageRecord], poses: PoseTable) -> float:
@@ -262,8 +362,15 @@ class AvatarDataModule(pl.LightningDataModule):
     # ------------------------------------------------------------------ loaders
 
     def _loader(self, ds: Dataset, shuffle: bool) -> DataLoader:
-        return DataLoader(ds, batch_size=self.batch_size, shuffle=shuffle, num_workers=self.num_workers,
-                          persistent_workers=self.num_workers > 0, drop_last=False)
+        # Own generator: creating a loader's iterator draws a base seed, which must not move the global RNG (a
+        # resumed run restores that RNG and must see the same stream as the uninterrupted run).
+        gen = torch.Generator().manual_seed(int(self.shuffle_seed or 0))
+        if shuffle:
+            return ResumableLoader(ds, batch_size=self.batch_size, sampler=EpochShuffle(len(ds), self.shuffle_seed or 0),
+                                   num_workers=self.num_workers, persistent_workers=self.num_workers > 0,
+                                   drop_last=False, generator=gen)
+        return DataLoader(ds, batch_size=self.batch_size, shuffle=False, num_workers=self.num_workers,
+                          persistent_workers=self.num_workers > 0, drop_last=False, generator=gen)
 
     def _require(self, split: str) -> AvatarDataset:
         if not self.datasets:

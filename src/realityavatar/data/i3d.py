@@ -159,5 +159,13 @@ def read_i3d(root: str | Path, sequence: str, pelvis: torch.Tensor | None = None
         records, table = read_split(folder, split, pelvis)
         splits[split] = records
         tables.append(table)
-    return SceneData(splits=splits, poses=PoseTable.union(tables), source=str(root / sequence),
-                     meta={"reader": "i3d", "pelvis": pelvis.float().tolist()})
+    meta = {"reader": "i3d", "pelvis": pelvis.float().tolist()}
+    scene_meta = root / f"{sequence}-meta.json"  # written by the synthetic scene generator (motion events, fps)
+    if scene_meta.is_file():
+        import json
+
+        try:
+            meta.update({k: v for k, v in json.loads(scene_meta.read_text()).items() if k not in meta})
+        except json.JSONDecodeError as e:
+            raise SceneFormatError(f"{scene_meta}: not valid JSON ({e})") from e
+    return SceneData(splits=splits, poses=PoseTable.union(tables), source=str(root / sequence), meta=meta)

@@ -9,7 +9,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from realityavatar.geometry import quat_multiply
+from realityavatar.geometry import quat_multiply, quat_to_matrix
 from realityavatar.model.skinning import FrequencyEncoding
 
 # Spatial-hash primes of Instant-NGP (Müller et al. 2022); the first is 1 so the x axis stays coherent.
@@ -187,3 +187,77 @@ def apply_deformation(
     log_s_e = log_scales + out["ds"]
     q_e = F.normalize(quat_multiply(out["dq"], F.normalize(quats, dim=-1).expand_as(out["dq"])), dim=-1)
     return x_e, log_s_e, q_e
+
+
+def farthest_points(points: torch.Tensor, k: int, seed: int = 0) -> torch.Tensor:
+    """Indices [k] of a farthest-point sample of points [P,3] (deterministic for a seed)."""
+    P = points.shape[0]
+    k = min(k, P)
+    gen = torch.Generator().manual_seed(seed)
+    idx = torch.empty(k, dtype=torch.long)
+    idx[0] = torch.randint(0, P, (1,), generator=gen)
+    d = (points - points[idx[0]]).square().sum(-1)
+    for i in range(1, k):
+        idx[i] = d.argmax()
+        d = torch.minimum(d, (points - points[idx[i]]).square().sum(-1))
+    return idx.to(points.device)
+
+
+class NodeDeformer(MotionTrendDecoder):
+    """Motion-trend decoder on a deformation graph (embedded deformation, as in DDC; latent bones in GART).
+
+    The decoder runs on `num_nodes` nodes g_j (a farthest-point sample of the initial canonical Gaussians, stored
+    with the checkpoint) instead of every Gaussian: enc(g_j) ⊕ h_t -> rotation R_j (axis-angle), translation t_j,
+    Δs_j, f_mt_j. A Gaussian at x blends its `k` nearest nodes with w_j ∝ exp(-|x-g_j|²/2σ²) (σ = `radius` x
+    the mean node spacing): x_e = Σ w_j (R_j (x - g_j) + g_j + t_j), Δq = normalised Σ w_j q_j, Δs and f_mt
+    blended likewise. One supervised hem pixel moves its whole neighbourhood coherently, and the MLP cost no
+    longer grows with the Gaussian count. Starts at the identity (zero rotation and translation).
+    """
+
+    def __init__(self, num_nodes: int = 256, k: int = 4, radius: float = 1.0, **kwargs) -> None:
+        super().__init__(**kwargs)
+        if num_nodes < 1 or k < 1:
+            raise ValueError(f"deformer.num_nodes and deformer.k must be >= 1, got {num_nodes}, {k}")
+        self.num_nodes, self.k, self.radius = int(num_nodes), int(k), float(radius)
+        self.register_buffer("nodes", torch.zeros(self.num_nodes, 3))  # [K,3] canonical node positions
+        self.register_buffer("sigma", torch.tensor(1.0))
+        self.register_buffer("nodes_fitted", torch.tensor(0, dtype=torch.uint8))
+
+    @torch.no_grad()
+    def fit_nodes(self, points: torch.Tensor) -> None:
+        """Place the nodes on a farthest-point sample of points [P,3]; σ from the mean nearest-node spacing."""
+        idx = farthest_points(points.detach().float().cpu(), self.num_nodes).to(points.device)
+        nodes = points.detach()[idx].to(self.nodes)
+        self.nodes.zero_()
+        self.nodes[: nodes.shape[0]] = nodes
+        if nodes.shape[0] < self.num_nodes:  # fewer points than nodes: repeat the last (never nearest twice)
+            self.nodes[nodes.shape[0]:] = nodes[-1]
+        d = torch.cdist(nodes, nodes) + torch.eye(nodes.shape[0], device=nodes.device, dtype=nodes.dtype) * 1e9
+        spacing = d.min(1).values.mean() if nodes.shape[0] > 1 else nodes.new_tensor(0.05)
+        self.sigma.fill_(float(spacing) * self.radius)
+        self.nodes_fitted.fill_(1)
+
+    def forward(self, x_c: torch.Tensor, h_t: torch.Tensor) -> dict[str, torch.Tensor]:
+        """x_c [N,3], h_t [B,H] -> dict(dx [B,N,3], ds [B,N,3], dq [B,N,4], f_mt [B,N,F])."""
+        if not bool(self.nodes_fitted):
+            self.fit_nodes(x_c)
+        return self.blend(x_c, super().forward(self.nodes, h_t))
+
+    def blend(self, x_c: torch.Tensor, node_out: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """Per-node outputs (dx = t_j [B,K,3], ds [B,K,3], dq unit [B,K,4], f_mt [B,K,F]) -> per-Gaussian outputs."""
+        # k nearest nodes of every Gaussian and their normalised RBF weights (distances carry no gradient to x_c:
+        # the graph moves Gaussians, it is not moved by them).
+        d2 = torch.cdist(x_c.detach(), self.nodes).square()  # [N,K]
+        d2k, nn_idx = d2.topk(min(self.k, self.num_nodes), dim=1, largest=False)  # [N,k]
+        w = torch.softmax(-d2k / (2 * self.sigma**2), dim=1)  # [N,k]
+        g = self.nodes[nn_idx]  # [N,k,3]
+        dq = node_out["dq"][:, nn_idx]  # [B,N,k,4]
+        R = quat_to_matrix(dq)  # [B,N,k,3,3]
+        local = (x_c[:, None, :] - g)[None, ..., None]  # [1,N,k,3,1]
+        moved = (R @ local).squeeze(-1) + g[None] + node_out["dx"][:, nn_idx]  # [B,N,k,3]
+        x_e = (w[None, ..., None] * moved).sum(2)  # [B,N,3]
+        blend = lambda v: (w[None, ..., None] * v[:, nn_idx]).sum(2)  # noqa: E731  [B,K,D] -> [B,N,D]
+        # Quaternions: align signs with the first neighbour's before averaging.
+        sign = torch.sign((dq * dq[:, :, :1]).sum(-1, keepdim=True)).clamp(min=0) * 2 - 1
+        q = F.normalize((w[None, ..., None] * dq * sign).sum(2), dim=-1)
+        return {"dx": x_e - x_c, "ds": blend(node_out["ds"]), "dq": q, "f_mt": blend(node_out["f_mt"])}

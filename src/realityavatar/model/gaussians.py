@@ -47,7 +47,7 @@ class CanonicalGaussians(nn.Module):
         gen = torch.Generator().manual_seed(seed)
         verts = body.canonical_vertices().detach().float().cpu()  # [V,3]
         faces = body.faces.cpu()
-        points, _ = sample_surface(verts, faces, None, num_points, gen)  # [N,3]
+        points = self.initial_points(body, num_points, gen)  # [N,3]
         if init_scale is None:
             # Uniform samples with density N/A lie about 0.5*sqrt(A/N) from their nearest neighbour.
             tri = verts[faces]
@@ -62,6 +62,11 @@ class CanonicalGaussians(nn.Module):
         self.opacity_logits = nn.Parameter(torch.full((num_points,), float(inverse_sigmoid(torch.tensor(init_opacity)))))
         self.features = nn.Parameter(torch.randn(num_points, feature_dim, generator=gen) * feature_init_std)
         self.register_load_state_dict_pre_hook(self._resize_to_checkpoint)
+
+    def initial_points(self, body: BodyModel, n: int, gen: torch.Generator) -> torch.Tensor:
+        """n uniform samples [n,3] on the body's canonical-pose surface."""
+        verts = body.canonical_vertices().detach().float().cpu()
+        return sample_surface(verts, body.faces.cpu(), None, n, gen)[0]
 
     @property
     def num_points(self) -> int:
@@ -117,3 +122,37 @@ class CanonicalGaussians(nn.Module):
 
     def extra_repr(self) -> str:
         return f"num_points={self.num_points}, feature_dim={self.feature_dim}"
+
+
+class HullGaussians(CanonicalGaussians):
+    """Canonical Gaussians seeded on the body surface and on the garment: a fraction `garment_fraction` of them
+    starts on the part of a rest frame's visual hull (carved from the training masks) that lies away from the
+    body, brought to canonical space by inverse LBS with the nearest body vertex's weights (cf. Animatable
+    Gaussians' template, 4K4D's visual-hull initialisation). Without `views` (a run rebuilt from its
+    checkpoint) it samples the body surface only; the checkpoint's values replace them.
+    """
+
+    NEEDS_VIEWS = True  # build_module passes the DataModule's hull views
+
+    def __init__(self, body: BodyModel, views=None, garment_fraction: float = 0.3, hull_frame: int | None = None,
+                 hull_voxel: float = 0.015, min_body_distance: float = 0.02, max_body_distance: float = 0.6,
+                 exclude_bones: tuple[int, ...] = (), **kwargs) -> None:
+        if not 0.0 <= garment_fraction < 1.0:
+            raise ValueError(f"gaussians.garment_fraction: expected a value in [0,1), got {garment_fraction}")
+        if hull_voxel <= 0:
+            raise ValueError(f"gaussians.hull_voxel: expected a positive size in metres, got {hull_voxel}")
+        self._hull_args = (views, garment_fraction, hull_voxel, min_body_distance, max_body_distance,
+                           tuple(int(b) for b in exclude_bones))
+        self.num_garment_points = 0
+        super().__init__(body, **kwargs)
+        self.garment_fraction, self.hull_frame = garment_fraction, hull_frame  # hull_frame: read by build_module
+
+    def initial_points(self, body: BodyModel, n: int, gen: torch.Generator) -> torch.Tensor:
+        from realityavatar.model.hull import garment_points
+
+        views, frac, voxel, dmin, dmax, exclude = self._hull_args
+        if views is None or frac <= 0:
+            return super().initial_points(body, n, gen)
+        garment = garment_points(body, views, int(round(frac * n)), voxel, dmin, dmax, exclude, generator=gen)
+        self.num_garment_points = int(garment.shape[0])
+        return torch.cat([super().initial_points(body, n - garment.shape[0], gen), garment])

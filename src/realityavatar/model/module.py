@@ -57,6 +57,7 @@ class AvatarModule(pl.LightningModule):
         scene_extent: float = 1.0,
         skin_samples: int = 1024,
         lpips: nn.Module | None = None,
+        silhouette: nn.Module | None = None,
     ):
         super().__init__()
         self.automatic_optimization = False  # density control edits parameters between optimizer steps
@@ -69,6 +70,7 @@ class AvatarModule(pl.LightningModule):
         self.color = color
         self.density = density
         self.loss_fn = loss
+        self.silhouette = silhouette
         self.optimizer_factory = optimizer
         self.lr = dict(lr)
         self.final_factor = dict(final_factor)
@@ -146,10 +148,20 @@ class AvatarModule(pl.LightningModule):
         return torch.stack(images), torch.stack(alphas), metas, posed
 
     # ------------------------------------------------------------------ training
+    def setup(self, stage: str) -> None:
+        check_single_process(self.trainer)
+
+    def on_after_batch_transfer(self, batch: Any, dataloader_idx: int) -> Any:
+        """Floating-point batch tensors take the module's dtype (float32 images feed a float64 module)."""
+        return {k: v.to(self.dtype) if torch.is_tensor(v) and v.is_floating_point() else v for k, v in batch.items()}
+
     def on_fit_start(self) -> None:
+        self.run_info["device"] = str(self.device)  # Lightning's teardown moves the module back to the CPU
         # A skinning field learnt from scratch at the paper's small LR is still far from the body's weights after a
         # short CPU run, which blurs every frame; a few hundred cheap steps on surface samples fix that up front.
-        if self.global_step == 0 and self.schedule.skin_pretrain_steps > 0:
+        # Once per run: a resumed run restores run_info["skin_pretrain"] from its checkpoint (on_load_checkpoint runs
+        # before this hook, while global_step is still 0) and keeps the checkpoint's skinning weights.
+        if "skin_pretrain" not in self.run_info and self.schedule.skin_pretrain_steps > 0:
             t0 = time.perf_counter()
             loss = pretrain_skinning(
                 self.skinning, self.body.canonical_vertices().detach(), self.body.faces, self.body.skin_weights,
@@ -159,13 +171,13 @@ class AvatarModule(pl.LightningModule):
                                               "seconds": time.perf_counter() - t0}
 
     def _skin_targets(self):
-        if self._surface is None:
+        if self._surface is None or self._surface[0].device != self.device or self._surface[0].dtype != self.dtype:
             gen = torch.Generator().manual_seed(1234)
             verts = self.body.canonical_vertices().detach()
             self._surface = sample_surface(verts, self.body.faces, self.body.skin_weights, 20 * self.skin_samples, gen)
-        pts, w = self._surface
-        idx = torch.randint(0, pts.shape[0], (self.skin_samples,))
-        return pts[idx].to(self.device), w[idx].to(self.device)
+        pts, w = self._surface  # on the body's device, in its dtype
+        idx = torch.randint(0, pts.shape[0], (self.skin_samples,), device=pts.device)
+        return pts[idx], w[idx]
 
     def training_step(self, batch, batch_idx):
         step = self.global_step
@@ -178,6 +190,15 @@ class AvatarModule(pl.LightningModule):
             rgb, alpha, batch["image"], batch["mask"], skinning=self.skinning, skin_points=skin_pts,
             skin_weights=skin_w, step=step,
         )
+        if self.silhouette is not None:
+            sil: dict[str, torch.Tensor] = {}
+            for b in range(rgb.shape[0]):
+                for k, v in self.silhouette(posed["means"][b], batch["viewmat"][b], batch["K"][b], batch["mask"][b],
+                                            alpha[b]).items():
+                    sil[k] = sil.get(k, 0.0) + v / rgb.shape[0]
+            if sil:
+                total = total + self.silhouette.total(sil)
+                terms.update({k: v.detach() for k, v in sil.items()})
         if not torch.isfinite(total):
             raise FloatingPointError(f"training loss became non-finite at step {step}: {terms}")
         self.manual_backward(total)
@@ -187,6 +208,8 @@ class AvatarModule(pl.LightningModule):
         opt.step()
         sched.step()
         H, W = rgb.shape[1:3]
+        # What actually rendered (gsplat may have fallen back to torch), reported in metrics.json.
+        self.run_info["render"] = {"backend": metas[0]["backend"], "device": str(rgb.device), "dtype": str(rgb.dtype)}
         stats = self.density.step_post_backward(self.gaussians, opt.optimizer if hasattr(opt, "optimizer") else opt, metas, step, (W, H))
         bs = rgb.shape[0]
         self.log("train/loss", total.detach(), prog_bar=True, batch_size=bs)
@@ -230,10 +253,15 @@ class AvatarModule(pl.LightningModule):
     def on_load_checkpoint(self, checkpoint: dict) -> None:
         if checkpoint.get("density_state") and hasattr(self.density, "load_state_dict"):
             self.density.load_state_dict(checkpoint["density_state"])
+        saved = checkpoint.get("realityavatar", {})
+        if "skin_pretrain" in saved:  # done in an earlier part of this run (or checkpoint without a pre-fit: none)
+            self.run_info["skin_pretrain"] = saved["skin_pretrain"]
+        elif checkpoint.get("global_step", 0) > 0:
+            self.run_info["skin_pretrain"] = {"steps": 0, "note": "checkpoint predates pre-fit records; not repeated"}
 
     # ------------------------------------------------------------------ evaluation
     def test_step(self, batch, batch_idx, dataloader_idx: int = 0):
-        from realityavatar.metrics import masked_bbox, psnr, ssim
+        from realityavatar.metrics import masked_bbox, psnr, silhouette_iou, ssim
 
         split = batch["split"][0]
         with torch.no_grad():
@@ -248,6 +276,7 @@ class AvatarModule(pl.LightningModule):
                 "psnr": float(psnr(pred, gt)),
                 "ssim": float(ssim(pred, gt)),
             }
+            rec["iou"] = float(silhouette_iou(alpha[b], mask))
             pb, gb = masked_bbox(pred, gt, mask)
             rec["psnr_masked"] = float(psnr(pb, gb))
             rec["ssim_masked"] = float(ssim(pb, gb))
@@ -255,7 +284,7 @@ class AvatarModule(pl.LightningModule):
                 rec["lpips"] = float(self.lpips(pred, gt)) * 1000.0
                 rec["lpips_masked"] = float(self.lpips(pb, gb)) * 1000.0
             self.test_records.append({**rec, "_pred": pred.cpu(), "_gt": gt.cpu()})
-            for k in ("psnr", "ssim", "psnr_masked", "ssim_masked", "lpips", "lpips_masked"):
+            for k in ("psnr", "ssim", "iou", "psnr_masked", "ssim_masked", "lpips", "lpips_masked"):
                 if k in rec:
                     self.log(f"test/{split}/{k}", rec[k], add_dataloader_idx=False, batch_size=1)
 
@@ -263,6 +292,9 @@ class AvatarModule(pl.LightningModule):
     def measure_fps(self, batch: dict, warmup: int = 3, repeats: int = 20) -> float:
         """Frames per second of the full path (encoder .. rasterize) for one camera, synchronised on CUDA."""
         one = {k: (v[:1] if torch.is_tensor(v) else v[:1] if isinstance(v, list) else v) for k, v in batch.items()}
+        one = self.on_after_batch_transfer({k: v.to(self.device) if torch.is_tensor(v) else v for k, v in one.items()}, 0)
+        _, _, metas, _ = self.render_batch(one)
+        self.run_info["fps"] = {"backend": metas[0]["backend"], "device": str(self.device)}
         for _ in range(warmup):
             self.render_batch(one)
         if self.device.type == "cuda":
@@ -277,6 +309,17 @@ class AvatarModule(pl.LightningModule):
     def num_parameters(self) -> int:
         """Learnable parameters of the avatar: Gaussians and every network (the body model has none)."""
         return int(sum(p.numel() for p in self.parameters() if p.requires_grad))
+
+
+def check_single_process(trainer: Any) -> None:
+    """One avatar trains in one process: density control adds Parameters after each refinement (DDP would not see
+    them), the deformer is unused before deform_start, and per-rank densification would diverge."""
+    if trainer is not None and trainer.world_size > 1:
+        raise ValueError(
+            f"trainer: {trainer.world_size} processes (devices={trainer.num_devices}, num_nodes={trainer.num_nodes}) "
+            "for one run; RealityAvatar trains one avatar per process. Scale with one run per GPU through a hydra "
+            "launcher (hydra/launcher=joblib, hydra/launcher=slurm_gpu) and keep trainer.devices=1"
+        )
 
 
 def identity_deformation(B: int, means: torch.Tensor, feature_dim: int) -> dict:

@@ -23,7 +23,7 @@ def sample_surface(
     """Area-weighted uniform samples on a triangle mesh.
 
     vertices [V,3], faces [F,3], weights [V,K] or None -> points [n,3], barycentric-interpolated weights [n,K] (or None).
-    Deterministic for a given generator (sampling runs on the CPU generator, results move to the mesh's device).
+    Deterministic for a given generator (sampling runs on the CPU generator; results take the mesh's device and dtype).
     """
     if faces.ndim != 2 or faces.shape[1] != 3:
         raise ValueError(f"sample_surface: faces must be [F,3], got {tuple(faces.shape)}")
@@ -44,8 +44,8 @@ def sample_surface(
     w = None
     if weights is not None:
         w = (bary[:, :, None] * weights.detach().cpu().float()[fi]).sum(1)  # [n,K]
-        w = w.to(dev)
-    return points.to(dev), w
+        w = w.to(device=dev, dtype=weights.dtype)
+    return points.to(device=dev, dtype=vertices.dtype), w
 
 
 class FrequencyEncoding(nn.Module):

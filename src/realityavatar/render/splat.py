@@ -1,10 +1,18 @@
 """`rasterize`: gsplat-1.5-style Gaussian splatting: pure-torch tiled backend, compiled CPU (numba) and gsplat (CUDA)."""
 from __future__ import annotations
 
+import contextlib
+import os
 import warnings
+from pathlib import Path
 from typing import Any
 
 import torch
+
+try:
+    import fcntl
+except ImportError:  # Windows: no build lock
+    fcntl = None
 
 from .project import project_gaussians
 from .sh import eval_sh
@@ -16,6 +24,12 @@ _BACKENDS = ("auto", "torch", "gsplat", "numba")
 _WHERE = "realityavatar/render/splat.py (rasterize)"
 _gsplat_failure: str | None = None  # why gsplat could not be used (warned once)
 _gsplat_module: Any = None
+_gsplat_ran = False  # a first call has succeeded: from then on every gsplat error is the caller's to see
+
+
+def _on_cuda(t: torch.Tensor) -> bool:
+    """Whether gsplat can take this tensor (a seam: tests stand a fake gsplat in for CUDA on the CPU)."""
+    return t.is_cuda
 
 
 def _fail(field: str, expected: str, got: Any) -> None:
@@ -79,34 +93,80 @@ def _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, 
                    ("colors", colors), ("viewmats", viewmats), ("Ks", Ks)]
         if backgrounds is not None:
             tensors.append(("backgrounds", backgrounds))
-        for name, t in tensors:
-            if t.numel() and not bool(torch.isfinite(t).all()):
-                bad = int((~torch.isfinite(t)).sum())
-                _fail(name, "finite values", f"{bad} NaN/inf entries")
-        if N and bool((quats.detach().norm(dim=-1) == 0).any()):
+        # One flag per check, read from the device once: each host read of a CUDA tensor is a synchronisation.
+        flags = [torch.isfinite(t).all() for _, t in tensors] + [(quats.detach().norm(dim=-1) != 0).all()]
+        ok = torch.stack([f.to(means.device) for f in flags])
+        if not bool(ok.all()):
+            for (name, t), good in zip(tensors, ok.tolist()):
+                if not good:
+                    _fail(name, "finite values", f"{int((~torch.isfinite(t)).sum())} NaN/inf entries")
             _fail("quats", "non-zero quaternions", "an all-zero row")
 
 
+def _extensions_dir() -> Path:
+    """Where torch JIT-builds extensions (gsplat builds into <this>/<py-cu tag>/gsplat_cuda)."""
+    env = os.environ.get("TORCH_EXTENSIONS_DIR")
+    return Path(env) if env else Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "torch_extensions"
+
+
+@contextlib.contextmanager
+def _build_lock():
+    """Serialise gsplat's first-time JIT build across processes (SLURM arrays, joblib): gsplat 1.5 deletes its build
+    directory before building, so two first-time builds clobber each other. The second waits, then loads."""
+    if fcntl is None:
+        yield
+        return
+    d = _extensions_dir()
+    d.mkdir(parents=True, exist_ok=True)
+    with open(d / "realityavatar-gsplat.lock", "a") as f:
+        fcntl.flock(f, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)
+
+
 def _load_gsplat() -> Any:
-    """Import gsplat once; on any failure remember why and warn once."""
-    global _gsplat_failure, _gsplat_module
+    """Import gsplat and load (or JIT-build) its CUDA kernels once. Any failure is remembered and warned about once;
+    the caller then uses the torch backend. `import gsplat` succeeds without kernels, so they are checked here."""
+    global _gsplat_module
     if _gsplat_module is not None or _gsplat_failure is not None:
         return _gsplat_module
     try:
         import gsplat
 
+        with _build_lock():
+            from gsplat.cuda import _backend  # builds on first import when no prebuilt binary matches
+        if getattr(_backend, "_C", None) is None:
+            raise ImportError(_NO_KERNELS.format(version=getattr(gsplat, "__version__", "?"), torch=torch.__version__,
+                                                 cuda=torch.version.cuda))
+        ver = str(getattr(gsplat, "__version__", ""))
+        if not ver.startswith("1.5."):
+            warnings.warn(f"{_WHERE}: gsplat {ver or '(unknown version)'} is not 1.5.x; the torch backend mirrors 1.5's "
+                          "rules, so the two backends may disagree", stacklevel=3)
         _gsplat_module = gsplat
-    except Exception as exc:  # noqa: BLE001 - ImportError or a CUDA extension build error: any means fall back
-        _gsplat_failure = f"{type(exc).__name__}: {exc}"
-        warnings.warn(f"{_WHERE}: gsplat unavailable ({_gsplat_failure}); using the torch backend", stacklevel=3)
+    except Exception as exc:  # noqa: BLE001 - ImportError, or whatever the JIT build raised: fall back
+        _gsplat_failed(exc, "unavailable")
     return _gsplat_module
 
 
-def _gsplat_failed(exc: Exception) -> None:
+_NO_KERNELS = ("gsplat {version} imports but its CUDA kernels are missing: no prebuilt binary for this torch "
+               "({torch}, CUDA {cuda}) and the JIT build failed or found no CUDA toolkit (nvcc). Install nvcc of CUDA "
+               "{cuda} (and set CUDA_HOME) or a gsplat wheel built for this torch; see the README's GPU section")
+
+
+def gsplat_status() -> str:
+    """'ok' when gsplat's CUDA kernels load (building them if needed), else why not."""
+    _load_gsplat()
+    return "ok" if _gsplat_module is not None else str(_gsplat_failure)
+
+
+def _gsplat_failed(exc: BaseException, what: str = "failed") -> None:
     global _gsplat_failure, _gsplat_module
     _gsplat_failure = f"{type(exc).__name__}: {exc}"
     _gsplat_module = None
-    warnings.warn(f"{_WHERE}: gsplat failed ({_gsplat_failure}); using the torch backend", stacklevel=3)
+    warnings.warn(f"{_WHERE}: gsplat {what} ({_gsplat_failure}); using the torch backend for the rest of this process",
+                  stacklevel=3)
 
 
 def rasterize(
@@ -156,18 +216,33 @@ def rasterize(
         _fail("backend", f"one of {_BACKENDS}", repr(backend))
     _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree, backgrounds,
                   near, far, render_mode, rasterize_mode, check_finite)
-    use_gsplat = backend == "gsplat" or (backend == "auto" and means.is_cuda)
-    if use_gsplat and not means.is_cuda:
+    if gsplat_kwargs.pop("packed", False):
+        _fail("packed", "False (meta is indexed [C,N] for densification; packed output is not)", True)
+    use_gsplat = backend == "gsplat" or (backend == "auto" and _on_cuda(means))
+    if use_gsplat and not _on_cuda(means):
         if backend == "gsplat":
             warnings.warn(f"{_WHERE}: backend='gsplat' needs CUDA tensors; using the torch backend", stacklevel=2)
         use_gsplat = False
+    inputs = (means, quats, scales, opacities, colors, viewmats, Ks)
+    if use_gsplat and any(t.dtype != torch.float32 for t in inputs):
+        if backend == "gsplat":
+            _fail("means/quats/scales/opacities/colors/viewmats/Ks", "float32 for backend='gsplat' (its kernels are "
+                  "float32 only; backend='auto' renders other dtypes with torch)", sorted({str(t.dtype) for t in inputs}))
+        use_gsplat = False
     if use_gsplat and means.shape[0] > 0 and _load_gsplat() is not None:
+        global _gsplat_ran
         try:
-            return _rasterize_gsplat(means, quats, scales, opacities, colors, viewmats, Ks, width, height,
-                                     sh_degree=sh_degree, backgrounds=backgrounds, near=near, far=far,
-                                     render_mode=render_mode, rasterize_mode=rasterize_mode, tile_size=tile_size,
-                                     eps2d=eps2d, radius_clip=radius_clip, **gsplat_kwargs)
-        except (RuntimeError, ImportError, OSError) as exc:  # e.g. the JIT build of its CUDA kernels failed
+            out = _rasterize_gsplat(means, quats, scales, opacities, colors, viewmats, Ks, width, height,
+                                    sh_degree=sh_degree, backgrounds=backgrounds, near=near, far=far,
+                                    render_mode=render_mode, rasterize_mode=rasterize_mode, tile_size=tile_size,
+                                    eps2d=eps2d, radius_clip=radius_clip, **gsplat_kwargs)
+            _gsplat_ran = True
+            return out
+        except (AttributeError, ImportError, OSError) as exc:
+            # Only a first call can fail from a broken build (kernels missing a symbol, a library not found);
+            # afterwards, and for any RuntimeError (CUDA OOM, bad input), the error is real and surfaces.
+            if _gsplat_ran:
+                raise
             _gsplat_failed(exc)
     return _rasterize_torch(means, quats, scales, opacities, colors, viewmats, Ks, width, height,
                             composite=_cpu_compositor(backend, means), sh_degree=sh_degree, backgrounds=backgrounds, near=near, far=far,
@@ -270,14 +345,23 @@ def _rasterize_gsplat(means, quats, scales, opacities, colors, viewmats, Ks, wid
         means, quats, scales, opacities, colors, viewmats, Ks, width, height,
         near_plane=near, far_plane=far, sh_degree=sh_degree, backgrounds=backgrounds, render_mode=render_mode,
         rasterize_mode=rasterize_mode, tile_size=16 if tile_size is None else int(tile_size),
-        eps2d=eps2d, radius_clip=radius_clip, packed=kwargs.pop("packed", False), **kwargs,
+        eps2d=eps2d, radius_clip=radius_clip, packed=False, **kwargs,
     )
     meta = dict(info)
     radii = meta["radii"]
     radii_xy = radii if radii.dim() == 3 else torch.stack([radii, radii], -1)
     meta["radii_xy"] = radii_xy
     meta["radii"] = radii_xy.amax(-1)
-    meta["visible"] = (radii_xy > 0).all(-1)
+    vis = (radii_xy > 0).all(-1)  # [C,N]
+    meta["visible"] = vis
+    # gsplat leaves culled entries uninitialised; zero them as the torch backend does. means2d keeps its identity
+    # (densification reads its .grad) and is saved for backward, so it is zeroed through .data: the kernels never
+    # read culled entries, and autograd's version check must not see this write.
+    for k in ("depths", "conics", "opacities", "compensations"):
+        t = meta.get(k)
+        if isinstance(t, torch.Tensor) and t.shape[:2] == vis.shape:
+            meta[k] = torch.where(vis.view(*vis.shape, *([1] * (t.dim() - 2))), t, torch.zeros_like(t))
+    meta["means2d"].data.masked_fill_(~vis[..., None], 0.0)
     if meta["means2d"].requires_grad:
         meta["means2d"].retain_grad()
     meta["backend"] = "gsplat"

@@ -195,6 +195,7 @@ def build_scene(preset_or_params: str | dict = "demo", root: str | Path | None =
     root = Path(root) if root is not None else default_root()
     prefix = root / p["name"]
     phash = params_hash(p, seed)
+    remove_stale_builds(root, p["name"])
     if not force and is_built(prefix, phash):
         return prefix
     # Everything that can fail on the parameters runs before the first file is written.
@@ -216,7 +217,8 @@ def build_scene(preset_or_params: str | dict = "demo", root: str | Path | None =
     garment = simulate_garment(joints_w, rots_w, p["fps"], p["garment"], p["cloth_params"], seed=seed)
 
     root.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".tmp-{p['name']}-", dir=root))
+    # The builder's pid is in the name, so a later build can tell a killed build's leftovers from a running one.
+    tmp = Path(tempfile.mkdtemp(prefix=f".tmp-{p['name']}-{os.getpid()}-", dir=root))
     try:
         _write(tmp, p, seed, phash, body, motion, Ks, viewmats, train_ids, nv_ids, verts_w, joints_body, garment,
                progress)
@@ -232,6 +234,34 @@ def build_scene(preset_or_params: str | dict = "demo", root: str | Path | None =
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return prefix
+
+
+def remove_stale_builds(root: Path, name: str, max_age_s: float = 24 * 3600) -> list[Path]:
+    """Delete `.tmp-<name>-<pid>-*` folders of builds whose process is gone (a SIGKILLed make-scene); a folder
+    without a pid in its name (older builds) is removed once it is older than `max_age_s`."""
+    import time
+
+    def pid_alive(pid: int) -> bool:
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return False
+        except PermissionError:
+            return True
+        return True
+
+    removed = []
+    for d in Path(root).glob(f".tmp-{name}-*"):
+        rest = d.name[len(f".tmp-{name}-"):]
+        head = rest.split("-", 1)[0]
+        if head.isdigit() and "-" in rest:
+            stale = not pid_alive(int(head))
+        else:
+            stale = time.time() - d.stat().st_mtime > max_age_s
+        if stale and d.is_dir():
+            shutil.rmtree(d, ignore_errors=True)
+            removed.append(d)
+    return removed
 
 
 def _write(tmp: Path, p: dict, seed: int, phash: str, body, motion: Motion, Ks, viewmats, train_ids, nv_ids,

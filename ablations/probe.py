@@ -1,0 +1,148 @@
+"""Geometry probe of trained runs: per-frame silhouette IoU, PSNR and motion-trend offset sizes around a spin and its stop.
+
+Usage: python ablations/probe.py <run_dir> [...] --out <folder> [--labels a,b,...]
+For every training frame it renders the training cameras and the held-out (novel-view) cameras, and measures the
+decoder's offsets |Δx| (median, 99th percentile, max over Gaussians). Frames are grouped into phases from the scene's
+motion events: rest (before the spin), spin, after (the second after the stop), settled (later). Writes
+probe.csv (per frame and camera kind), probe.json (phase means per run) and probe.png (per-frame curves).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch.utils.data import default_collate
+
+from realityavatar.build import build_data, load_run
+from realityavatar.metrics import psnr, silhouette_iou
+
+PHASES = ("rest", "spin", "after", "settled")
+
+
+def phase_of(frame: int, events: dict, fps: float) -> str:
+    start, stop = events.get("spin_start_frame"), events.get("spin_stop_frame")
+    if start is None or stop is None:
+        return "all"
+    if frame < start:
+        return "rest"
+    if frame < stop:
+        return "spin"
+    return "after" if frame < stop + round(fps) else "settled"
+
+
+@torch.no_grad()
+def probe_run(run_dir: Path, threads: int = 1) -> tuple[list[dict], dict]:
+    torch.set_num_threads(threads)
+    cfg, module, _ = load_run(run_dir)
+    dm = build_data(cfg, module.body)
+    meta = dm.scene.meta or {}
+    events = meta.get("motion", {}).get("events", {})
+    fps = float(meta.get("fps", meta.get("preset", {}).get("fps", 25.0)))
+    rows: list[dict] = []
+    offsets: dict[int, tuple[float, float, float]] = {}
+    for kind, split in (("train", "train"), ("heldout", "novel_view")):
+        ds = dm.datasets.get(split)
+        if ds is None:
+            continue
+        for i, rec in enumerate(ds.records):
+            batch = default_collate([ds[i]])
+            rgb, alpha, _, posed = module.render_batch(batch)
+            if rec.frame not in offsets:
+                dx = (posed["x_e"][0] - module.gaussians.means).norm(dim=-1)
+                q = torch.quantile(dx, torch.tensor([0.5, 0.99], dtype=dx.dtype))
+                offsets[rec.frame] = (float(q[0]), float(q[1]), float(dx.max()))
+            rows.append({
+                "frame": int(rec.frame), "view": int(rec.view), "kind": kind,
+                "phase": phase_of(int(rec.frame), events, fps),
+                "iou": float(silhouette_iou(alpha[0], batch["mask"][0])),
+                "psnr": float(psnr(rgb[0].clamp(0, 1), batch["image"][0])),
+            })
+    for r in rows:
+        r["dx_p50"], r["dx_p99"], r["dx_max"] = offsets[r["frame"]]
+    summary: dict = {"events": events, "fps": fps}
+    for kind in ("train", "heldout"):
+        for ph in PHASES + ("all",):
+            sel = [r for r in rows if r["kind"] == kind and (ph == "all" or r["phase"] == ph)]
+            if sel:
+                summary[f"{kind}/{ph}/iou"] = float(np.mean([r["iou"] for r in sel]))
+                summary[f"{kind}/{ph}/psnr"] = float(np.mean([r["psnr"] for r in sel]))
+                summary[f"{kind}/{ph}/dx_p99"] = float(np.mean([r["dx_p99"] for r in sel]))
+    return rows, summary
+
+
+def plot(results: dict[str, list[dict]], events: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(3, 1, figsize=(9, 8), sharex=True)
+    for label, rows in results.items():
+        held = [r for r in rows if r["kind"] == "heldout"]
+        frames = sorted({r["frame"] for r in held})
+        by = {f: [r for r in held if r["frame"] == f] for f in frames}
+        axes[0].plot(frames, [np.mean([r["iou"] for r in by[f]]) for f in frames], label=label)
+        axes[1].plot(frames, [np.mean([r["psnr"] for r in by[f]]) for f in frames], label=label)
+        axes[2].plot(frames, [100 * by[f][0]["dx_p99"] for f in frames], label=label)
+    for ax, name in zip(axes, ("held-out IoU", "held-out PSNR (dB)", "p99 |Δx| (cm)")):
+        ax.set_ylabel(name)
+        for k in ("spin_start_frame", "spin_stop_frame"):
+            if k in events:
+                ax.axvline(events[k], color="grey", ls="--", lw=0.8)
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=8)
+    axes[2].set_xlabel("frame (dashed: spin start, abrupt stop)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("runs", nargs="+")
+    ap.add_argument("--out", required=True)
+    ap.add_argument("--labels", default=None, help="comma-separated labels, one per run (default: folder names)")
+    ap.add_argument("--threads", type=int, default=1)
+    a = ap.parse_args(argv)
+    runs = [Path(r) for r in a.runs]
+    labels = a.labels.split(",") if a.labels else [r.name for r in runs]
+    if len(labels) != len(runs):
+        print(f"--labels: {len(labels)} labels for {len(runs)} runs", file=sys.stderr)
+        return 2
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    results, summaries, events = {}, {}, {}
+    for label, run in zip(labels, runs):
+        rows, summary = probe_run(run, a.threads)
+        results[label], summaries[label] = rows, summary
+        events = summary["events"]
+    with open(out / "probe.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=["run", *results[labels[0]][0].keys()])
+        w.writeheader()
+        for label, rows in results.items():
+            for r in rows:
+                w.writerow({"run": label, **r})
+    (out / "probe.json").write_text(json.dumps({"runs": {lb: str(r) for lb, r in zip(labels, runs)}, **summaries},
+                                               indent=2))
+    plot(results, events, out / "probe.png")
+    hdr = f"{'run':<22}" + "".join(f"{k:>14}" for k in ("IoU rest", "IoU spin", "IoU after", "PSNR rest",
+                                                           "PSNR spin", "PSNR after", "p99dx rest", "p99dx spin"))
+    print("held-out cameras, training frames")
+    print(hdr)
+    for label, s in summaries.items():
+        vals = [s.get(f"heldout/{p}/iou") for p in ("rest", "spin", "after")]
+        vals += [s.get(f"heldout/{p}/psnr") for p in ("rest", "spin", "after")]
+        vals += [100 * s[f"heldout/{p}/dx_p99"] if f"heldout/{p}/dx_p99" in s else None for p in ("rest", "spin")]
+        print(f"{label:<22}" + "".join(f"{v:14.3f}" if v is not None else f"{'-':>14}" for v in vals))
+    print(f"wrote {out}/probe.csv, probe.json, probe.png")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,106 @@
+"""Visual hull of one frame carved from the training masks, and its garment part brought to canonical space."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+
+class HullViews:
+    """The training cameras of one frame: masks [C] bool [H,W], K [C,3,3], viewmats [C,4,4] (world-to-camera),
+    and that frame's body pose [24,3] / translation [3] (SMPL convention, as the DataModule's PoseTable holds).
+    A plain class, not a dataclass: hydra's instantiate would turn a dataclass argument into a config node."""
+
+    def __init__(self, masks, Ks, viewmats, pose, transl, frame) -> None:
+        self.masks, self.Ks, self.viewmats = masks, Ks, viewmats
+        self.pose, self.transl, self.frame = pose, transl, frame
+
+
+def hull_views(dm, frame: int | None = None) -> HullViews:
+    """The training-split masks of `frame` (default: the first training frame, the rest pose of a sequence)."""
+    ds = dm.datasets.get("train")
+    if ds is None:
+        raise ValueError("gaussians=hull: the DataModule has no training split to carve a visual hull from")
+    frames = sorted({r.frame for r in ds.records})
+    frame = frames[0] if frame is None else int(frame)
+    idx = [i for i, r in enumerate(ds.records) if r.frame == frame]
+    if len(idx) < 2:
+        raise ValueError(f"gaussians.hull_frame={frame}: need >= 2 training cameras at that frame, found {len(idx)}")
+    masks, Ks, E = [], [], []
+    for i in idx:
+        _, mask, K = ds._decoded(i)
+        masks.append(np.asarray(mask, bool))
+        Ks.append(np.asarray(K, np.float64))
+        E.append(np.asarray(ds.records[i].viewmat, np.float64))
+    poses, transl = dm.scene.poses.window(frame, 1, 0)
+    return HullViews(masks, np.stack(Ks), np.stack(E), poses[-1], transl[-1], frame)
+
+
+def carve(views: HullViews, lo: np.ndarray, hi: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
+    """Voxel centres [P,3] on the surface of the visual hull inside the box [lo, hi], and the full occupancy grid.
+
+    A voxel is occupied when its centre projects inside the mask of every camera (outside an image counts as
+    outside); a surface voxel is occupied with at least one free 6-neighbour.
+    """
+    axes = [np.arange(lo[a] + voxel / 2, hi[a], voxel) for a in range(3)]
+    X = np.stack(np.meshgrid(*axes, indexing="ij"), -1)  # [I,J,K,3]
+    pts = X.reshape(-1, 3)
+    occ = np.ones(len(pts), bool)
+    for mask, K, E in zip(views.masks, views.Ks, views.viewmats):
+        cam = pts @ E[:3, :3].T + E[:3, 3]
+        z = cam[:, 2]
+        zs = np.where(z > 1e-3, z, 1.0)
+        u = np.round(K[0, 0] * cam[:, 0] / zs + K[0, 2]).astype(np.int64)
+        v = np.round(K[1, 1] * cam[:, 1] / zs + K[1, 2]).astype(np.int64)
+        H, W = mask.shape
+        ok = (z > 1e-3) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
+        inside = np.zeros(len(pts), bool)
+        inside[ok] = mask[v[ok], u[ok]]
+        occ &= inside
+    grid = occ.reshape(X.shape[:3])
+    pad = np.pad(grid, 1, constant_values=False)
+    interior = grid.copy()
+    for a in range(3):
+        for s in (-1, 1):
+            interior &= np.roll(pad, s, axis=a)[1:-1, 1:-1, 1:-1]
+    surface = grid & ~interior
+    return X[surface], grid
+
+
+def garment_points(body, views: HullViews, n: int, voxel: float = 0.015, min_body_distance: float = 0.02,
+                   max_body_distance: float = 0.6, exclude_bones=(), margin: float = 0.45,
+                   generator: torch.Generator | None = None) -> torch.Tensor:
+    """n canonical-space points on the part of the visual hull away from the body (the garment), [n,3].
+
+    Hull surface points between min_ and max_body_distance from the posed body surface are sampled (jittered
+    inside their voxel) and taken to canonical space by inverse LBS with the nearest body vertex's weights.
+    Points whose nearest vertex is mostly skinned to `exclude_bones` are dropped: with few cameras the hull
+    around hanging arms holds large phantom volumes.
+    """
+    from scipy.spatial import cKDTree
+
+    with torch.no_grad():
+        pose, transl = views.pose.float(), views.transl.float()
+        verts = body.posed_vertices(pose, transl).cpu().numpy().astype(np.float64)  # [V,3]
+        lo = verts.min(0) - np.array([margin, 0.05, margin])
+        hi = verts.max(0) + np.array([margin, 0.05, margin])
+        surf, _ = carve(views, lo, hi, voxel)
+        if len(surf) == 0:
+            raise ValueError(f"gaussians=hull: the visual hull of frame {views.frame} is empty; check the masks "
+                             "and cameras of the training split")
+        dist, nearest = cKDTree(verts).query(surf)
+        keep = (dist > min_body_distance) & (dist < max_body_distance)
+        if len(exclude_bones):
+            arm = body.skin_weights.cpu().numpy()[:, list(exclude_bones)].sum(-1)  # [V]
+            keep &= arm[nearest] < 0.5
+        if not keep.any():
+            return torch.zeros(0, 3)
+        surf, nearest = surf[keep], nearest[keep]
+        pick = torch.randint(0, len(surf), (n,), generator=generator).numpy()
+        jitter = (torch.rand(n, 3, generator=generator).numpy() - 0.5) * voxel
+        x = torch.from_numpy(surf[pick] + jitter).float()  # [n,3] posed
+        A = body.canonical_transforms(pose, transl)  # [24,4,4] canonical -> posed
+        w = body.skin_weights.cpu()[torch.from_numpy(nearest[pick])]  # [n,24]
+        T = torch.einsum("nj,jab->nab", w, A.cpu())  # [n,4,4]
+        xh = torch.cat([x, torch.ones(n, 1)], -1)[..., None]
+        return (torch.linalg.inv(T) @ xh)[:, :3, 0]

@@ -1,0 +1,144 @@
+"""Garment-motion mechanisms: silhouette chamfer, hull-seeded Gaussians, deformation graph, history dependence."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from hydra.utils import instantiate
+
+from realityavatar.config import compose
+from realityavatar.losses import NoSilhouette, SilhouetteChamfer, mask_distance, project_points
+from realityavatar.model.deform import NodeDeformer, apply_deformation
+
+
+def _camera(H: int = 32):
+    K = torch.tensor([[float(H), 0.0, H / 2], [0.0, float(H), H / 2], [0.0, 0.0, 1.0]])
+    E = torch.eye(4)
+    E[2, 3] = 2.0  # camera 2 m in front of the origin, looking down +z
+    return K, E
+
+
+def test_mask_distance_is_euclidean():
+    m = torch.zeros(9, 9)
+    m[4, 4] = 1
+    d = mask_distance(m)
+    assert d[4, 4] == 0 and d[4, 7] == pytest.approx(3.0) and d[0, 0] == pytest.approx(np.hypot(4, 4))
+
+
+def test_outside_term_pulls_a_gaussian_whose_footprint_misses_the_mask():
+    """A centre 10 px left of the mask (no footprint overlap) gets a gradient towards the mask."""
+    H = 32
+    K, E = _camera(H)
+    mask = torch.zeros(H, H, 1)
+    mask[10:22, 20:30] = 1
+    alpha = mask.clone()  # everything covered: only the outside term acts
+    x = torch.tensor([[(10 - H / 2) * 2.0 / H, (16 - H / 2) * 2.0 / H, 0.0]], requires_grad=True)  # projects to (10,16)
+    uv, _ = project_points(x, E, K)
+    assert torch.allclose(uv, torch.tensor([[10.0, 16.0]]), atol=1e-4)
+    loss_fn = SilhouetteChamfer(weight=1.0)
+    terms = loss_fn(x, E, K, mask, alpha)
+    assert float(terms["sil_outside"]) == pytest.approx((10 / H) ** 2, rel=0.05)
+    assert float(terms["sil_coverage"]) == 0.0
+    loss_fn.total(terms).backward()
+    assert x.grad[0, 0] < 0  # descending the loss moves +x, towards the mask
+    assert abs(float(x.grad[0, 1])) < abs(float(x.grad[0, 0])) * 0.2
+
+
+def test_coverage_term_pulls_the_nearest_centre_to_uncovered_mask_pixels():
+    H = 32
+    K, E = _camera(H)
+    mask = torch.zeros(H, H, 1)
+    mask[14:18, 24:28] = 1  # a flared hem nobody covers
+    alpha = torch.zeros(H, H, 1)
+    x = torch.tensor([[0.0, 0.0, 0.0], [-0.5, 0.0, 0.0]], requires_grad=True)  # project to (16,16) and (8,16)
+    mask_in = mask.clone()
+    mask_in[16, 16] = 1  # keep both centres' outside term small: only coverage should move them
+    mask_in[16, 8] = 1
+    terms = SilhouetteChamfer(weight=1.0, outside_weight=0.0)(x, E, K, mask_in, alpha)
+    assert float(terms["sil_coverage"]) > 0
+    SilhouetteChamfer(weight=1.0, outside_weight=0.0).total(terms).backward()
+    assert x.grad[0, 0] < 0, "the nearest centre must be pulled towards the uncovered pixels (+x)"
+    assert float(x.grad[1].abs().sum()) == 0.0, "a farther centre is not the nearest to any uncovered pixel"
+
+
+def test_no_silhouette_is_off():
+    assert NoSilhouette()(torch.zeros(3, 3), torch.eye(4), torch.eye(3), torch.ones(4, 4, 1), torch.ones(4, 4, 1)) == {}
+
+
+def test_node_deformer_starts_at_identity_and_moves_neighbourhoods_coherently():
+    torch.manual_seed(0)
+    d = NodeDeformer(num_nodes=32, k=4, cond_dim=8, encoding="frequency")
+    x = torch.rand(400, 3)
+    h = torch.randn(1, 8)
+    out = d(x, h)
+    xe, _, q = apply_deformation(x, torch.zeros(400, 3), torch.tensor([1.0, 0, 0, 0]).expand(400, 4), out)
+    assert torch.allclose(xe[0], x, atol=1e-6) and torch.allclose(q[0, :, 0], torch.ones(400), atol=1e-6)
+    with torch.no_grad():
+        d.out.bias[:3] += torch.tensor([0.1, 0.0, 0.0])  # every node translates 10 cm along x
+    out = d(x, h)
+    assert torch.allclose(out["dx"][0], torch.tensor([0.1, 0.0, 0.0]).expand(400, 3), atol=1e-5)
+    # One node's translation moves its neighbourhood, not far-away Gaussians.
+    node_out = {k: torch.zeros_like(v) for k, v in d(x, h).items()}
+    node_out = {"dx": torch.zeros(1, 32, 3), "ds": torch.zeros(1, 32, 3), "f_mt": torch.zeros(1, 32, d.feature_dim),
+                "dq": torch.tensor([1.0, 0, 0, 0]).expand(1, 32, 4)}
+    node_out["dx"][0, 0, 0] = 0.1
+    moved = d.blend(x, node_out)["dx"][0]
+    dist = (x - d.nodes[0]).norm(dim=-1)
+    near, far = dist.argsort()[:5], dist.argsort()[-50:]
+    assert moved[near, 0].min() > 0.03 and moved[far].abs().max() < 1e-6
+
+
+def test_node_deformer_nodes_are_saved_with_the_checkpoint():
+    d = NodeDeformer(num_nodes=16, k=2, cond_dim=4, encoding="frequency")
+    d(torch.rand(100, 3), torch.zeros(1, 4))
+    e = NodeDeformer(num_nodes=16, k=2, cond_dim=4, encoding="frequency")
+    e.load_state_dict(d.state_dict())
+    assert bool(e.nodes_fitted) and torch.equal(e.nodes, d.nodes) and float(e.sigma) == float(d.sigma)
+
+
+@pytest.mark.parametrize("group,on,off", [("silhouette", "chamfer", "none"), ("gaussians", "hull", "default"),
+                                          ("deformer", "motion_trend_nodes", "motion_trend")])
+def test_each_mechanism_composes_and_switches_off(group, on, off):
+    from realityavatar.body import build_body
+
+    body = build_body("mannequin")
+    for opt in (on, off):
+        cfg = compose([f"{group}={opt}", "gaussians.num_points=200"])
+        kw = {"body": body} if group == "gaussians" else {}
+        obj = instantiate(cfg[group], **kw)
+        name = type(obj).__name__
+        assert (name in ("SilhouetteChamfer", "HullGaussians", "NodeDeformer")) == (opt == on), (group, opt, name)
+
+
+def test_hull_gaussians_seed_the_garment_from_the_masks(scenes_root):
+    """On the ci scene (a skirt), garment Gaussians lie away from the body and project inside every training mask."""
+    from realityavatar.build import build_data, build_module
+
+    cfg = compose(["data=synthetic_ci", "gaussians=hull", "gaussians.num_points=2000", "trainer=ci"])
+    body = instantiate(cfg.body)
+    dm = build_data(cfg, body)
+    module = build_module(cfg, body, dm.num_train_frames, dm.scene_extent, data=dm)
+    g = module.gaussians
+    n_g = g.num_garment_points
+    assert n_g == 600, n_g
+    from realityavatar.model.hull import hull_views
+
+    views = hull_views(dm)
+    A = body.canonical_transforms(views.pose, views.transl)
+    # Posed by the nearest body vertex's weights, as they were canonicalised.
+    from scipy.spatial import cKDTree
+
+    can = body.canonical_vertices().detach().numpy()
+    _, nearest = cKDTree(can).query(g.means.detach()[-n_g:].numpy())
+    T = torch.einsum("nj,jab->nab", body.skin_weights[torch.from_numpy(nearest)], A)
+    posed = (T[:, :3, :3] @ g.means.detach()[-n_g:, :, None]).squeeze(-1) + T[:, :3, 3]
+    body_posed = body.posed_vertices(views.pose, views.transl).numpy()
+    dist, _ = cKDTree(body_posed).query(posed.numpy())
+    assert np.median(dist) > 0.02, "garment seeds should not sit on the body"
+    inside = []
+    for mask, K, E in zip(views.masks, views.Ks, views.viewmats):
+        uv, _ = project_points(posed.double(), torch.from_numpy(E), torch.from_numpy(K))
+        u, v = uv[:, 0].round().long().clamp(0, mask.shape[1] - 1), uv[:, 1].round().long().clamp(0, mask.shape[0] - 1)
+        inside.append(torch.from_numpy(mask)[v, u].float().mean())
+    assert min(inside) > 0.9, inside

@@ -1,0 +1,378 @@
+"""Issue 14 ("Nothing lost"): resume restores exactly, one run per folder, results survive evaluation failures,
+settings and images are validated up front, the collector reports missing jobs, clear messages, SIGINT/SIGKILL."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import yaml
+from omegaconf import open_dict
+
+from realityavatar.config import compose
+
+ROOT = Path(__file__).resolve().parents[1]
+# Tiny runs: a short skinning pre-fit, few Gaussians, no video, one FPS frame.
+TINY = ["data=synthetic_ci", "trainer=ci", "gaussians.num_points=400", "schedule.skin_pretrain_steps=20",
+        "eval.save_video=false", "eval.save_images=2", "eval.fps_frames=1", "eval.fps_warmup=0"]
+
+
+def _cfg(out: Path, *overrides: str):
+    cfg = compose([*TINY, *overrides])
+    choices = {k: v for k, v in cfg.hydra.runtime.choices.items() if not k.startswith("hydra") and v is not None}
+    with open_dict(cfg):
+        del cfg["hydra"]
+        cfg.out_dir = str(out)
+    return cfg, choices
+
+
+def _run(out: Path, *overrides: str) -> dict:
+    from realityavatar.train import run
+
+    return run(*_cfg(out, *overrides))
+
+
+def _state(path: Path) -> dict:
+    return torch.load(path, map_location="cpu", weights_only=False)
+
+
+def _log_steps(out: Path) -> list[int]:
+    with open(out / "logs" / "csv" / "metrics.csv") as f:
+        rows = list(csv.DictReader(f))
+    return [int(r["step"]) for r in rows if r.get("train/loss")]
+
+
+@pytest.fixture(scope="module")
+def tiny_run(scenes_root, tmp_path_factory):
+    out = tmp_path_factory.mktemp("tiny") / "run"
+    metrics = _run(out, "iterations=8")
+    return out, metrics
+
+
+class _StopAt:
+    """Patch AvatarModule.training_step to raise `exc` when it reaches `step` (an interrupted run)."""
+
+    def __init__(self, monkeypatch, step: int, exc: BaseException):
+        from realityavatar.model.module import AvatarModule
+
+        orig = AvatarModule.training_step
+
+        def stepper(module, batch, batch_idx):
+            if module.global_step == step:
+                raise exc
+            return orig(module, batch, batch_idx)
+
+        monkeypatch.setattr(AvatarModule, "training_step", stepper)
+
+
+# ------------------------------------------------------------------------------------------- 1. resume
+
+
+def test_resume_of_finished_run_changes_nothing_and_accumulates(tiny_run, tmp_path):
+    out, first = tiny_run
+    before = _state(out / "last.ckpt")
+    again = tmp_path / "again"
+    metrics = _run(again, "iterations=8", f"ckpt_path={out / 'last.ckpt'}", "test_after_fit=false")
+    after = _state(again / "last.ckpt")
+    changed = [k for k, v in before["state_dict"].items() if not torch.equal(v, after["state_dict"][k])]
+    assert not changed, f"resume with no steps left changed {changed}"
+    assert metrics["iterations"] == 8
+    assert metrics["train_seconds"] >= first["train_seconds"], "train_seconds counts only the resumed part"
+    steps = _log_steps(again)
+    assert steps and min(steps) < 8, "rows logged before the resume point are missing from logs/csv/metrics.csv"
+
+
+def test_interrupted_and_resumed_equals_uninterrupted(scenes_root, tmp_path, monkeypatch):
+    """A run stopped after its step-6 checkpoint and resumed ends where an uninterrupted run ends (bit-equal here)."""
+    ref = tmp_path / "ref"
+    ref_metrics = _run(ref, "iterations=12")
+    cut = tmp_path / "cut"
+    with monkeypatch.context() as m:
+        _StopAt(m, 7, RuntimeError("simulated crash"))
+        with pytest.raises(RuntimeError, match="simulated crash"):
+            _run(cut, "iterations=12")
+    at6 = _state(cut / "last.ckpt")
+    assert at6["global_step"] == 6
+    metrics = _run(cut, "iterations=12", "resume=true")
+    assert metrics["train_seconds"] > at6["callbacks"]["RunState"]["train_seconds"] > 0
+    a, b = _state(ref / "last.ckpt")["state_dict"], _state(cut / "last.ckpt")["state_dict"]
+    assert a.keys() == b.keys()
+    for k in a:
+        torch.testing.assert_close(b[k], a[k], rtol=1e-5, atol=1e-6, msg=k)
+    for split in ("novel_view", "novel_pose"):
+        assert abs(metrics[f"test/{split}/psnr"] - ref_metrics[f"test/{split}/psnr"]) < 0.05
+    steps = _log_steps(cut)
+    assert len(steps) == len(set(steps)) and min(steps) < 6 and max(steps) > 6, steps
+
+
+# ------------------------------------------------------------------------------------------- 2. run folders
+
+
+def test_second_run_into_a_run_folder_refuses(tiny_run, tmp_path):
+    out, _ = tiny_run
+    folder = tmp_path / "f"
+    shutil.copytree(out, folder)
+    saved = (folder / "config.yaml").read_text()
+    ckpt_bytes = (folder / "last.ckpt").read_bytes()
+    # hydra rewrites .hydra/ before a run starts; a refused run puts the owner's record back
+    (folder / ".hydra-run").mkdir()
+    (folder / ".hydra-run" / "overrides.yaml").write_text("- seed=0\n")
+    (folder / ".hydra").mkdir()
+    (folder / ".hydra" / "overrides.yaml").write_text("- seed=3\n")
+    with pytest.raises(FileExistsError, match=r"resume=true.*overwrite=true"):
+        _run(folder, "iterations=8", "seed=3")
+    # a failing run into the folder does not touch it either
+    with pytest.raises(ValueError, match="data.image_scale"):
+        _run(folder, "iterations=8", "data.image_scale=0", "overwrite=true")
+    assert (folder / "config.yaml").read_text() == saved
+    assert (folder / "last.ckpt").read_bytes() == ckpt_bytes
+    assert (folder / ".hydra" / "overrides.yaml").read_text() == "- seed=0\n"
+
+
+def test_config_written_only_once_the_run_is_valid(scenes_root, tmp_path):
+    with pytest.raises(ValueError, match="data.max_train_frames"):
+        _run(tmp_path / "new", "iterations=8", "data.max_train_frames=0")
+    assert not (tmp_path / "new" / "config.yaml").exists()
+
+
+# ------------------------------------------------------------------------------------------- 3. eval failures
+
+
+def test_save_images_zero_and_eval_failure_keep_training_results(scenes_root, tmp_path, monkeypatch):
+    out = tmp_path / "z"
+    metrics = _run(out, "iterations=3", "eval.save_images=0")
+    assert "test/novel_view/psnr" in metrics and not list((out / "images").glob("*.png"))
+    from realityavatar import evaluate
+
+    def broken(*a, **k):
+        raise OSError("image novel_pose/x.png is corrupt")
+
+    monkeypatch.setattr(evaluate, "write_outputs", broken)
+    out2 = tmp_path / "broken"
+    with pytest.raises(Exception, match="corrupt"):
+        _run(out2, "iterations=3")
+    assert (out2 / "last.ckpt").is_file()
+    saved = json.loads((out2 / "metrics.json").read_text())
+    assert saved["iterations"] == 3 and "train_seconds" in saved and "test/novel_view/psnr" in saved
+    assert "corrupt" in json.dumps(saved.get("evaluation_errors"))
+
+
+# ------------------------------------------------------------------------------------------- 4. eval options
+
+
+def test_max_frames_per_split(tiny_run):
+    from realityavatar.evaluate import main as evaluate_main
+
+    out, full = tiny_run
+    assert evaluate_main([f"run_dir={out}", "eval.max_frames_per_split=2"]) == 0
+    m = json.loads((out / "eval" / "metrics.json").read_text())
+    for split in ("novel_view", "novel_pose"):
+        with open(out / "per_frame.csv") as f:
+            views = {int(r["view"]) for r in csv.DictReader(f) if r["split"] == split}
+        assert m[f"test/{split}/num_images"] == 2 * len(views) < full[f"test/{split}/num_images"]
+
+
+# ------------------------------------------------------------------------------------------- 5. settings
+
+
+def test_numeric_settings_name_the_key(scenes_root, tmp_path):
+    for value in ("0", "abc", "-5", "-1", "2.5"):
+        with pytest.raises(ValueError, match=r"^iterations"):
+            _run(tmp_path / f"it{value}", f"iterations={value}")
+    with pytest.raises(ValueError, match=r"data\.image_scale"):
+        _run(tmp_path / "scale", "iterations=4", "data.image_scale=0")
+    with pytest.raises(ValueError, match=r"eval\.save_images"):
+        _run(tmp_path / "si", "iterations=4", "eval.save_images=-1")
+    assert not any(tmp_path.rglob("config.yaml"))
+
+
+# ------------------------------------------------------------------------------------------- 6. collector
+
+
+def _fake_job(d: Path, seed: int, metrics: bool = True) -> None:
+    (d / ".hydra").mkdir(parents=True)
+    ov = ["+variant=full", f"seed={seed}"]
+    (d / ".hydra" / "overrides.yaml").write_text(yaml.safe_dump(ov))
+    if metrics:
+        (d / "metrics.json").write_text(json.dumps({
+            "config": {"variant": "full", "data": "synthetic_ci"}, "overrides": ov, "seed": seed, "commit": "abc",
+            "scene": "ci", "train_seconds": 1.0, "iterations": 10, "num_gaussians": 5, "num_parameters": 7,
+            "lpips": "not computed: x", "test/novel_view/psnr": 20.0 + seed, "test/novel_pose/psnr": 19.0,
+        }))
+
+
+def test_collector_lists_missing_jobs(tmp_path):
+    sys.path.insert(0, str(ROOT))
+    from ablations.collect import main
+
+    sweep = tmp_path / "sweep"
+    sweep.mkdir()
+    (sweep / "multirun.yaml").write_text(yaml.safe_dump({"hydra": {"overrides": {
+        "hydra": ["hydra.mode=MULTIRUN"], "task": ["+variant=full", "seed=0,1,2"]}}}))
+    for i in range(3):
+        _fake_job(sweep / str(i), i, metrics=i != 1)
+    assert main([str(sweep), "--out", str(tmp_path / "o")]) != 0
+    md = (tmp_path / "o" / "table.md").read_text()
+    assert "seed=1" in md and "missing" in md.lower()
+    assert main([str(sweep), "--out", str(tmp_path / "o2"), "--allow-missing"]) == 0
+    assert "seed=1" in (tmp_path / "o2" / "table.md").read_text()
+    shutil.rmtree(sweep / "2")  # the launcher stopped before job 2: the sweep's expansion still lists it
+    assert main([str(sweep), "--out", str(tmp_path / "o3")]) != 0
+    md = (tmp_path / "o3" / "table.md").read_text()
+    assert "seed=2): never started" in md and "(2 of 3)" in md
+
+
+# ------------------------------------------------------------------------------------------- 7. images up front
+
+
+@pytest.mark.parametrize("damage", ["corrupt", "wrong_size"])
+def test_bad_training_image_found_before_step_0(scenes_root, tmp_path, damage, body_model, caplog):
+    import logging
+
+    from PIL import Image
+
+    from realityavatar.data.datamodule import AvatarDataModule
+
+    for p in scenes_root.glob("skirt_spin_ci-*"):
+        (shutil.copytree if p.is_dir() else shutil.copy)(p, tmp_path / p.name)
+    victim = max((tmp_path / "skirt_spin_ci-train" / "images").glob("*.png"))
+    if damage == "corrupt":
+        victim.write_bytes(victim.read_bytes()[:100])
+    else:
+        Image.open(victim).resize((32, 32)).save(victim)
+    dm = AvatarDataModule(str(tmp_path), "skirt_spin_ci", body=body_model, window_len=4, window_step=2)
+    with pytest.raises((OSError, ValueError), match=victim.name):
+        dm.setup("fit")
+    good = AvatarDataModule(str(scenes_root), "skirt_spin_ci", body=body_model, window_len=4, window_step=2)
+    with caplog.at_level(logging.INFO, logger="realityavatar.data.datamodule"):
+        good.setup("fit")
+    assert any("checked" in r.getMessage() and " s" in r.getMessage() for r in caplog.records)
+
+
+@pytest.fixture(scope="module")
+def body_model():
+    from realityavatar.body import build_body
+
+    return build_body("mannequin")
+
+
+# ------------------------------------------------------------------------------------------- 8. messages
+
+
+def test_truncated_checkpoint_and_bad_pose_files_are_named(tiny_run, tmp_path):
+    from realityavatar.animate import main as animate_main
+    from realityavatar.build import load_run
+
+    out, _ = tiny_run
+    run = tmp_path / "r"
+    run.mkdir()
+    shutil.copy(out / "config.yaml", run / "config.yaml")
+    data = (out / "last.ckpt").read_bytes()
+    (run / "last.ckpt").write_bytes(data[: len(data) // 2])
+    with pytest.raises(Exception, match=r"last\.ckpt.*(truncated|corrupt)"):
+        load_run(run)
+    F = 3
+    np.savez(tmp_path / "rh.npz", poses=np.zeros((F, 72), np.float32), Rh=np.zeros((F, 2)), Th=np.zeros((F, 3)))
+    with pytest.raises(ValueError, match=r"rh\.npz.*'Rh'.*\[3,3\]"):
+        animate_main([f"run_dir={out}", f"poses={tmp_path / 'rh.npz'}"])
+    np.savez(tmp_path / "empty.npz", poses=np.zeros((0, 72), np.float32))
+    with pytest.raises(ValueError, match=r"empty\.npz.*'poses'.*no frames"):
+        animate_main([f"run_dir={out}", f"poses={tmp_path / 'empty.npz'}"])
+
+
+# ------------------------------------------------------------------------------------------- 9. interrupts
+
+
+def test_sigint_keeps_checkpoint_and_exits_130(scenes_root, tmp_path, monkeypatch, capsys):
+    out = tmp_path / "int"
+    _StopAt(monkeypatch, 3, KeyboardInterrupt())  # Ctrl-C lands inside a step: the step-3 checkpoint is kept
+    with pytest.raises(SystemExit) as e:
+        _run(out, "iterations=12")
+    assert e.value.code == 130
+    assert "checkpoint kept" in capsys.readouterr().err
+    assert _state(out / "last.ckpt")["global_step"] == 3
+
+
+def test_sigint_signal_stops_after_the_step_and_saves(scenes_root, tmp_path, monkeypatch, capsys):
+    from realityavatar.model.module import AvatarModule
+
+    orig = AvatarModule.training_step
+
+    def step(module, batch, batch_idx):
+        if module.global_step == 4:
+            os.kill(os.getpid(), signal.SIGINT)  # a real Ctrl-C while step 4 runs
+        return orig(module, batch, batch_idx)
+
+    monkeypatch.setattr(AvatarModule, "training_step", step)
+    out = tmp_path / "sig"
+    with pytest.raises(SystemExit) as e:
+        _run(out, "iterations=12")
+    assert e.value.code == 130 and "checkpoint kept" in capsys.readouterr().err
+    assert _state(out / "last.ckpt")["global_step"] == 5  # step 4 finished, then saved
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
+def test_stale_scene_temp_folders_are_removed(tmp_path):
+    from realityavatar.data.synthetic import build_scene
+
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    stale = tmp_path / f".tmp-skirt_spin_ci-{dead.pid}-abc"
+    (stale / "skirt_spin_ci-train").mkdir(parents=True)
+    live = tmp_path / f".tmp-skirt_spin_ci-{os.getpid()}-def"
+    live.mkdir()
+    build_scene("ci", tmp_path, seed=0, progress=False)
+    assert not stale.exists() and live.exists()
+
+
+# ------------------------------------------------------------------------------------------- SIGKILL + resume
+
+
+KILL_AT = r"""
+import os, signal, sys
+from realityavatar.model.module import AvatarModule
+orig = AvatarModule.training_step
+def step(self, batch, i):
+    if self.global_step == int(os.environ["KILL_AT_STEP"]):
+        os.kill(os.getpid(), signal.SIGKILL)
+    return orig(self, batch, i)
+AvatarModule.training_step = step
+from realityavatar.train import main
+sys.argv = ["realityavatar-train", *sys.argv[1:]]
+main()
+"""
+
+
+@pytest.mark.slow
+def test_sigkill_resume_matches_uninterrupted(scenes_root, tmp_path):
+    """SIGKILL mid-training (after the step-20 checkpoint), resume: same parameters and metrics as one run."""
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "REALITYAVATAR_SCENES": str(scenes_root)}
+    args = [*TINY, "iterations=40", "threads=1"]
+    ref, cut = tmp_path / "ref", tmp_path / "cut"
+    py = [sys.executable, "-c", KILL_AT]
+    r = subprocess.run([*py, *args, f"hydra.run.dir={ref}"], env={**env, "KILL_AT_STEP": "-1"}, capture_output=True,
+                       text=True, timeout=900, check=False)
+    assert r.returncode == 0, r.stderr[-3000:]
+    r = subprocess.run([*py, *args, f"hydra.run.dir={cut}"], env={**env, "KILL_AT_STEP": "25"}, capture_output=True,
+                       text=True, timeout=900, check=False)
+    assert r.returncode == -signal.SIGKILL, r.stderr[-3000:]
+    assert _state(cut / "last.ckpt")["global_step"] == 20 and not (cut / "metrics.json").exists()
+    r = subprocess.run([*py, *args, f"hydra.run.dir={cut}", "resume=true"], env={**env, "KILL_AT_STEP": "-1"},
+                       capture_output=True, text=True, timeout=900, check=False)
+    assert r.returncode == 0, r.stderr[-3000:]
+    a, b = _state(ref / "last.ckpt")["state_dict"], _state(cut / "last.ckpt")["state_dict"]
+    diffs = {k: float((a[k] - b[k]).abs().max()) for k in a if a[k].is_floating_point()}
+    assert max(diffs.values()) <= 1e-6, max(diffs.items(), key=lambda kv: kv[1])
+    ma, mb = json.loads((ref / "metrics.json").read_text()), json.loads((cut / "metrics.json").read_text())
+    for split in ("novel_view", "novel_pose"):
+        assert abs(ma[f"test/{split}/psnr"] - mb[f"test/{split}/psnr"]) <= 0.05
+    assert mb["iterations"] == 40 and mb["train_seconds"] > 0
