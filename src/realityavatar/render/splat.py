@@ -202,7 +202,8 @@ def rasterize(
     meta: means2d [C,N,2] (grad retained), radii [C,N] int32 (max of the x/y half-extents, 0 = culled),
     radii_xy [C,N,2] (gsplat 1.5's per-axis radii), depths [C,N], conics [C,N,3], opacities [C,N] (after
     antialiasing compensation), visible [C,N] bool, backend ("torch" | "numba" | "gsplat"), plus tile statistics.
-    backend="auto": gsplat for CUDA tensors, numba on CPU where it imports, else torch.
+    backend="auto": gsplat for float32 CUDA tensors when its kernels load, numba for CPU tensors where numba
+    imports, else torch.
     `tile_size` defaults to 8 for torch, 16 for numba and gsplat; `alpha_max`, `chunk_elements` and `tile_cull` tune the torch backend; gsplat's own extra options
     go through `gsplat_kwargs` (ignored by the torch backend).
     """
@@ -245,14 +246,18 @@ def rasterize(
                 raise
             _gsplat_failed(exc)
     return _rasterize_torch(means, quats, scales, opacities, colors, viewmats, Ks, width, height,
-                            composite=_cpu_compositor(backend, means), sh_degree=sh_degree, backgrounds=backgrounds, near=near, far=far,
+                            composite=_cpu_compositor(backend, means), sh_degree=sh_degree,
+                            backgrounds=backgrounds, near=near, far=far,
                             render_mode=render_mode, rasterize_mode=rasterize_mode, tile_size=tile_size,
                             eps2d=eps2d, radius_clip=radius_clip, alpha_max=alpha_max,
                             chunk_elements=chunk_elements, tile_cull=tile_cull)
 
 
 def _cpu_compositor(backend: str, means: torch.Tensor) -> str:
-    """'numba' (compiled CPU kernels, numba_backend.py) for backend numba, or auto on CPU; else 'torch'."""
+    """'numba' (compiled CPU kernels, numba_backend.py) for backend='numba', or 'auto' on CPU tensors, where numba
+    imports; else 'torch'. auto on CUDA tensors that gsplat could not take (float64, broken build) stays on torch."""
+    if backend == "auto" and (_on_cuda(means) or means.is_cuda):
+        return "torch"
     if backend not in ("numba", "auto") or means.is_cuda:
         if backend == "numba":
             warnings.warn(f"{_WHERE}: backend='numba' needs CPU tensors; using the torch backend", stacklevel=3)
