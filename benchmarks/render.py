@@ -84,16 +84,19 @@ def _sync(device: str) -> None:
         torch.cuda.synchronize()
 
 
+_clock = time.perf_counter  # --clock cpu: time.process_time (CPU seconds of this process)
+
+
 def _time(fn, repeats: int, device: str, warmup: bool = True) -> float:
     if warmup:
         fn()
     _sync(device)
     best = []
     for _ in range(repeats):
-        t0 = time.perf_counter()
+        t0 = _clock()
         fn()
         _sync(device)
-        best.append(time.perf_counter() - t0)
+        best.append(_clock() - t0)
     return float(sorted(best)[len(best) // 2])  # median
 
 
@@ -114,6 +117,8 @@ def run_one(cfg: dict) -> dict:
     from realityavatar.render.project import project_gaussians
     from realityavatar.render.reference import composite_dense_rows, pixel_centres, rasterize_reference
 
+    global _clock
+    _clock = time.process_time if cfg.get("clock") == "cpu" else time.perf_counter
     torch.set_num_threads(cfg["threads"]) if cfg["threads"] else None
     dev, n, size, method = cfg["device"], cfg["n"], cfg["size"], cfg["method"]
     jit_s = None
@@ -197,6 +202,8 @@ def main() -> None:
                     help="NxSIZE configurations also timed with the dense reference (slow); none with --dense")
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--threads", type=int, default=0, help="torch threads (0: torch default)")
+    ap.add_argument("--clock", choices=["wall", "cpu"], default="wall",
+                    help="cpu: process CPU seconds, steadier than wall time on a shared CPU (only with --threads 1)")
     ap.add_argument("--quick", action="store_true", help="10k at 256^2 only, dense reference included")
     ap.add_argument("--out", default=None, help="JSON path (default benchmarks/results/render_<device>.json)")
     a = ap.parse_args()
@@ -208,10 +215,10 @@ def main() -> None:
         for size in a.size:
             for m in backends:
                 runs.append({"n": n, "size": size, "method": m, "device": a.device, "repeats": a.repeats,
-                             "threads": a.threads})
+                             "threads": a.threads, "clock": a.clock})
             if f"{n}x{size}" in (a.dense or []):
                 runs.append({"n": n, "size": size, "method": "dense", "device": a.device, "repeats": 1,
-                             "threads": a.threads, "pixel_chunk": 1024})
+                             "threads": a.threads, "pixel_chunk": 1024, "clock": a.clock})
     global _loadavg_before
     _loadavg_before = list(__import__("os").getloadavg())  # the machine is shared: record how busy it was
     results = []
@@ -248,6 +255,7 @@ def main() -> None:
         "command": " ".join([Path(sys.executable).name, *sys.argv]),
         "torch": torch.__version__,
         "threads": torch.get_num_threads() if not a.threads else a.threads,
+        "clock": a.clock,
         "machine": platform.platform(),
         "load_average_before": _loadavg_before,
         "load_average_after": list(__import__("os").getloadavg()),

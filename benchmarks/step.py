@@ -1,6 +1,6 @@
 """One full training step of the demo model and its parts (data, networks, render, losses, optimizer, density).
 
-python benchmarks/step.py [--n 10000 35000] [--size 128 256 512] [--backends torch numba] [--threads 1] [--repeats 3]
+python benchmarks/step.py [--n 10000 35000] [--size 128 256 512] [--backends torch numba] [--threads 1] [--clock cpu]
 Every time is printed beside its ratio to the GEMM unit (8 float32 matmuls of 1024^3) timed in the same process,
 because the project's CPU is shared and absolute seconds drift with the load. Writes benchmarks/results/step_cpu.json.
 
@@ -23,6 +23,8 @@ from pathlib import Path
 
 import torch
 
+_clock = time.perf_counter  # --clock cpu: time.process_time
+
 PARTS = ("data", "networks_fwd", "render_fwd", "losses_fwd", "losses_bwd", "render_bwd", "networks_bwd", "optimizer",
          "density")
 
@@ -34,10 +36,10 @@ def gemm_unit(repeats: int = 3) -> float:
     a @ b
     times = []
     for _ in range(repeats):
-        t = time.perf_counter()
+        t = _clock()
         for _ in range(8):
             a @ b
-        times.append(time.perf_counter() - t)
+        times.append(_clock() - t)
     return statistics.median(times)
 
 
@@ -103,7 +105,7 @@ def make_batch_fn(module, size: int, window: int):
 def step_parts(module, opt, sched, make_batch, step: int) -> dict:
     """One training step with detach points; seconds per part."""
     t = {}
-    c = time.perf_counter
+    c = _clock
     t0 = c()
     batch = make_batch()
     t["data"] = c() - t0
@@ -151,7 +153,7 @@ def step_parts(module, opt, sched, make_batch, step: int) -> dict:
 
 def step_whole(module, opt, sched, make_batch, step: int) -> float:
     """The same step without detach points (module.training_step's body, one backward)."""
-    t0 = time.perf_counter()
+    t0 = _clock()
     batch = make_batch()
     opt.zero_grad(set_to_none=True)
     rgb, alpha, metas, _ = module.render_batch(batch, deform=module.schedule.deform_on(step))
@@ -167,7 +169,7 @@ def step_whole(module, opt, sched, make_batch, step: int) -> float:
     opt.step()
     sched.step()
     module.density.step_post_backward(module.gaussians, opt, metas, step, (rgb.shape[2], rgb.shape[1]))
-    return time.perf_counter() - t0
+    return _clock() - t0
 
 
 def run_config(n: int, size: int, backend: str, repeats: int, overrides: list[str]) -> dict:
@@ -194,10 +196,14 @@ def main() -> None:
     ap.add_argument("--backends", nargs="+", default=["torch", "numba"], help="conf/render options")
     ap.add_argument("--threads", type=int, default=1, help="torch (and numba) threads; 1 is the shared-CPU default")
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--clock", choices=["wall", "cpu"], default="wall",
+                    help="cpu: process CPU seconds, steadier than wall time on a shared CPU (only with --threads 1)")
     ap.add_argument("--override", nargs="*", default=[], help="extra hydra overrides, e.g. encoder=whole_pose")
     ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "step_cpu.json"))
     a = ap.parse_args()
     torch.set_num_threads(a.threads)
+    global _clock
+    _clock = time.process_time if a.clock == "cpu" else time.perf_counter
     load_before = list(os.getloadavg())
     units = [gemm_unit()]
     results = []
@@ -222,6 +228,7 @@ def main() -> None:
     meta = {
         "command": " ".join(["python", "benchmarks/step.py", *os.sys.argv[1:]]),
         "threads": a.threads,
+        "clock": a.clock,
         "torch": torch.__version__,
         "machine": platform.platform(),
         "cpu": platform.processor() or platform.machine(),
@@ -229,15 +236,15 @@ def main() -> None:
         "load_average_before": load_before,
         "load_average_after": list(os.getloadavg()),
         "gemm_units_s": units,
-        "note": "wall-clock medians; parts are timed with detach points between them, step without; "
+        "note": "medians (wall or process-CPU seconds, see clock); parts are timed with detach points between them, step without; "
                 "ratio = seconds / GEMM unit measured in the same process next to the row",
     }
     try:
         from realityavatar.build import git_commit
 
         meta["commit"] = git_commit()
-    except Exception:  # noqa: BLE001 - a missing git is not a reason to lose the numbers
-        pass
+    except Exception as exc:  # noqa: BLE001 - a missing git is not a reason to lose the numbers
+        meta["commit"] = f"unknown ({type(exc).__name__})"
     if math.isfinite(units[0]):
         Path(a.out).parent.mkdir(parents=True, exist_ok=True)
         Path(a.out).write_text(json.dumps({"meta": meta, "results": results}, indent=1))

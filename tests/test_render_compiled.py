@@ -61,7 +61,8 @@ def _assert_same(a, b, tol_val, tol_grad):
 def test_numba_matches_torch_backend(mode, n, cams, w, h, tile_size, alpha_max):
     args = random_scene(n, seed=n + cams, cams=cams, w=w, h=h)
     bg = torch.rand(cams, 3, dtype=F64)
-    kw = dict(rasterize_mode=mode, backgrounds=bg, tile_size=tile_size, alpha_max=alpha_max, render_mode="RGB+ED")
+    kw = {"rasterize_mode": mode, "backgrounds": bg, "tile_size": tile_size, "alpha_max": alpha_max,
+          "render_mode": "RGB+ED"}
     _assert_same(_run("torch", args, w, h, **kw), _run("numba", args, w, h, **kw), 1e-12, 1e-10)
 
 
@@ -128,7 +129,7 @@ def test_numba_empty_and_culled_scenes():
 @pytest.mark.parametrize("mode", ["D", "ED", "RGB+D"])
 def test_numba_depth_modes(mode):
     args = random_scene(50, seed=4)
-    kw = dict(render_mode=mode)
+    kw = {"render_mode": mode}
     _assert_same(_run("torch", args, 40, 32, **kw), _run("numba", args, 40, 32, **kw), 1e-12, 1e-10)
 
 

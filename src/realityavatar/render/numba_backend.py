@@ -137,7 +137,7 @@ def _rows(my, ry, oy, ny):
         return 0, ny
     lo = max(my - oy - 0.5 - ry, 0.0)
     hi = min(max(my - oy - 0.5 + ry + 1.0, 0.0), float(ny))
-    return int(math.ceil(lo)), int(hi)
+    return math.ceil(lo), int(hi)
 
 
 @njit(cache=True, inline="always")
@@ -155,7 +155,7 @@ def _cols(mx, dy, A, B, inv_a, q, thr, ox, nx, ry):
     cx = mx + B * dy * inv_a - ox - 0.5
     lo = max(cx - hw, 0.0)
     hi = min(max(cx + hw + 1.0, 0.0), float(nx))
-    return int(math.ceil(lo)), int(hi)
+    return math.ceil(lo), int(hi)
 
 
 @njit(cache=True, parallel=True)
@@ -539,7 +539,7 @@ def _project_fwd(means, quats, scales, opac, viewmats, Ks, width, height, near, 
         for n in range(blk * _BLOCK, min(N, (blk + 1) * _BLOCK)):
             for c in range(C):
                 _cam_cov(means, quats, scales, viewmats[c, :3, :3], viewmats[c, :3, 3], n, q, Rq, M, S, Sc, tmp, p)
-                in_range, zz, rz, uc, vc, tx, ty, u_free, v_free = _jacobian(p, Ks[c], width, height, near, far, J)
+                in_range, _zz, rz, _uc, _vc, _tx, _ty, _uf, _vf = _jacobian(p, Ks[c], width, height, near, far, J)
                 a, b, cc = _cov2d(J, Sc, tmp23)
                 mx = Ks[c, 0, 0] * p[0] * rz + Ks[c, 0, 2]
                 my = Ks[c, 1, 1] * p[1] * rz + Ks[c, 1, 2]
