@@ -20,6 +20,10 @@ try:  # the torch backend stays the fallback where numba cannot be imported
     from numba import njit, prange
 
     NUMBA_ERROR: str | None = None
+    # numba's OpenMP layer shares libgomp with torch: with a pool of 2 it made torch's own ops (and the kernels) 4x
+    # slower in CPU time at 1 thread here. The workqueue layer does not interfere. NUMBA_THREADING_LAYER still wins.
+    if "NUMBA_THREADING_LAYER" not in __import__("os").environ:
+        numba.config.THREADING_LAYER = "workqueue"
 except Exception as exc:  # noqa: BLE001 - ImportError or a broken llvmlite: any means fall back
     numba = None
     NUMBA_ERROR = f"{type(exc).__name__}: {exc}"
