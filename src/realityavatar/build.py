@@ -6,6 +6,7 @@ import json
 import subprocess
 from pathlib import Path
 
+import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 

@@ -10,6 +10,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from realityavatar.build import build_data, load_run, run_device, write_json
 
