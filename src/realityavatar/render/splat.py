@@ -276,9 +276,9 @@ def _sh_colors(colors, sh_degree, means, viewmats, C):
     return torch.clamp_min(eval_sh(int(sh_degree), coeffs, dirs) + 0.5, 0.0)  # [C,N,3]
 
 
-def _rasterize_torch(means, quats, scales, opacities, colors, viewmats, Ks, width, height, *, composite, sh_degree,
+def _rasterize_torch(means, quats, scales, opacities, colors, viewmats, Ks, width, height, *, sh_degree,
                      backgrounds, near, far, render_mode, rasterize_mode, tile_size, eps2d, radius_clip,
-                     alpha_max, chunk_elements, tile_cull):
+                     alpha_max, chunk_elements, tile_cull, composite="torch"):
     C = viewmats.shape[0]
     if composite == "numba":
         from .numba_backend import project_gaussians_numba as project
