@@ -1,11 +1,11 @@
-"""Compiled CPU compositing (Numba): tile binning, front-to-back forward and back-to-front backward per tile.
+"""Compiled CPU renderer (Numba): EWA projection, tile binning and compositing, each with its backward.
 
 Same per-pixel rules as tiles.py and gsplat's rasterize_to_pixels: pixel centres at +0.5, alpha = min(alpha_max,
 o*exp(-sigma)), skip sigma < 0 or alpha < 1/255, stop before the Gaussian that takes T to <= 1e-4. Arithmetic is
 float64 inside the kernels whatever the input dtype. The backward walks each pixel's list back to front from its
 last contributing Gaussian (gsplat's backward), so forward keeps only the final T and that index per pixel.
 Gradients go to per-pair slots (one tile = one thread, no races) and are summed per Gaussian in a second pass,
-so results do not depend on the thread count.
+so results do not depend on the thread count. The projection follows project.py (float64 inside as well).
 """
 from __future__ import annotations
 
