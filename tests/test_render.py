@@ -76,8 +76,9 @@ def test_alpha_clamp_is_hit():
         assert alpha.max().item() == pytest.approx(amax, abs=1e-12)
 
 
+@pytest.mark.parametrize("backend", ["torch", "auto"])  # auto: numba on CPU where it imports
 @pytest.mark.parametrize("mode", ["classic", "antialiased"])
-def test_gradcheck(mode):
+def test_gradcheck(mode, backend):
     g = torch.Generator().manual_seed(1)
     n = 5
     means = (torch.randn(n, 3, generator=g, dtype=F64) * 0.25).requires_grad_()
@@ -89,7 +90,8 @@ def test_gradcheck(mode):
     Ks = torch.tensor([[18.0, 0, 8.3], [0, 18.0, 7.6], [0, 0, 1]], dtype=F64)[None].repeat(2, 1, 1)
 
     def f(m, q, s, o, c):
-        img, alpha, _ = rasterize(m, q, s, o, c, vms, Ks, 16, 14, rasterize_mode=mode, render_mode="RGB+ED")
+        img, alpha, _ = rasterize(m, q, s, o, c, vms, Ks, 16, 14, rasterize_mode=mode, render_mode="RGB+ED",
+                                  backend=backend)
         return img, alpha
 
     inputs = (means, quats, scales, op, colors)
@@ -97,7 +99,7 @@ def test_gradcheck(mode):
 
     # the full Jacobian on one small camera (slow mode checks every output entry)
     def f1(m, q, s, o, c):
-        img, alpha, _ = rasterize(m, q, s, o, c[0], vms[:1], Ks[:1], 7, 6, rasterize_mode=mode)
+        img, alpha, _ = rasterize(m, q, s, o, c[0], vms[:1], Ks[:1], 7, 6, rasterize_mode=mode, backend=backend)
         return img, alpha
 
     Ks[:, :2, 2] = torch.tensor([3.4, 2.9], dtype=F64)
