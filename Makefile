@@ -21,8 +21,9 @@ $(VENV)/.installed: pyproject.toml
 
 install: $(VENV)/.installed
 
+# Everything but the GPU tests, slow end-to-end runs included (CI runs exactly this).
 test: install
-	$(RUNENV) $(PY) -m pytest -q -m "not slow and not gpu"
+	$(RUNENV) $(PY) -m pytest -q -m "not gpu"
 
 test-all: install
 	$(RUNENV) $(PY) -m pytest -q

@@ -1,4 +1,4 @@
-"""Stability report: abrupt stops, extreme unseen poses, long rollouts, pose-fit noise and seed spread.
+"""Stability report: abrupt stops, extreme unseen poses, pose-fit noise and seed spread.
 
 Usage: python ablations/stability.py <run_dir or sweep_dir> [...] --out ablations/results/stability [--view V]
 Every number comes from rendering the trained runs; the report is Markdown + PNG + JSON.
@@ -17,7 +17,6 @@ import numpy as np
 import torch
 from torch.utils.data import default_collate
 
-from realityavatar.data.poses import PoseTable
 from realityavatar.metrics import psnr, temporal_flicker
 
 NOISE_SIGMAS = (0.0, 0.02, 0.05, 0.1)  # radians added to every joint rotation (pose-fit noise)
@@ -99,8 +98,7 @@ def extreme_poses(module, dm, n: int = 48, seed: int = 0) -> dict:
         windows.append(w)
         trans.append(base_t.expand(T, 3))
     poses_w, transl_w = torch.stack(windows), torch.stack(trans)
-    idx = torch.full((n,), -1, dtype=torch.long)
-    posed = module.deform(poses_w, transl_w, idx)
+    posed = module.deform(poses_w, transl_w)
     joints = module.body.joints(poses_w[:, -1], transl_w[:, -1])  # [n,24,3]
     dist = torch.cdist(posed["means"], joints).min(-1).values  # [n,N] distance to the nearest joint
     finite = bool(torch.isfinite(posed["means"]).all() and torch.isfinite(posed["scales"]).all())
@@ -116,24 +114,6 @@ def extreme_poses(module, dm, n: int = 48, seed: int = 0) -> dict:
         "max_dist_to_joint_m": float(dist.max()),
         "frac_gaussians_over_0.6m_from_joints": float((dist > 0.6).float().mean()),
     }
-
-
-@torch.no_grad()
-def long_rollout(module, dm, cycles: int = 10) -> dict:
-    """Loop the training motion `cycles` times; the same window must give the same Gaussians in every cycle."""
-    frames, poses, transl = dm.pose_sequence("train")
-    F = len(frames)
-    long = PoseTable.from_sequence(poses.repeat(cycles, 1, 1), transl.repeat(cycles, 1))
-    T, s = dm.window_len, dm.window_step
-    probe = [f for f in range(F) if f - (T - 1) * s >= 0][:8] or [F - 1]
-    idx = torch.full((1,), -1, dtype=torch.long)
-    dev, nonfinite = 0.0, 0
-    for f in probe:
-        first = module.deform(*[x[None] for x in long.window(f, T, s)], idx)["means"]
-        last = module.deform(*[x[None] for x in long.window(f + (cycles - 1) * F, T, s)], idx)["means"]
-        nonfinite += int((~torch.isfinite(last)).any())
-        dev = max(dev, float((first - last).abs().max()))
-    return {"cycles": cycles, "frames": F * cycles, "max_abs_deviation_m": dev, "nonfinite_frames": nonfinite}
 
 
 @torch.no_grad()
@@ -187,7 +167,6 @@ def analyse_run(run: Path, view: int | None, window: int) -> dict:
         "stops": stops,
         "around_stops": around,
         "extreme": extreme_poses(module, dm),
-        "rollout": long_rollout(module, dm),
         "noise": pose_noise(module, dm, view),
     }
 
@@ -251,12 +230,9 @@ def write_report(results: list[dict], out: Path, command: str) -> None:
                  f"{max(x['scale_growth'] for x in e):.2f} | {np.mean([x['opacity_mean'] for x in e]):.3f} / "
                  f"{np.mean([x['opacity_p99'] for x in e]):.3f} | {max(x['max_dist_to_joint_m'] for x in e):.3f} | "
                  f"{np.mean([x['frac_gaussians_over_0.6m_from_joints'] for x in e]):.4f} |")
-    L += ["", "## Long rollout (training motion looped 10×)", "",
-          "| variant | frames | max abs Δ of Gaussian means, cycle 1 vs cycle 10 (m) | frames with non-finite output |", "|---|---|---|---|"]
-    for label, rs in by.items():
-        ro = [r["rollout"] for r in rs]
-        L.append(f"| {label} | {ro[0]['frames']} | {max(x['max_abs_deviation_m'] for x in ro):.2e} | {sum(x['nonfinite_frames'] for x in ro)} |")
-    L += ["", "The temporal state is rebuilt from a fixed pose window every frame, so it cannot drift: the same window gives the same Gaussians however long the sequence.", "",
+    # No long-rollout row: the temporal state is rebuilt from a fixed pose window every frame, so "cycle 1 vs cycle
+    # 10" compares a pure function with itself and cannot fail; the extreme-pose table is the check that can.
+    L += ["",
           "## Pose-fit noise (novel-pose PSNR, one camera)", "", "| variant | " + " | ".join(f"σ={s}" for s in results[0]["noise"]["psnr_by_sigma"]) + " |",
           "|---|" + "---|" * len(results[0]["noise"]["psnr_by_sigma"])]
     for label, rs in by.items():

@@ -15,8 +15,9 @@ from pathlib import Path
 import torch
 
 from realityavatar.model.color import MLPColor
-from realityavatar.model.deform import HashEncoding, MotionTrendDecoder, apply_deformation
+from realityavatar.model.deform import MotionTrendDecoder, apply_deformation
 from realityavatar.model.encoders import LatentBoneEncoder
+from realityavatar.model.encodings import HashEncoding
 from realityavatar.model.skinning import SkinningField, lbs_gaussians
 from realityavatar.model.temporal import RecurrentTemporal
 

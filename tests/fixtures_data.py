@@ -9,7 +9,6 @@ from __future__ import annotations
 import copy
 import json
 import math
-import pickle
 from pathlib import Path
 
 import numpy as np
@@ -17,40 +16,36 @@ import torch
 from PIL import Image
 
 from realityavatar.body.base import SMPL_PARENTS, BodyModel, rh_th_to_smpl
+from realityavatar.data.i3d import I3DSplitWriter
+from realityavatar.data.synthetic.cameras import look_at as _look_at
 
 SIZE = 48  # image width = height
 FOCAL = 60.0
 DISC = 5  # disc radius in pixels
 
 
-class TinyBody(BodyModel):
-    """A 24-joint stick body with made-up rest joints (vertices = joints) for tests that need only FK."""
+class RandomBody(BodyModel):
+    """24 made-up joints (SMPL tree, normal offsets of `spread` m), each wrapped in a small tetrahedron skinned 100%
+    to it: FK for the readers, a mesh with area for surface sampling. The one stand-in body of the tests."""
 
-    name = "tiny"
+    name = "random"
 
-    def __init__(self) -> None:
+    def __init__(self, seed: int = 7, pelvis=(0.0, 0.9, 0.02), spread: float = 0.1) -> None:
         super().__init__()
-        rng = np.random.default_rng(7)
+        rng = np.random.default_rng(seed)
         J = np.zeros((24, 3))
-        J[0] = [0.0, 0.9, 0.02]  # pelvis off the origin, so Rh/Th -> SMPL conversion matters
+        J[0] = pelvis  # off the origin by default, so the Rh/Th -> SMPL conversion matters
         for j in range(1, 24):
-            J[j] = J[SMPL_PARENTS[j]] + rng.normal(0, 0.1, 3)
-        self._set_buffers(J, np.array([[0, 1, 2]]), np.eye(24), J)
+            J[j] = J[SMPL_PARENTS[j]] + rng.normal(0, spread, 3)
+        tet = np.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]], dtype=np.float64) * 0.03
+        verts = (J[:, None, :] + tet[None]).reshape(-1, 3)
+        faces = np.concatenate([np.array([[0, 1, 2], [0, 3, 1], [0, 2, 3], [1, 3, 2]]) + 4 * j for j in range(24)])
+        self._set_buffers(verts, faces, np.repeat(np.eye(24), 4, axis=0), J)
 
 
 def look_at(eye, target=(0.0, 0.9, 0.0), up=(0.0, 1.0, 0.0)) -> np.ndarray:
-    """World-to-camera [4,4], OpenCV axes (x right, y down, z forward)."""
-    eye, target, up = (np.asarray(v, dtype=np.float64) for v in (eye, target, up))
-    z = target - eye
-    z /= np.linalg.norm(z)
-    x = np.cross(z, -up)
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    R = np.stack([x, y, z])
-    E = np.eye(4)
-    E[:3, :3] = R
-    E[:3, 3] = -R @ eye
-    return E
+    """The scene generator's look_at (OpenCV world-to-camera [4,4]), aimed at the fixture body by default."""
+    return _look_at(np.asarray(eye, float), np.asarray(target, float), up)
 
 
 def camera(view: int, n_views: int = 12, dist: float = 3.0):
@@ -105,30 +100,17 @@ def write_i3d(root, sequence, body, train_frames=(0, 1, 2, 3), pose_frames=(4, 5
               "novelpose": (pose_frames, test_views)}
     written = {"frames": frames, "poses": poses, "Rh": Rh, "Th": Th, "pelvis_world": pelvis_w, "cameras": {}}
     for folder, (fr, views) in layout.items():
-        d = root / f"{sequence}-{folder}"
-        (d / "images").mkdir(parents=True, exist_ok=True)
-        (d / "masks").mkdir(parents=True, exist_ok=True)
-        cams, infos = {}, {}
+        out = I3DSplitWriter(root / f"{sequence}-{folder}", body.rest_joints.numpy() if folder == "train" else None)
         for f in fr:
             i = by_frame[f]
+            info = {"poses": poses[i], "Rh": Rh[i], "Th": Th[i], "joints": np.zeros((24, 3)),
+                    "tpose_joints": body.rest_joints.numpy()}
             for v in views:
-                name = f"frame_{f:06d}_view_{v:02d}"
                 K, E = camera(v)
                 written["cameras"][v] = (K, E)
-                cams[name] = {"intrinsics": K, "extrinsics": E,
-                              "distortions": np.zeros(5) if distortions is None else np.asarray(distortions)}
-                infos[name] = {"poses": poses[i], "Rh": Rh[i], "Th": Th[i], "joints": np.zeros((24, 3)),
-                               "tpose_joints": body.rest_joints.numpy()}
-                img, mask = draw(project(K, E, pelvis_w[i]), (200, 100 + 20 * v, 50))
-                Image.fromarray(img).save(d / "images" / f"{name}.png")
-                Image.fromarray(mask).save(d / "masks" / f"{name}.png")
-        with open(d / "cameras.pkl", "wb") as fh:
-            pickle.dump(cams, fh)
-        with open(d / "mesh_infos.pkl", "wb") as fh:
-            pickle.dump(infos, fh)
-        if folder == "train":
-            with open(d / "canonical_joints.pkl", "wb") as fh:
-                pickle.dump({"joints": body.rest_joints.numpy()}, fh)
+                img, mask = draw(project(K, E, pelvis_w[i]), (200, (100 + 20 * v) % 256, 50))
+                out.add(f, v, img, mask, K, E, info, None if distortions is None else np.asarray(distortions))
+        out.close()
     return written
 
 

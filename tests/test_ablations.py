@@ -137,28 +137,19 @@ def test_command_line_values_replace_the_files_axis(standin_conf):
         sorted(["+variant=" + v, "seed=5", "data=synthetic_sweep"]) for v in ("full", "no_lstm"))
 
 
-def _real_tree_gaps() -> list[str]:
-    """Group folders of the real conf/ that nobody has filled yet (the composing tests wait for those)."""
+def _assert_real_tree_complete() -> None:
+    """Every group a sweep uses has options in the real conf/: a missing one is a failure, not a skip."""
     groups = set(GROUPS) | {"variant", "ablation"}
-    return sorted(g for g in groups if not any((CONF / g).glob("*.yaml")))
-
-
-# The sweep-sized scene preset belongs to the scene/data configs; until it exists the sweeps that use it
-# cannot compose, which is reported as a skip naming the file (every other missing option fails).
-SWEEP_SCENE = CONF / "data" / "synthetic_sweep.yaml"
+    gaps = sorted(g for g in groups if not any((CONF / g).glob("*.yaml")))
+    assert not gaps, f"conf/ groups without any option: {gaps}"
 
 
 @pytest.mark.parametrize("name", sorted(EXPECTED))
 def test_sweep_jobs_compose_in_the_real_tree(name):
-    gaps = _real_tree_gaps()
-    if gaps:
-        pytest.skip(f"conf/ groups not written yet: {gaps}")
+    _assert_real_tree_complete()
     jobs = expand(CONF, name)
     assert len(jobs) == EXPECTED[name][0]
-    stand_in = any(o == "data=synthetic_sweep" for j in jobs for o in j) and not SWEEP_SCENE.is_file()
     for job in jobs:
-        if stand_in:  # check every other axis against the real tree meanwhile
-            job = [o.replace("data=synthetic_sweep", "data=synthetic_demo") for o in job]
         cfg, choices = _job_choices(CONF, name, job)
         ov = dict(o.split("=", 1) for o in job)
         if "+variant" in ov:
@@ -171,16 +162,13 @@ def test_sweep_jobs_compose_in_the_real_tree(name):
         assert cfg.seed == int(ov["seed"])
         if name == "tiny":
             assert (cfg.iterations, cfg.gaussians.num_points, cfg.eval.save_video) == (30, 1500, False)
-    if stand_in:
-        pytest.skip(f"{SWEEP_SCENE.relative_to(ROOT)} (the sweep scene preset) does not exist yet; "
-                    "the other axes compose (checked with data=synthetic_demo)")
 
 
 @pytest.mark.parametrize("real", [False, True], ids=["standin", "real"])
 def test_launcher_configs_compose(standin_conf, real):
     conf = CONF if real else standin_conf
-    if real and _real_tree_gaps():
-        pytest.skip(f"conf/ groups not written yet: {_real_tree_gaps()}")
+    if real:
+        _assert_real_tree_complete()
     with initialize_config_dir(str(conf), version_base="1.3"):
         cfg = compose("train", overrides=["+ablation=paper", "hydra/launcher=joblib", "hydra.launcher.n_jobs=2"],
                       return_hydra_config=True)
@@ -331,8 +319,7 @@ def test_tiny_sweep_end_to_end(tmp_path):
     """`realityavatar-train -m +ablation=tiny` trains both jobs; the collectors read what they wrote."""
     import subprocess
 
-    if _real_tree_gaps():
-        pytest.skip(f"conf/ groups not written yet: {_real_tree_gaps()}")
+    _assert_real_tree_complete()
     sweep = tmp_path / "sweep"
     cmd = [sys.executable, "-m", "realityavatar.train", "-m", "+ablation=tiny", f"hydra.sweep.dir={sweep}"]
     res = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=1800, check=False)

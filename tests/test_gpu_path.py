@@ -11,10 +11,9 @@ from pathlib import Path
 
 import pytest
 import torch
-from omegaconf import open_dict
 
 import realityavatar.render.splat as rast_mod
-from realityavatar.config import compose
+from realityavatar.config import compose, prepare_run
 from realityavatar.render import rasterize
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -22,12 +21,7 @@ TINY = ["data=synthetic_ci", "trainer=ci", "gaussians.num_points=400", "eval.sav
         "eval.fps_frames=1", "eval.fps_warmup=0", "schedule.skin_pretrain_steps=3", "data.frame_subsample=5"]
 
 
-def _prepare(cfg, out_dir: Path):
-    choices = {k: v for k, v in cfg.hydra.runtime.choices.items() if not k.startswith("hydra") and v is not None}
-    with open_dict(cfg):
-        del cfg["hydra"]
-        cfg.out_dir = str(out_dir)
-    return cfg, choices
+_prepare = prepare_run  # compose() result -> (cfg, choices) for train.run
 
 
 def _scene(n=30, dtype=torch.float32):

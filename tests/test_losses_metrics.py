@@ -114,8 +114,8 @@ def _save_fake_lpips(tmp_path, net: str):
 def test_lpips_loads_weights_and_behaves(tmp_path, net, size):
     bb, lin = _save_fake_lpips(tmp_path, net)
     assert lpips_status(str(bb), str(lin)) == "computed"
-    m = build_lpips(net, str(bb), str(lin))
-    assert isinstance(m, LPIPS)
+    m, status = build_lpips(net, str(bb), str(lin))
+    assert isinstance(m, LPIPS) and status == "computed"
     m_dir = LPIPS.from_paths(str(tmp_path), net=net)  # a directory with both files
     assert torch.equal(m_dir.lins[0].weight, m.lins[0].weight)
     assert torch.equal(m.lins[2].weight, torch.load(lin)["lin2.model.1.weight"])
@@ -133,8 +133,9 @@ def test_lpips_not_computed_without_weights(tmp_path):
     assert status.startswith("not computed: no LPIPS weights")
     assert "metrics.lpips_weights" in status
     assert lpips_status(str(tmp_path / "nope.pth"), str(tmp_path / "nope2.pth")).startswith("not computed:")
-    assert build_lpips("vgg", None, None) is None
-    assert build_lpips("vgg", None, str(tmp_path)) is None  # empty directory
+    assert build_lpips("vgg", None, None) == (None, status)
+    m, why = build_lpips("vgg", None, str(tmp_path))  # empty directory: the missing file is named
+    assert m is None and why.startswith("not computed: LPIPS weight file") and "vgg" in why
     with pytest.raises(FileNotFoundError, match="not computed"):
         LPIPS("vgg", "", "")
     bb, _ = _save_fake_lpips(tmp_path, "alex")
@@ -155,13 +156,13 @@ def _batch(seed=0):
 
 
 def test_avatar_loss_dssim_fallback_and_terms():
-    loss = AvatarLoss(lambda_mask=0.1, lambda_dssim=0.2, lambda_skin_start=10.0, lambda_skin_end=0.1, skin_decay_step=100)
+    loss = AvatarLoss(lambda_mask=0.1, lambda_dssim=0.2, lambda_skin_start=10.0, lambda_skin_end=0.1)
     assert loss.perceptual_kind == "dssim"
     pred, alpha, gt, mask = _batch()
     field = SkinningField(hidden_dim=16, num_layers=1)
     pts, w = torch.randn(32, 3), torch.softmax(torch.randn(32, 24), -1)
-    for step, lam in ((0, 10.0), (100, 0.1)):
-        total, terms = loss(pred, alpha, gt, mask, skinning=field, skin_points=pts, skin_weights=w, step=step)
+    for decayed, lam in ((False, 10.0), (True, 0.1)):  # the module's Schedule.skin_switch decides `decayed`
+        total, terms = loss(pred, alpha, gt, mask, skinning=field, skin_points=pts, skin_weights=w, skin_decayed=decayed)
         expected = terms["l1"] + 0.1 * terms["mask"] + 0.2 * terms["perceptual"] + lam * terms["skin"]
         assert float(total.detach()) == pytest.approx(float(expected), rel=1e-6)
     assert float(terms["l1"]) == pytest.approx(float((pred - gt).abs().mean()), rel=1e-6)

@@ -14,7 +14,7 @@ import torch
 from PIL import Image
 
 sys.path.insert(0, str(Path(__file__).parent))
-from fixtures_data import SIZE, TinyBody, camera, project, write_i3d, write_zju
+from fixtures_data import SIZE, RandomBody, camera, project, write_i3d, write_zju
 
 from realityavatar.body.base import rh_th_to_smpl
 from realityavatar.data.capture import CaptureError, convert, scan
@@ -27,7 +27,7 @@ from realityavatar.data.zju import read_zju
 
 @pytest.fixture(scope="module")
 def body():
-    return TinyBody()
+    return RandomBody()
 
 
 @pytest.fixture()

@@ -5,11 +5,14 @@ import math
 import warnings
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 from omegaconf import OmegaConf
 
 import realityavatar.render.splat as rast_mod
+from realityavatar.data.synthetic.cameras import look_at as _look_at
+from realityavatar.geometry import camera_centres
 from realityavatar.render import eval_sh, rasterize, sh_basis
 from realityavatar.render.reference import rasterize_reference
 
@@ -18,16 +21,8 @@ CONF = Path(__file__).resolve().parents[1] / "conf" / "render"
 
 
 def look_at(campos, target, dtype=F64):
-    """World-to-camera OpenCV matrix (z forward, y down) for a camera at campos looking at target (world z up)."""
-    campos, target = torch.tensor(campos, dtype=dtype), torch.tensor(target, dtype=dtype)
-    z = torch.nn.functional.normalize(target - campos, dim=0)
-    x = torch.nn.functional.normalize(torch.linalg.cross(z, torch.tensor([0, 0, 1.0], dtype=dtype)), dim=0)
-    y = torch.linalg.cross(z, x)
-    R = torch.stack([x, y, z])
-    vm = torch.eye(4, dtype=dtype)
-    vm[:3, :3] = R
-    vm[:3, 3] = -R @ campos
-    return vm
+    """The scene generator's OpenCV world-to-camera matrix, here with world z up, as a tensor."""
+    return torch.from_numpy(_look_at(np.asarray(campos, float), np.asarray(target, float), up=(0.0, 0.0, 1.0))).to(dtype)
 
 
 def random_scene(n, seed, cams=1, w=40, h=32, dtype=F64, opaque_frac=0.3):
@@ -42,6 +37,11 @@ def random_scene(n, seed, cams=1, w=40, h=32, dtype=F64, opaque_frac=0.3):
                        torch.linspace(0, 1.5, cams).tolist()]).to(dtype)
     K = torch.tensor([[45.0, 0, w / 2 + 0.7], [0, 47.0, h / 2 - 0.4], [0, 0, 1]], dtype=dtype)
     return means, quats, scales, op, colors, vms, K[None].repeat(cams, 1, 1), w, h
+
+
+def _ref_projection(means, quats, scales, op, vms, Ks, w, h, mode):
+    return rasterize_reference(means, quats, scales, op, torch.zeros(means.shape[0], 1, dtype=means.dtype), vms, Ks,
+                               w, h, rasterize_mode=mode)[2]
 
 
 @pytest.mark.parametrize("mode", ["classic", "antialiased"])
@@ -61,6 +61,10 @@ def test_matches_dense_reference(mode, alpha_max, tile_size, chunk):
     assert (1 - ref_alpha).min() < 1e-3
     if chunk == 256:
         assert meta["n_chunks"] > 1
+    # screen-space means, depths and radii agree with the reference's projection from the equations
+    proj = _ref_projection(means, quats, scales, op, vms, Ks, w, h, mode)
+    assert torch.allclose(meta["means2d"].detach(), proj.means2d, atol=1e-9)
+    assert torch.equal(meta["radii_xy"].to(torch.int32), proj.radii_xy) and torch.equal(meta["visible"], proj.visible)
     # the matrix form of the reference agrees with the literal per-pixel loop
     dense, _, _ = rasterize_reference(means, quats, scales, op, colors, vms, Ks, w, h, rasterize_mode=mode,
                                                 backgrounds=bg, alpha_max=alpha_max, method="matrix")
@@ -149,6 +153,51 @@ def test_single_gaussian_analytic_footprint(mode):
                                                 math.ceil(extend * math.sqrt(cov[1, 1]))]
     assert meta["radii"][0, 0].item() == max(meta["radii_xy"][0, 0].tolist())
     assert torch.allclose(meta["conics"][0, 0], torch.linalg.inv(cov)[[0, 0, 1], [0, 1, 1]])
+
+
+@pytest.mark.parametrize("mode", ["classic", "antialiased"])
+def test_anisotropic_rotated_gaussian_analytic_footprint(mode):
+    """A flat, rotated Gaussian on the optical axis: its image ellipse follows from geometry alone.
+
+    q = q_z(θ) ⊗ q_x(90°): the local x axis (σ = sx) stays in the image plane at angle θ from the image x axis, the
+    local y axis turns into the viewing direction (σ = sy, invisible), the local z axis into the image direction
+    θ + 90° (σ = sz). So the 2D covariance is (f/z)² (sx² d1 d1ᵀ + sz² d2 d2ᵀ) + 0.3 I, d1 = (cos θ, sin θ),
+    d2 = (-sin θ, cos θ) (image y points down). A transposed rotation, a swapped quaternion order or a wrong
+    camera transform tilts the ellipse the other way or shows the wrong axis.
+    """
+    z, f, w, h, theta = 2.0, 100.0, 64, 48, math.radians(30)
+    sx, sy, sz = 0.12, 0.3, 0.03
+    ct, st, c45, s45 = math.cos(theta / 2), math.sin(theta / 2), math.cos(math.pi / 4), math.sin(math.pi / 4)
+    quat = torch.tensor([[ct * c45, ct * s45, st * s45, st * c45]], dtype=F64)  # Hamilton product, worked by hand
+    means = torch.tensor([[0.0, 0.0, z]], dtype=F64)
+    scales = torch.tensor([[sx, sy, sz]], dtype=F64)
+    colors = torch.tensor([[0.2, 0.5, 0.9]], dtype=F64)
+    vms, Ks = torch.eye(4, dtype=F64)[None], torch.tensor([[f, 0, w / 2], [0, f, h / 2], [0, 0, 1]], dtype=F64)[None]
+    img, alpha, meta = rasterize(means, quat, scales, torch.tensor([0.9], dtype=F64), colors, vms, Ks, w, h,
+                                 rasterize_mode=mode)
+    d1 = torch.tensor([math.cos(theta), math.sin(theta)], dtype=F64)
+    d2 = torch.tensor([-math.sin(theta), math.cos(theta)], dtype=F64)
+    cov0 = (f / z) ** 2 * (sx**2 * torch.outer(d1, d1) + sz**2 * torch.outer(d2, d2))
+    cov = cov0 + 0.3 * torch.eye(2, dtype=F64)
+    o = 0.9 * (math.sqrt(torch.det(cov0) / torch.det(cov)) if mode == "antialiased" else 1.0)
+    ys, xs = torch.meshgrid(torch.arange(h, dtype=F64) + 0.5, torch.arange(w, dtype=F64) + 0.5, indexing="ij")
+    d = torch.stack([xs - w / 2, ys - h / 2], -1)
+    a = o * torch.exp(-0.5 * torch.einsum("hwi,ij,hwj->hw", d, torch.linalg.inv(cov), d))
+    a = torch.where(a >= 1 / 255, a, torch.zeros_like(a))
+    assert torch.allclose(alpha[0, ..., 0], a, atol=1e-12)
+    assert torch.allclose(img[0], a[..., None] * colors[0], atol=1e-12)
+    assert torch.allclose(meta["conics"][0, 0], torch.linalg.inv(cov)[[0, 0, 1], [0, 1, 1]])
+    # the long axis runs down-right in the image (θ = +30°): the pixel 10 px along d1 is brighter than along d2
+    assert alpha[0, int(h / 2 + 10 * d1[1]), int(w / 2 + 10 * d1[0]), 0] > 10 * alpha[0, int(h / 2 + 10 * d2[1]), int(w / 2 + 10 * d2[0]), 0]
+
+
+def test_reference_projection_is_written_from_the_equations():
+    """The dense reference must not share the projection under test (a common bug would pass both)."""
+    import inspect
+
+    import realityavatar.render.reference as ref
+
+    assert "project_gaussians" not in inspect.getsource(ref)
 
 
 def test_culling_near_far_and_behind():
@@ -263,7 +312,7 @@ def test_sh_basis_orthonormal_and_rasterize_sh():
     means, quats, scales, op, _, vms, Ks, w, h = random_scene(40, seed=9, cams=2)
     sh = torch.randn(40, 16, 3, dtype=F64) * 0.3
     img, _, _ = rasterize(means, quats, scales, op, sh, vms, Ks, w, h, sh_degree=3)
-    campos = torch.linalg.inv(vms)[:, :3, 3]
+    campos = camera_centres(vms)
     cols = torch.clamp_min(eval_sh(3, sh[None], means[None] - campos[:, None]) + 0.5, 0)
     img2, _, _ = rasterize(means, quats, scales, op, cols, vms, Ks, w, h)
     assert torch.allclose(img, img2, atol=1e-12)
@@ -287,12 +336,15 @@ def test_configs_are_rasterize_kwargs():
     for name in ("torch", "gsplat", "auto"):
         cfg = OmegaConf.to_container(OmegaConf.load(CONF / f"{name}.yaml"))
         assert {"backend", "rasterize_mode", "near", "far", "tile_size", "background"} <= set(cfg)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # gsplat on a CPU tensor falls back with a warning
+        with warnings.catch_warnings(record=True) as rec:
+            warnings.simplefilter("always")
             img, _, meta = rasterize(means, quats, scales, op, colors, vms, Ks, w, h, **cfg)
         # auto on CPU: the compiled numba kernels where numba imports, else the torch backend
         expect = {"torch": "torch", "gsplat": "torch", "auto": "numba" if _has_numba() else "torch"}[name]
         assert meta["backend"] == expect and img.dtype == torch.float32
+        # render=gsplat on CPU tensors falls back to torch, and says so; torch and auto fall back silently by design
+        fell_back = [r for r in rec if "backend='gsplat' needs CUDA" in str(r.message)]
+        assert len(fell_back) == (1 if name == "gsplat" else 0), (name, [str(r.message) for r in rec])
 
 
 def _has_numba():

@@ -85,7 +85,7 @@ def render_sequence(module, table: PoseTable, cameras: list[dict], window_len: i
     for f in (table.frames if frames_to_render is None else frames_to_render):
         poses, transl = table.window(int(f), window_len, window_step)
         idx = torch.full((1,), -1, dtype=torch.long, device=dev)
-        posed = module.deform(poses[None].to(dev, dt), transl[None].to(dev, dt), idx)
+        posed = module.deform(poses[None].to(dev, dt), transl[None].to(dev, dt))
         tiles = []
         for cam in cameras:
             vm = cam["viewmat"][None].to(dev, dt)

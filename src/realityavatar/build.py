@@ -10,20 +10,10 @@ import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-import realityavatar.config  # noqa: F401  (registers resolvers)
+from realityavatar.config import RAW_CONFIG_NAME  # importing config also registers the resolvers
+from realityavatar.metrics import build_lpips
 from realityavatar.model.module import AvatarModule, Schedule
 from realityavatar.runs import CKPT_NAME, read_checkpoint
-
-
-def build_lpips(cfg: DictConfig):
-    """LPIPS network when weights are configured, else None and the reason (reported in metrics.json)."""
-    from realityavatar.metrics import LPIPS, lpips_status
-
-    m = cfg.get("metrics", {}) or {}
-    if not m.get("lpips_weights"):
-        return None, lpips_status()
-    net = LPIPS.from_paths(m["lpips_weights"], m.get("lpips_backbone_weights"))
-    return net, "computed"
 
 
 def build_module(cfg: DictConfig, body, num_train_frames: int, scene_extent: float, data=None) -> AvatarModule:
@@ -48,7 +38,8 @@ def build_module(cfg: DictConfig, body, num_train_frames: int, scene_extent: flo
     density = instantiate(cfg.density)
     loss = instantiate(cfg.loss)
     silhouette = instantiate(cfg.silhouette) if cfg.get("silhouette") is not None else None
-    lpips, lpips_status = build_lpips(cfg)
+    m = cfg.get("metrics", {}) or {}
+    lpips, lpips_status = build_lpips("vgg", m.get("lpips_backbone_weights"), m.get("lpips_weights"))
     render = OmegaConf.to_container(cfg.render, resolve=True)
     module = AvatarModule(
         body=body,
@@ -88,9 +79,16 @@ def load_run(run_dir: str | Path, overrides: list[str] | None = None, ckpt: str 
     cfg_path = run_dir / "config.yaml"
     if not cfg_path.is_file():
         raise FileNotFoundError(f"{cfg_path} not found: expected a run folder written by realityavatar-train")
-    cfg = OmegaConf.load(cfg_path)
-    if overrides:
+    raw_path = run_dir / RAW_CONFIG_NAME
+    if overrides and raw_path.is_file():
+        # Overrides go into the run's unresolved config, so keys interpolated from them follow (as in train).
+        cfg = OmegaConf.load(raw_path)
         cfg.merge_with_dotlist(list(overrides))
+        OmegaConf.resolve(cfg)
+    else:
+        cfg = OmegaConf.load(cfg_path)
+        if overrides:  # a run folder from before config_unresolved.yaml existed
+            cfg.merge_with_dotlist(list(overrides))
     ckpt = Path(ckpt) if ckpt else run_dir / CKPT_NAME
     if not ckpt.is_file():
         raise FileNotFoundError(f"checkpoint {ckpt} not found in run folder {run_dir}")

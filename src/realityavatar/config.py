@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, ListConfig, OmegaConf
 
 CONFIG_DIR = Path(__file__).resolve().parents[2] / "conf"
 AXES = (
@@ -16,6 +16,8 @@ AXES = (
 def _register() -> None:
     if not OmegaConf.has_resolver("int_mul"):
         OmegaConf.register_new_resolver("int_mul", lambda a, b: int(float(a) * float(b)))
+    if not OmegaConf.has_resolver("int_max"):
+        OmegaConf.register_new_resolver("int_max", lambda *a: max(int(float(x)) for x in a))
 
 
 _register()
@@ -39,6 +41,39 @@ def choices_of(cfg: DictConfig) -> dict:
     except Exception:  # composed outside @hydra.main (tests)
         ch = dict(cfg.get("_choices", {}) or {})
     return {k: v for k, v in ch.items() if not k.startswith("hydra") and v is not None}
+
+
+RAW_CONFIG_NAME = "config_unresolved.yaml"
+
+
+def prepare_run(cfg: DictConfig, out_dir) -> tuple[DictConfig, dict]:
+    """A `compose()` result made into what `train.run` takes, as @hydra.main hands it over: the hydra node dropped,
+    out_dir set; returns it with the chosen option of every group."""
+    from omegaconf import open_dict
+
+    choices = {k: v for k, v in cfg.hydra.runtime.choices.items() if not k.startswith("hydra") and v is not None}
+    with open_dict(cfg):
+        del cfg["hydra"]
+        cfg.out_dir = str(out_dir)
+    return cfg, choices
+
+
+def unresolved_copy(cfg: DictConfig) -> DictConfig:
+    """The config with its interpolations kept (`${seed}`, `${int_mul:...}`), so overrides applied to it later move
+    every key derived from them; values read from the environment or from hydra's runtime are frozen to what
+    they were for this run."""
+    raw = OmegaConf.create(OmegaConf.to_container(cfg, resolve=False))
+
+    def freeze(node, resolved):
+        for key in list(node.keys() if isinstance(node, DictConfig) else range(len(node))):
+            if OmegaConf.is_interpolation(node, key):
+                if any(s in str(node._get_node(key)._value()) for s in ("${oc.env", "${hydra:")):
+                    node[key] = resolved[key]
+            elif isinstance(node[key], (DictConfig, ListConfig)):
+                freeze(node[key], resolved[key])
+
+    freeze(raw, cfg)
+    return raw
 
 
 def compose(overrides: list[str] | None = None, config_name: str = "train") -> DictConfig:

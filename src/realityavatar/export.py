@@ -101,7 +101,7 @@ def export_gaussians(module, out: Path, poses: torch.Tensor | None = None, trans
         frame_idx = torch.full((1,), -1, dtype=torch.long, device=dev)
     else:
         frame_idx = torch.full((1,), -1, dtype=torch.long, device=dev)
-        posed = module.deform(poses[None].to(dev), transl[None].to(dev), frame_idx)
+        posed = module.deform(poses[None].to(dev), transl[None].to(dev))
         means, quats, scales, rot, f_mt = posed["means"][0], posed["quats"][0], posed["scales"][0], posed["rot"], posed["f_mt"]
     sh_coeffs = getattr(module.color, "sh_coefficients", None)
     if callable(sh_coeffs) and poses is None:

@@ -104,3 +104,44 @@ def rigid(R: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
 def transform_points(T: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
     """T: [...,4,4], x: [...,3] -> [...,3]."""
     return (T[..., :3, :3] @ x[..., None]).squeeze(-1) + T[..., :3, 3]
+
+
+def camera_centres(viewmats: torch.Tensor) -> torch.Tensor:
+    """World-to-camera [...,4,4] -> camera centres in world space [...,3] (C = -Rᵀ t)."""
+    R, t = viewmats[..., :3, :3], viewmats[..., :3, 3:]
+    return -(R.transpose(-1, -2) @ t).squeeze(-1)
+
+
+def sample_surface(
+    vertices: torch.Tensor,
+    faces: torch.Tensor,
+    weights: torch.Tensor | None,
+    n: int,
+    generator: torch.Generator | None = None,
+) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """Area-weighted uniform samples on a triangle mesh.
+
+    vertices [V,3], faces [F,3], weights [V,K] or None -> points [n,3], barycentric-interpolated weights [n,K] (or None).
+    Deterministic for a given generator (sampling runs on the CPU generator; results take the mesh's device and dtype).
+    """
+    if faces.ndim != 2 or faces.shape[1] != 3:
+        raise ValueError(f"sample_surface: faces must be [F,3], got {tuple(faces.shape)}")
+    dev = vertices.device
+    v = vertices.detach().cpu().float()
+    f = faces.cpu().long()
+    tri = v[f]  # [F,3,3]
+    area = torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]).norm(dim=-1) / 2
+    if not torch.isfinite(area).all() or area.sum() <= 0:
+        raise ValueError("sample_surface: mesh has no positive area")
+    face_idx = torch.multinomial(area, n, replacement=True, generator=generator)  # [n]
+    r = torch.rand(n, 2, generator=generator)
+    # sqrt trick: uniform over the triangle.
+    s = r[:, 0].sqrt()
+    bary = torch.stack([1 - s, s * (1 - r[:, 1]), s * r[:, 1]], -1)  # [n,3]
+    fi = f[face_idx]  # [n,3]
+    points = (bary[:, :, None] * v[fi]).sum(1)
+    w = None
+    if weights is not None:
+        w = (bary[:, :, None] * weights.detach().cpu().float()[fi]).sum(1)  # [n,K]
+        w = w.to(device=dev, dtype=weights.dtype)
+    return points.to(device=dev, dtype=vertices.dtype), w

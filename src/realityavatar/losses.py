@@ -54,7 +54,8 @@ class AvatarLoss(nn.Module):
     perceptual="auto" uses VGG19 when `vgg19_weights` points to a file, else D-SSIM = (1 - SSIM)/2 (kornia,
     11x11 window) weighted by lambda_dssim (VGG feature losses and D-SSIM differ in scale, so each has its own
     λ). `perceptual_kind` records which one is used ("vgg19" | "dssim"). The skinning weight follows
-    3DGS-Avatar: lambda_skin_start before skin_decay_step, lambda_skin_end after.
+    3DGS-Avatar: lambda_skin_start, then lambda_skin_end once the caller says so (`skin_decayed`, from the
+    module's Schedule.skin_switch: step-dependent switches live in the schedule, not here).
     """
 
     def __init__(
@@ -64,7 +65,6 @@ class AvatarLoss(nn.Module):
         lambda_dssim: float = 0.2,
         lambda_skin_start: float = 10.0,
         lambda_skin_end: float = 0.1,
-        skin_decay_step: int = 1000,
         mask_loss: Literal["mse", "bce", "l1"] = "mse",
         perceptual: Literal["auto", "vgg19", "dssim"] = "auto",
         vgg19_weights: str | None = None,
@@ -83,11 +83,10 @@ class AvatarLoss(nn.Module):
         self.lambda_perceptual = lambda_perceptual if self.perceptual_kind == "vgg19" else lambda_dssim
         self.lambda_skin_start = lambda_skin_start
         self.lambda_skin_end = lambda_skin_end
-        self.skin_decay_step = skin_decay_step
         self.mask_loss = mask_loss
 
-    def lambda_skin(self, step: int) -> float:
-        return self.lambda_skin_start if step < self.skin_decay_step else self.lambda_skin_end
+    def lambda_skin(self, decayed: bool) -> float:
+        return self.lambda_skin_end if decayed else self.lambda_skin_start
 
     def forward(
         self,
@@ -99,7 +98,7 @@ class AvatarLoss(nn.Module):
         skinning: nn.Module | None = None,
         skin_points: torch.Tensor | None = None,
         skin_weights: torch.Tensor | None = None,
-        step: int = 0,
+        skin_decayed: bool = False,
     ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         """pred_rgb, gt_rgb [B,H,W,3]; pred_alpha, gt_mask [B,H,W,1]; skin samples [P,3], [P,24] -> (total, terms)."""
         terms: dict[str, torch.Tensor] = {"l1": (pred_rgb - gt_rgb).abs().mean()}
@@ -122,7 +121,7 @@ class AvatarLoss(nn.Module):
             total = total + self.lambda_perceptual * terms["perceptual"]
         if skinning is not None and skin_points is not None and skin_weights is not None:
             terms["skin"] = skinning_loss(skinning, skin_points, skin_weights)
-            total = total + self.lambda_skin(step) * terms["skin"]
+            total = total + self.lambda_skin(skin_decayed) * terms["skin"]
         terms = {k: v.detach() for k, v in terms.items()}
         return total, terms
 

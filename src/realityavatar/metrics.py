@@ -279,10 +279,12 @@ class LPIPS(nn.Module):
         return total[0] if single else total
 
 
-def build_lpips(net: str = "vgg", backbone_weights: str | None = None, lin_weights: str | None = None) -> LPIPS | None:
-    """An LPIPS module when both weight files exist, else None (lpips_status gives the reason to record).
-    Paths may be directories (see resolve_lpips_paths)."""
+def build_lpips(net: str = "vgg", backbone_weights: str | None = None,
+                lin_weights: str | None = None) -> tuple[LPIPS | None, str]:
+    """(LPIPS module, "computed") when both weight files exist, else (None, "not computed: <why>") — the status that
+    metrics.json records. Paths may be directories (see resolve_lpips_paths)."""
     backbone_weights, lin_weights = resolve_lpips_paths(net, lin_weights, backbone_weights)
-    if lpips_status(backbone_weights, lin_weights) != "computed":
-        return None
-    return LPIPS(net, backbone_weights, lin_weights)
+    status = lpips_status(backbone_weights, lin_weights)
+    if status != "computed":
+        return None, status
+    return LPIPS(net, backbone_weights, lin_weights), status

@@ -12,10 +12,9 @@ import pytorch_lightning as pl
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from realityavatar.config import choices_of, config_dir
+from realityavatar.config import RAW_CONFIG_NAME, choices_of, config_dir, unresolved_copy
 
 log = logging.getLogger(__name__)
-
 
 # Lightning notices that do not apply here: density control needs manual optimisation, and there is no val loop.
 for _msg in (".*pre-optimization state.*", ".*`validation_step`.*", ".*LeafSpec.*", ".*is not empty.*", ".*litlogger.*",
@@ -51,8 +50,6 @@ def run(cfg: DictConfig, choices: dict | None = None) -> dict:
 def _run(cfg: DictConfig, choices: dict | None, out_dir: Path, resume_from: Path | None, prior: dict | None,
          owned: dict) -> dict:
     from hydra.utils import instantiate
-    from pytorch_lightning.callbacks import ModelCheckpoint
-    from pytorch_lightning.loggers import CSVLogger, TensorBoardLogger
 
     from realityavatar.build import CKPT_NAME, build_data, build_module, git_commit, write_json
     from realityavatar.evaluate import evaluate_module, format_table
@@ -80,15 +77,18 @@ def _run(cfg: DictConfig, choices: dict | None, out_dir: Path, resume_from: Path
             log.warning("overwrite=true: removed the previous run's %s from %s", ", ".join(removed), out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     OmegaConf.save(cfg, out_dir / "config.yaml", resolve=True)
+    OmegaConf.save(unresolved_copy(cfg), out_dir / RAW_CONFIG_NAME)  # what later key=value overrides apply to
     keep_hydra_record(out_dir)
     owned["folder"] = True
-    every = max(int(cfg.iterations) // 4, 1)
-    ckpt_cb = ModelCheckpoint(dirpath=out_dir, filename=Path(CKPT_NAME).stem, save_last=False, every_n_train_steps=every, save_top_k=1, enable_version_counter=False)
+    # Callbacks and loggers come from their config groups (conf/callbacks, conf/logger), one entry each; RunState
+    # (random states and training seconds across resumes) belongs to every run.
     state = RunState()
-    csv_logger = CSVLogger(out_dir / "logs", name="csv", version="", flush_logs_every_n_steps=every)
-    seed_csv_log(csv_logger, previous_log_rows(resume_from, int(prior["global_step"])) if prior else [])
-    loggers = [csv_logger, TensorBoardLogger(out_dir / "logs", name="tb", version="")]
-    trainer = instantiate(cfg.trainer, callbacks=[state, ckpt_cb], logger=loggers)
+    callbacks = [state] + [instantiate(c) for c in (cfg.get("callbacks") or {}).values() if c is not None]
+    loggers = [instantiate(c) for c in (cfg.get("logger") or {}).values() if c is not None]
+    for lg in loggers:
+        if isinstance(lg, pl.loggers.CSVLogger):  # a resumed run appends to the log rows before its checkpoint
+            seed_csv_log(lg, previous_log_rows(resume_from, int(prior["global_step"])) if prior else [])
+    trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False)
     check_single_process(trainer)  # before fit: a DDP launch would start the other ranks
     try:
         trainer.fit(module, datamodule=dm, ckpt_path=str(resume_from) if resume_from else None)

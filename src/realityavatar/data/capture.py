@@ -13,13 +13,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import pickle
 import sys
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 import torch
+
+from realityavatar.data.i3d import I3DSplitWriter
 
 IMAGE_EXTS = (".png", ".jpg", ".jpeg")
 
@@ -237,36 +238,24 @@ def convert(folder: str | Path, out_root: str | Path, name: str, train_views: Se
     layout = {"train": (train_views, train_frames), "novelview": (test_views, train_frames),
               "novelpose": (test_views, pose_frames)}
     for suffix, (views, fr) in layout.items():
-        d = out_root / f"{name}-{suffix}"
-        (d / "images").mkdir(parents=True, exist_ok=True)
-        (d / "masks").mkdir(parents=True, exist_ok=True)
-        cameras, infos = {}, {}
+        out = I3DSplitWriter(out_root / f"{name}-{suffix}", rest if suffix == "train" else None)
         for f in fr:
             poses, Rh, Th = place[f]
+            info = {"poses": poses.astype(np.float32), "Rh": Rh.astype(np.float32), "Th": Th.astype(np.float32),
+                    "joints": joints[jrow[f]], "tpose_joints": rest}
             for v in views:
-                fname = f"frame_{f:06d}_view_{v:02d}"
                 c = cams[v]
                 E = np.eye(4)
                 E[:3, :3], E[:3, 3] = c["R"], c["T"]
-                cameras[fname] = {"intrinsics": c["K"].astype(np.float32), "extrinsics": E.astype(np.float32),
-                                  "distortions": c["D"].astype(np.float32)}
-                infos[fname] = {"poses": poses.astype(np.float32), "Rh": Rh.astype(np.float32),
-                                "Th": Th.astype(np.float32), "joints": joints[jrow[f]], "tpose_joints": rest}
                 ip = _frames_in(folder / "images" / str(v), IMAGE_EXTS)[f]
                 mp = folder / "masks" / str(v) / f"{f:06d}.png"
                 img = np.asarray(Image.open(ip).convert("RGB"))
                 m = np.asarray(Image.open(mp))
                 m = (m[..., 0] if m.ndim == 3 else m) != 0
                 img = img * m[..., None]  # the layout's images have a black background
-                Image.fromarray(img.astype(np.uint8)).save(d / "images" / f"{fname}.png")
-                Image.fromarray((m * 255).astype(np.uint8)).save(d / "masks" / f"{fname}.png")
-        with open(d / "cameras.pkl", "wb") as fh:
-            pickle.dump(cameras, fh)
-        with open(d / "mesh_infos.pkl", "wb") as fh:
-            pickle.dump(infos, fh)
-        if suffix == "train":
-            with open(d / "canonical_joints.pkl", "wb") as fh:
-                pickle.dump({"joints": rest}, fh)
+                out.add(f, v, img.astype(np.uint8), (m * 255).astype(np.uint8), c["K"].astype(np.float32),
+                        E.astype(np.float32), info, c["D"].astype(np.float32))
+        out.close()
     return out_root / f"{name}-train"
 
 

@@ -39,6 +39,44 @@ def frame_name(frame: int, view: int) -> str:
     return f"frame_{frame:06d}_view_{view:02d}"
 
 
+class I3DSplitWriter:
+    """Writes one split folder of this layout (the inverse of the reader below): images/ and masks/ as PNG,
+    cameras.pkl and mesh_infos.pkl keyed by frame name, canonical_joints.pkl when `canonical_joints` is given."""
+
+    def __init__(self, folder: Path, canonical_joints: np.ndarray | None = None) -> None:
+        self.folder = Path(folder)
+        (self.folder / "images").mkdir(parents=True, exist_ok=True)
+        (self.folder / "masks").mkdir(parents=True, exist_ok=True)
+        self.canonical_joints = canonical_joints
+        self.cameras: dict = {}
+        self.infos: dict = {}
+
+    def add(self, frame: int, view: int, image: np.ndarray, mask: np.ndarray, K: np.ndarray, viewmat: np.ndarray,
+            info: dict, distortions: np.ndarray | None = None) -> str:
+        """image uint8 [H,W,3], mask uint8 [H,W] (0 / 255), K [3,3], viewmat [4,4] world-to-camera, info: the
+        frame's {poses, Rh, Th, joints, tpose_joints}. Returns the frame name."""
+        from PIL import Image
+
+        name = frame_name(frame, view)
+        Image.fromarray(image).save(self.folder / "images" / f"{name}.png")
+        Image.fromarray(mask).save(self.folder / "masks" / f"{name}.png")
+        self.cameras[name] = {"intrinsics": K, "extrinsics": viewmat,
+                              "distortions": np.zeros(5, np.float32) if distortions is None else distortions}
+        self.infos[name] = info
+        return name
+
+    def close(self) -> Path:
+        import pickle
+
+        for fname, obj in (("cameras.pkl", self.cameras), ("mesh_infos.pkl", self.infos)):
+            with open(self.folder / fname, "wb") as fh:
+                pickle.dump(obj, fh)
+        if self.canonical_joints is not None:
+            with open(self.folder / "canonical_joints.pkl", "wb") as fh:
+                pickle.dump({"joints": self.canonical_joints}, fh)
+        return self.folder
+
+
 def split_folder(root: Path, sequence: str, split: str) -> Path:
     return Path(root) / f"{sequence}-{FOLDERS[split]}"
 

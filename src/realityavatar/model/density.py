@@ -32,6 +32,20 @@ def _swap_in_optimizer(
                         }
 
 
+class NoDensityControl:
+    """Density control off (`density=off`): the Gaussian count stays at gaussians.num_points (gsplat's null
+    strategy). Same interface as DensityControl, no state."""
+
+    def state_dict(self) -> dict:
+        return {}
+
+    def load_state_dict(self, state: dict) -> None:
+        pass
+
+    def step_post_backward(self, gaussians, optimizer, meta, step: int, image_size: tuple[int, int]) -> dict:
+        return {}
+
+
 class DensityControl:
     """3DGS densification with explicit state (accumulated screen-space gradient norms and visibility counts).
 
@@ -46,7 +60,6 @@ class DensityControl:
 
     def __init__(
         self,
-        enabled: bool = True,
         refine_start: int = 500,
         refine_stop: int = 10000,
         refine_every: int = 100,
@@ -59,7 +72,6 @@ class DensityControl:
         max_points: int = 100000,
         seed: int = 0,
     ) -> None:
-        self.enabled = enabled
         self.refine_start = refine_start
         self.refine_stop = refine_stop
         self.refine_every = max(int(refine_every), 1)
@@ -120,8 +132,6 @@ class DensityControl:
         image_size: tuple[int, int],
     ) -> dict:
         """Call after backward (means2d.grad filled). Returns stats: num_points and, on refine steps, cloned/split/pruned."""
-        if not self.enabled:
-            return {}
         metas = meta if isinstance(meta, (list, tuple)) else [meta]
         if step < self.refine_stop:
             self._accumulate(gaussians, metas, image_size)

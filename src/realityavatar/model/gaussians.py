@@ -9,7 +9,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from realityavatar.body.base import BodyModel
-from realityavatar.model.skinning import sample_surface
+from realityavatar.geometry import sample_surface
 
 # Order matters only for readability; density control and checkpoint resizing iterate over these names.
 PARAM_NAMES = ("means", "log_scales", "quats", "opacity_logits", "features")

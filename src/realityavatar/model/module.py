@@ -12,8 +12,9 @@ import torch.nn.functional as F
 from torch import nn
 
 from realityavatar.body.base import BodyModel
+from realityavatar.geometry import camera_centres, sample_surface
 from realityavatar.model.deform import apply_deformation
-from realityavatar.model.skinning import lbs_gaussians, pretrain_skinning, sample_surface
+from realityavatar.model.skinning import lbs_gaussians, pretrain_skinning
 from realityavatar.render import rasterize
 
 # Per-Gaussian parameter groups; component groups use the component's name.
@@ -26,11 +27,14 @@ class Schedule:
     """Every step-dependent switch of a run, in one place."""
 
     deform_start: int = 0
-    skin_switch: int = 0
+    skin_switch: int = 0  # the skinning-loss weight drops from loss.lambda_skin_start to lambda_skin_end here
     skin_pretrain_steps: int = 0  # fit the skinning field to the body's weights before the first step
 
     def deform_on(self, step: int) -> bool:
         return step >= self.deform_start
+
+    def skin_decayed(self, step: int) -> bool:
+        return step >= self.skin_switch
 
 
 class AvatarModule(pl.LightningModule):
@@ -87,10 +91,19 @@ class AvatarModule(pl.LightningModule):
         self._surface = None
         # Facts needed to rebuild the run from its checkpoint (num_train_frames, scene_extent, ...).
         self.run_info: dict = {"scene_extent": self.scene_extent}
+        # Frozen networks from weight files (LPIPS, the perceptual loss's VGG19) stay out of the checkpoint, so a run
+        # trained with or without them loads strictly into a module built with or without them.
+        self._register_state_dict_hook(_drop_frozen_networks)
+        self.register_load_state_dict_post_hook(_ignore_frozen_networks)
+        # The decoder's normalisation box follows the initial canonical Gaussians (not those of its first forward at
+        # deform_start, which have moved and been densified); a loaded checkpoint replaces it with the trained box.
+        if hasattr(deformer, "fit_bounds") and not bool(getattr(deformer, "bounds_fitted", 1)):
+            deformer.fit_bounds(gaussians.means.detach())
 
     # ------------------------------------------------------------------ forward
-    def deform(self, poses: torch.Tensor, transl: torch.Tensor, frame_idx: torch.Tensor, deform: bool = True):
-        """poses [B,T,24,3], transl [B,T,3], frame_idx [B] -> posed Gaussians of the current (last) frame.
+    def deform(self, poses: torch.Tensor, transl: torch.Tensor, deform: bool = True):
+        """poses [B,T,24,3], transl [B,T,3] -> posed Gaussians of the current (last) frame (geometry does not depend
+        on the frame index; only the colour's per-frame latent does, see `shade`).
 
         Returns dict: means [B,N,3], quats [B,N,4], scales [B,N,3], opacities [N], rot [B,N,3,3]
         (canonical-to-posed rotation per Gaussian, for canonical view directions) and the decoder output.
@@ -119,7 +132,7 @@ class AvatarModule(pl.LightningModule):
 
     def shade(self, posed: dict, viewmats: torch.Tensor, frame_idx: torch.Tensor) -> torch.Tensor:
         """View-dependent colour of every Gaussian for each sample's camera: [B,N,3]."""
-        cam_centre = -(viewmats[:, :3, :3].transpose(-1, -2) @ viewmats[:, :3, 3:]).squeeze(-1)  # [B,3]
+        cam_centre = camera_centres(viewmats)  # [B,3]
         d = F.normalize(posed["means"] - cam_centre[:, None, :], dim=-1)  # [B,N,3] posed view dir
         # Canonicalise: undo each Gaussian's blended skinning rotation.
         d_c = (posed["rot"].transpose(-1, -2) @ d[..., None]).squeeze(-1)
@@ -137,7 +150,7 @@ class AvatarModule(pl.LightningModule):
         frame_idx = batch["frame_idx"]
         viewmats, Ks = batch["viewmat"], batch["K"]
         W, H = int(batch["width"][0]), int(batch["height"][0])
-        posed = self.deform(poses, transl, frame_idx, deform=deform)
+        posed = self.deform(poses, transl, deform=deform)
         rgb = self.shade(posed, viewmats, frame_idx)  # [B,N,3]
         images, alphas, metas = [], [], []
         for b in range(posed["B"]):
@@ -188,7 +201,7 @@ class AvatarModule(pl.LightningModule):
         skin_pts, skin_w = self._skin_targets()
         total, terms = self.loss_fn(
             rgb, alpha, batch["image"], batch["mask"], skinning=self.skinning, skin_points=skin_pts,
-            skin_weights=skin_w, step=step,
+            skin_weights=skin_w, skin_decayed=self.schedule.skin_decayed(step),
         )
         if self.silhouette is not None:
             sil: dict[str, torch.Tensor] = {}
@@ -223,15 +236,20 @@ class AvatarModule(pl.LightningModule):
         return total.detach()
 
     def param_groups(self) -> list[dict]:
+        """Optimizer groups as each component names them (`param_groups()`, else one group under its own name); a
+        group without its own entry in optim.lr (e.g. deformer_encoding) takes its component's rate."""
         groups = []
-        for name in GAUSSIAN_GROUPS:
-            p = getattr(self.gaussians, name)
-            lr = self.lr[name] * (self.scene_extent if name == "means" else 1.0)
-            groups.append({"params": [p], "lr": lr, "name": name})
-        for name in COMPONENTS:
-            params = [p for p in getattr(self, name).parameters() if p.requires_grad]
-            if params:  # an ablated component (e.g. temporal none without weights) contributes no group
-                groups.append({"params": params, "lr": self.lr[name], "name": name})
+        for name in ("gaussians",) + COMPONENTS:
+            comp = getattr(self, name)
+            named = comp.param_groups() if hasattr(comp, "param_groups") else {name: list(comp.parameters())}
+            for gname, params in named.items():
+                params = [p for p in params if p.requires_grad]
+                if not params:  # an ablated component (e.g. SH colour) contributes no group
+                    continue
+                lr = self.lr.get(gname, self.lr.get(name))
+                if gname == "means":
+                    lr = lr * self.scene_extent
+                groups.append({"params": params, "lr": lr, "name": gname})
         return groups
 
     def configure_optimizers(self):
@@ -309,6 +327,19 @@ class AvatarModule(pl.LightningModule):
     def num_parameters(self) -> int:
         """Learnable parameters of the avatar: Gaussians and every network (the body model has none)."""
         return int(sum(p.numel() for p in self.parameters() if p.requires_grad))
+
+
+FROZEN_NETWORKS = ("lpips.", "loss_fn.vgg.")  # state-dict prefixes of networks loaded from weight files
+
+
+def _drop_frozen_networks(module: nn.Module, state_dict: dict, prefix: str, local_metadata: dict) -> None:
+    for key in [k for k in state_dict if k[len(prefix):].startswith(FROZEN_NETWORKS)]:
+        del state_dict[key]
+
+
+def _ignore_frozen_networks(module: nn.Module, incompatible) -> None:
+    for keys in (incompatible.missing_keys, incompatible.unexpected_keys):
+        keys[:] = [k for k in keys if not k.startswith(FROZEN_NETWORKS)]
 
 
 def check_single_process(trainer: Any) -> None:

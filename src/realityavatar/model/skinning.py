@@ -2,66 +2,14 @@
 
 from __future__ import annotations
 
-import math
-
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from realityavatar.geometry import matrix_to_quat, quat_multiply
+from realityavatar.geometry import matrix_to_quat, quat_multiply, sample_surface
+from realityavatar.model.encodings import FrequencyEncoding
 
 NUM_BONES = 24
-
-
-def sample_surface(
-    vertices: torch.Tensor,
-    faces: torch.Tensor,
-    weights: torch.Tensor | None,
-    n: int,
-    generator: torch.Generator | None = None,
-) -> tuple[torch.Tensor, torch.Tensor | None]:
-    """Area-weighted uniform samples on a triangle mesh.
-
-    vertices [V,3], faces [F,3], weights [V,K] or None -> points [n,3], barycentric-interpolated weights [n,K] (or None).
-    Deterministic for a given generator (sampling runs on the CPU generator; results take the mesh's device and dtype).
-    """
-    if faces.ndim != 2 or faces.shape[1] != 3:
-        raise ValueError(f"sample_surface: faces must be [F,3], got {tuple(faces.shape)}")
-    dev = vertices.device
-    v = vertices.detach().cpu().float()
-    f = faces.cpu().long()
-    tri = v[f]  # [F,3,3]
-    area = torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]).norm(dim=-1) / 2
-    if not torch.isfinite(area).all() or area.sum() <= 0:
-        raise ValueError("sample_surface: mesh has no positive area")
-    face_idx = torch.multinomial(area, n, replacement=True, generator=generator)  # [n]
-    r = torch.rand(n, 2, generator=generator)
-    # sqrt trick: uniform over the triangle.
-    s = r[:, 0].sqrt()
-    bary = torch.stack([1 - s, s * (1 - r[:, 1]), s * r[:, 1]], -1)  # [n,3]
-    fi = f[face_idx]  # [n,3]
-    points = (bary[:, :, None] * v[fi]).sum(1)
-    w = None
-    if weights is not None:
-        w = (bary[:, :, None] * weights.detach().cpu().float()[fi]).sum(1)  # [n,K]
-        w = w.to(device=dev, dtype=weights.dtype)
-    return points.to(device=dev, dtype=vertices.dtype), w
-
-
-class FrequencyEncoding(nn.Module):
-    """NeRF positional encoding: x ⊕ sin(2^k π x) ⊕ cos(2^k π x), k < num_freqs."""
-
-    def __init__(self, num_freqs: int = 6, include_input: bool = True, in_dim: int = 3) -> None:
-        super().__init__()
-        self.num_freqs = num_freqs
-        self.include_input = include_input
-        self.register_buffer("freqs", (2.0 ** torch.arange(num_freqs)) * math.pi, persistent=False)
-        self.out_dim = in_dim * (2 * num_freqs + int(include_input))
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        xf = (x[..., None, :] * self.freqs[:, None]).flatten(-2)  # [...,F*3]
-        parts = [x] if self.include_input else []
-        return torch.cat(parts + [xf.sin(), xf.cos()], -1)
 
 
 class SkinningField(nn.Module):

@@ -1,10 +1,83 @@
-"""Slow, obviously correct dense compositing (every Gaussian x every pixel) used by the tests and the benchmark."""
+"""Slow, obviously correct projection and dense compositing (every Gaussian x every pixel), written from the
+equations and independent of project.py, used by the tests and the benchmark."""
 from __future__ import annotations
+
+import math
 
 import torch
 
-from .project import ALPHA_THRESHOLD, project_gaussians
+from .project import ALPHA_THRESHOLD, Projection
 from .tiles import T_MIN
+
+
+def rotation_from_quat(q: torch.Tensor) -> torch.Tensor:
+    """Unit quaternion (w, x, y, z) [N,4] -> rotation [N,3,3], the textbook formula (Shoemake 1985)."""
+    w, x, y, z = torch.nn.functional.normalize(q, dim=-1).unbind(-1)
+    rows = [
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ]
+    return torch.stack([torch.stack(r, -1) for r in rows], -2)
+
+
+def project_reference(means, quats, scales, opacities, viewmat, K, width, height, near=0.01, far=1e10,
+                      eps2d=0.3, antialiased=False) -> Projection:
+    """EWA splatting (Zwicker et al. 2001) for one camera, one Gaussian at a time, as gsplat 1.5 states it.
+
+    Σ = R S Sᵀ Rᵀ; camera point t = W x + w; Σ' = J W Σ Wᵀ Jᵀ + eps2d I with J the perspective Jacobian at t
+    (clamped to 1.3x the field of view); conic = Σ'⁻¹; extent 3σ-ish from the opacity (gsplat's radius rule).
+    Returns a Projection with a leading camera axis of 1.
+    """
+    N = means.shape[0]
+    W, w = viewmat[:3, :3], viewmat[:3, 3]
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    dt, dev = means.dtype, means.device
+    m2d = torch.zeros(N, 2, dtype=dt, device=dev)
+    con = torch.zeros(N, 3, dtype=dt, device=dev)
+    dep = torch.zeros(N, dtype=dt, device=dev)
+    opa = opacities.clone()
+    comp = torch.ones(N, dtype=dt, device=dev)
+    radii = torch.zeros(N, 2, dtype=torch.int32, device=dev)
+    vis = torch.zeros(N, dtype=torch.bool, device=dev)
+    Rq = rotation_from_quat(quats)
+    for i in range(N):
+        t = W @ means[i] + w
+        if not (near <= float(t[2]) <= far):
+            continue
+        M = Rq[i] @ torch.diag(scales[i])
+        cov3 = W @ (M @ M.T) @ W.T
+        # the Jacobian is taken at t clamped to the image plus 0.3 tan(fov/2) on each side (gsplat's persp_proj)
+        mx, my = 0.3 * 0.5 * width / fx, 0.3 * 0.5 * height / fy
+        tx = t[2] * torch.clamp(t[0] / t[2], -(cx / fx + mx), (width - cx) / fx + mx)
+        ty = t[2] * torch.clamp(t[1] / t[2], -(cy / fy + my), (height - cy) / fy + my)
+        J = torch.stack([torch.stack([fx / t[2], 0 * fx, -fx * tx / t[2] ** 2]),
+                         torch.stack([0 * fy, fy / t[2], -fy * ty / t[2] ** 2])])
+        cov2 = J @ cov3 @ J.T
+        det0 = torch.det(cov2)
+        cov2 = cov2 + eps2d * torch.eye(2, dtype=dt, device=dev)
+        det = torch.det(cov2)
+        if float(det) <= 0:
+            continue
+        o = opacities[i]
+        if antialiased:
+            comp[i] = torch.sqrt(torch.clamp(det0 / det, min=0.0))
+            o = o * comp[i]
+        opa[i] = o
+        if float(o) < ALPHA_THRESHOLD:
+            continue
+        ext = min(3.33, math.sqrt(2 * math.log(float(o) / ALPHA_THRESHOLD)))
+        r = [math.ceil(ext * math.sqrt(float(cov2[0, 0]))), math.ceil(ext * math.sqrt(float(cov2[1, 1])))]
+        u = torch.stack([fx * t[0] / t[2] + cx, fy * t[1] / t[2] + cy])
+        if r[0] <= 0 and r[1] <= 0:
+            continue
+        if float(u[0]) + r[0] <= 0 or float(u[0]) - r[0] >= width or float(u[1]) + r[1] <= 0 or float(u[1]) - r[1] >= height:
+            continue
+        inv = torch.linalg.inv(cov2)
+        m2d[i], con[i], dep[i], vis[i] = u, torch.stack([inv[0, 0], inv[0, 1], inv[1, 1]]), t[2], True
+        radii[i] = torch.tensor(r, dtype=torch.int32)
+    return Projection(means2d=m2d[None], conics=con[None], depths=dep[None], opacities=opa[None],
+                      radii_xy=radii[None], visible=vis[None], compensations=comp[None] if antialiased else None)
 
 
 def composite_dense_loop(means2d, conics, opacities, colors, visible, width, height, alpha_max=0.999):
@@ -76,8 +149,10 @@ def rasterize_reference(means, quats, scales, opacities, colors, viewmats, Ks, w
                         far=1e10, rasterize_mode="classic", backgrounds=None, alpha_max=0.999, method="loop",
                         pixel_chunk=1024):
     """Dense reference for RGB-style colours [N,D] or [C,N,D]; returns colours [C,H,W,D], alphas [C,H,W,1]."""
-    proj = project_gaussians(means, quats, scales, opacities, viewmats, Ks, width, height, near, far,
-                             antialiased=rasterize_mode == "antialiased")
+    projs = [project_reference(means, quats, scales, opacities, viewmats[c], Ks[c], width, height, near, far,
+                               antialiased=rasterize_mode == "antialiased") for c in range(viewmats.shape[0])]
+    proj = Projection(**{k: (torch.cat([getattr(p, k) for p in projs]) if getattr(projs[0], k) is not None else None)
+                         for k in Projection.__dataclass_fields__})
     C = viewmats.shape[0]
     cols = colors if colors.dim() == 3 else colors[None].expand(C, *colors.shape)
     imgs, alphas = [], []

@@ -14,6 +14,8 @@ try:
 except ImportError:  # Windows: no build lock
     fcntl = None
 
+from realityavatar.geometry import camera_centres
+
 from .project import project_gaussians
 from .sh import eval_sh
 from .tiles import build_plan, composite_tiles
@@ -270,7 +272,7 @@ def _cpu_compositor(backend: str, means: torch.Tensor) -> str:
 
 
 def _sh_colors(colors, sh_degree, means, viewmats, C):
-    campos = torch.linalg.inv(viewmats)[:, :3, 3]  # [C,3]
+    campos = camera_centres(viewmats)  # [C,3]
     dirs = means[None, :, :] - campos[:, None, :]  # [C,N,3]
     coeffs = colors if colors.dim() == 4 else colors[None].expand(C, *colors.shape)
     return torch.clamp_min(eval_sh(int(sh_degree), coeffs, dirs) + 0.5, 0.0)  # [C,N,3]
