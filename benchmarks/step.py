@@ -7,7 +7,7 @@ because the project's CPU is shared and absolute seconds drift with the load. Wr
 The step is the module's training_step written out with detach points between the parts, so each backward is
 timed on its own (render backward = the rasterizer's; networks backward = decoder, skinning, colour, encoder):
 data -> networks fwd -> render fwd -> losses fwd -> losses bwd -> render bwd -> networks bwd -> optimizer -> density.
-"step" is the same step without detach points (one backward), as Lightning runs it. Data is a synthetic batch
+"step" is module.training_step itself (one backward; optimizers and logging stubbed, no Trainer). Data is a synthetic batch
 (random pose window, one camera framing the body, random target image) built the way the DataModule collates one.
 """
 from __future__ import annotations
@@ -111,7 +111,7 @@ def step_parts(module, opt, sched, make_batch, step: int) -> dict:
     t["data"] = c() - t0
     opt.zero_grad(set_to_none=True)
     t0 = c()
-    posed = module.deform(batch["poses"], batch["transl"], batch["frame_idx"], deform=module.schedule.deform_on(step))
+    posed = module.deform(batch["poses"], batch["transl"], deform=module.schedule.deform_on(step))
     rgb = module.shade(posed, batch["viewmat"], batch["frame_idx"])  # [B,N,3]
     t["networks_fwd"] = c() - t0
     net_out = [posed["means"], posed["quats"], posed["scales"], posed["opacities"], rgb]
@@ -125,7 +125,11 @@ def step_parts(module, opt, sched, make_batch, step: int) -> dict:
     t0 = c()
     skin_pts, skin_w = module._skin_targets()
     total, _ = module.loss_fn(img_l, alpha_l, batch["image"], batch["mask"], skinning=module.skinning,
-                              skin_points=skin_pts, skin_weights=skin_w, step=step)
+                              skin_points=skin_pts, skin_weights=skin_w, skin_decayed=module.schedule.skin_decayed(step))
+    if getattr(module, "silhouette", None) is not None:  # as training_step: a loss on the posed means and alpha
+        sil = module.silhouette(p["means"][0], batch["viewmat"][0], batch["K"][0], batch["mask"][0], alpha_l[0])
+        if sil:
+            total = total + module.silhouette.total(sil)
     t["losses_fwd"] = c() - t0
     t0 = c()
     total.backward()
@@ -152,24 +156,18 @@ def step_parts(module, opt, sched, make_batch, step: int) -> dict:
 
 
 def step_whole(module, opt, sched, make_batch, step: int) -> float:
-    """The same step without detach points (module.training_step's body, one backward)."""
+    """module.training_step itself (one backward), with the trainer's hooks stubbed: optimizers, logging."""
     t0 = _clock()
-    batch = make_batch()
-    opt.zero_grad(set_to_none=True)
-    rgb, alpha, metas, _ = module.render_batch(batch, deform=module.schedule.deform_on(step))
-    skin_pts, skin_w = module._skin_targets()
-    total, _ = module.loss_fn(rgb, alpha, batch["image"], batch["mask"], skinning=module.skinning,
-                              skin_points=skin_pts, skin_weights=skin_w, step=step)
-    total.backward()
-    if module.grad_clip:
-        from realityavatar.model.module import COMPONENTS
-
-        nets = [q for n in COMPONENTS for q in getattr(module, n).parameters() if q.grad is not None]
-        torch.nn.utils.clip_grad_norm_(nets, module.grad_clip)
-    opt.step()
-    sched.step()
-    module.density.step_post_backward(module.gaussians, opt, metas, step, (rgb.shape[2], rgb.shape[1]))
+    module.training_step(make_batch(), 0)
     return _clock() - t0
+
+
+def _stub_trainer_hooks(module, opt, sched, step: int) -> None:
+    module.optimizers = lambda: opt
+    module.lr_schedulers = lambda: sched
+    module.manual_backward = lambda loss: loss.backward()
+    module.log = lambda *args, **kwargs: None
+    type(module).global_step = property(lambda self: step)  # no trainer: the step the schedule sees
 
 
 def run_config(n: int, size: int, backend: str, repeats: int, overrides: list[str]) -> dict:
@@ -177,6 +175,7 @@ def run_config(n: int, size: int, backend: str, repeats: int, overrides: list[st
     cfg, module, opt, sched = build(n, backend, overrides)
     make_batch = make_batch_fn(module, size, int(cfg.data.window_len))
     step = max(int(cfg.schedule.deform_start), 1) + 1  # motion-trend decoder on; not a densification step
+    _stub_trainer_hooks(module, opt, sched, step)
     step_parts(module, opt, sched, make_batch, step)  # warm-up (and numba's cache load)
     parts = {k: [] for k in PARTS}
     whole = []
