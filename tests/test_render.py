@@ -50,7 +50,8 @@ def test_matches_dense_reference(mode, alpha_max, tile_size, chunk):
     means, quats, scales, op, colors, vms, Ks, w, h = random_scene(150, seed=3, cams=2)
     bg = torch.tensor([[0.1, 0.2, 0.3], [0.9, 0.5, 0.0]], dtype=F64)
     img, alpha, meta = rasterize(means, quats, scales, op, colors, vms, Ks, w, h, rasterize_mode=mode,
-                                 backgrounds=bg, alpha_max=alpha_max, tile_size=tile_size, chunk_elements=chunk)
+                                 backgrounds=bg, alpha_max=alpha_max, tile_size=tile_size, chunk_elements=chunk,
+                                 backend="torch")  # the numba backend: tests/test_render_compiled.py
     ref, ref_alpha, _ = rasterize_reference(means, quats, scales, op, colors, vms, Ks, w, h,
                                             rasterize_mode=mode, backgrounds=bg, alpha_max=alpha_max)
     assert img.shape == (2, h, w, 3) and alpha.shape == (2, h, w, 1)
@@ -79,8 +80,9 @@ def test_alpha_clamp_is_hit():
         assert alpha.max().item() == pytest.approx(amax, abs=1e-12)
 
 
+@pytest.mark.parametrize("backend", ["torch", "auto"])  # auto: numba on CPU where it imports
 @pytest.mark.parametrize("mode", ["classic", "antialiased"])
-def test_gradcheck(mode):
+def test_gradcheck(mode, backend):
     g = torch.Generator().manual_seed(1)
     n = 5
     means = (torch.randn(n, 3, generator=g, dtype=F64) * 0.25).requires_grad_()
@@ -92,7 +94,8 @@ def test_gradcheck(mode):
     Ks = torch.tensor([[18.0, 0, 8.3], [0, 18.0, 7.6], [0, 0, 1]], dtype=F64)[None].repeat(2, 1, 1)
 
     def f(m, q, s, o, c):
-        img, alpha, _ = rasterize(m, q, s, o, c, vms, Ks, 16, 14, rasterize_mode=mode, render_mode="RGB+ED")
+        img, alpha, _ = rasterize(m, q, s, o, c, vms, Ks, 16, 14, rasterize_mode=mode, render_mode="RGB+ED",
+                                  backend=backend)
         return img, alpha
 
     inputs = (means, quats, scales, op, colors)
@@ -100,7 +103,7 @@ def test_gradcheck(mode):
 
     # the full Jacobian on one small camera (slow mode checks every output entry)
     def f1(m, q, s, o, c):
-        img, alpha, _ = rasterize(m, q, s, o, c[0], vms[:1], Ks[:1], 7, 6, rasterize_mode=mode)
+        img, alpha, _ = rasterize(m, q, s, o, c[0], vms[:1], Ks[:1], 7, 6, rasterize_mode=mode, backend=backend)
         return img, alpha
 
     Ks[:, :2, 2] = torch.tensor([3.4, 2.9], dtype=F64)
@@ -336,10 +339,18 @@ def test_configs_are_rasterize_kwargs():
         with warnings.catch_warnings(record=True) as rec:
             warnings.simplefilter("always")
             img, _, meta = rasterize(means, quats, scales, op, colors, vms, Ks, w, h, **cfg)
-        assert meta["backend"] == "torch" and img.dtype == torch.float32
+        # auto on CPU: the compiled numba kernels where numba imports, else the torch backend
+        expect = {"torch": "torch", "gsplat": "torch", "auto": "numba" if _has_numba() else "torch"}[name]
+        assert meta["backend"] == expect and img.dtype == torch.float32
         # render=gsplat on CPU tensors falls back to torch, and says so; torch and auto fall back silently by design
         fell_back = [r for r in rec if "backend='gsplat' needs CUDA" in str(r.message)]
         assert len(fell_back) == (1 if name == "gsplat" else 0), (name, [str(r.message) for r in rec])
+
+
+def _has_numba():
+    from realityavatar.render.numba_backend import NUMBA_ERROR
+
+    return NUMBA_ERROR is None
 
 
 def test_gsplat_fallback_warns_once(monkeypatch):

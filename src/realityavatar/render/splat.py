@@ -1,4 +1,4 @@
-"""`rasterize`: gsplat-1.5-style Gaussian splatting with a pure-torch tiled backend and a gsplat (CUDA) backend."""
+"""`rasterize`: gsplat-1.5-style Gaussian splatting: pure-torch tiled backend, compiled CPU (numba) and gsplat (CUDA)."""
 from __future__ import annotations
 
 import contextlib
@@ -22,7 +22,7 @@ from .tiles import build_plan, composite_tiles
 
 _RENDER_MODES = ("RGB", "D", "ED", "RGB+D", "RGB+ED")
 _RASTER_MODES = ("classic", "antialiased")
-_BACKENDS = ("auto", "torch", "gsplat")
+_BACKENDS = ("auto", "torch", "gsplat", "numba")
 _WHERE = "realityavatar/render/splat.py (rasterize)"
 _gsplat_failure: str | None = None  # why gsplat could not be used (warned once)
 _gsplat_module: Any = None
@@ -203,8 +203,10 @@ def rasterize(
 
     meta: means2d [C,N,2] (grad retained), radii [C,N] int32 (max of the x/y half-extents, 0 = culled),
     radii_xy [C,N,2] (gsplat 1.5's per-axis radii), depths [C,N], conics [C,N,3], opacities [C,N] (after
-    antialiasing compensation), visible [C,N] bool, backend ("torch" | "gsplat"), plus torch-backend statistics.
-    `tile_size` defaults to 8 for torch (faster on CPU) and 16 for gsplat; `alpha_max`, `chunk_elements` and `tile_cull` tune the torch backend; gsplat's own extra options
+    antialiasing compensation), visible [C,N] bool, backend ("torch" | "numba" | "gsplat"), plus tile statistics.
+    backend="auto": gsplat for float32 CUDA tensors when its kernels load, numba for CPU tensors where numba
+    imports, else torch.
+    `tile_size` defaults to 8 for torch, 16 for numba and gsplat; `alpha_max`, `chunk_elements` and `tile_cull` tune the torch backend; gsplat's own extra options
     go through `gsplat_kwargs` (ignored by the torch backend).
     """
     if backgrounds is None and background is not None:
@@ -246,10 +248,27 @@ def rasterize(
                 raise
             _gsplat_failed(exc)
     return _rasterize_torch(means, quats, scales, opacities, colors, viewmats, Ks, width, height,
-                            sh_degree=sh_degree, backgrounds=backgrounds, near=near, far=far,
+                            composite=_cpu_compositor(backend, means), sh_degree=sh_degree,
+                            backgrounds=backgrounds, near=near, far=far,
                             render_mode=render_mode, rasterize_mode=rasterize_mode, tile_size=tile_size,
                             eps2d=eps2d, radius_clip=radius_clip, alpha_max=alpha_max,
                             chunk_elements=chunk_elements, tile_cull=tile_cull)
+
+
+def _cpu_compositor(backend: str, means: torch.Tensor) -> str:
+    """'numba' (compiled CPU kernels, numba_backend.py) for backend='numba', or 'auto' on CPU tensors, where numba
+    imports; else 'torch'. auto on CUDA tensors that gsplat could not take (float64, broken build) stays on torch."""
+    if backend == "auto" and (_on_cuda(means) or means.is_cuda):
+        return "torch"
+    if backend not in ("numba", "auto") or means.is_cuda:
+        if backend == "numba":
+            warnings.warn(f"{_WHERE}: backend='numba' needs CPU tensors; using the torch backend", stacklevel=3)
+        return "torch"
+    from .numba_backend import NUMBA_ERROR
+
+    if NUMBA_ERROR is not None and backend == "numba":
+        warnings.warn(f"{_WHERE}: numba unavailable ({NUMBA_ERROR}); using the torch backend", stacklevel=3)
+    return "torch" if NUMBA_ERROR is not None else "numba"
 
 
 def _sh_colors(colors, sh_degree, means, viewmats, C):
@@ -261,10 +280,14 @@ def _sh_colors(colors, sh_degree, means, viewmats, C):
 
 def _rasterize_torch(means, quats, scales, opacities, colors, viewmats, Ks, width, height, *, sh_degree,
                      backgrounds, near, far, render_mode, rasterize_mode, tile_size, eps2d, radius_clip,
-                     alpha_max, chunk_elements, tile_cull):
+                     alpha_max, chunk_elements, tile_cull, composite="torch"):
     C = viewmats.shape[0]
-    proj = project_gaussians(means, quats, scales, opacities, viewmats, Ks, width, height, near, far,
-                             eps2d=eps2d, radius_clip=radius_clip, antialiased=rasterize_mode == "antialiased")
+    if composite == "numba":
+        from .numba_backend import project_gaussians_numba as project
+    else:
+        project = project_gaussians
+    proj = project(means, quats, scales, opacities, viewmats, Ks, width, height, near, far,
+                   eps2d=eps2d, radius_clip=radius_clip, antialiased=rasterize_mode == "antialiased")
     means2d = proj.means2d
     if means2d.requires_grad:
         means2d.retain_grad()  # densification reads meta["means2d"].grad (gsplat's absgrad=False)
@@ -283,10 +306,20 @@ def _rasterize_torch(means, quats, scales, opacities, colors, viewmats, Ks, widt
         if bg is not None:
             bg = bg.new_zeros(C, 1)
 
-    plan = build_plan(proj.means2d, proj.conics, proj.opacities, proj.depths, proj.radii_xy, width, height,
-                      tile_size=8 if tile_size is None else int(tile_size), chunk_elements=chunk_elements, tile_cull=tile_cull)
-    img, alphas = composite_tiles(means2d, proj.conics, proj.opacities, cols.to(means2d.dtype), plan,
-                                  width, height, alpha_max=alpha_max)
+    ts = (16 if composite == "numba" else 8) if tile_size is None else int(tile_size)  # measured fastest each
+    if composite == "numba":
+        from .numba_backend import composite_numba
+
+        img, alphas, stats = composite_numba(means2d, proj.conics, proj.opacities, cols.to(means2d.dtype),
+                                             proj.depths, proj.radii_xy, width, height, tile_size=ts,
+                                             alpha_max=alpha_max, tile_cull=tile_cull)
+    else:
+        plan = build_plan(proj.means2d, proj.conics, proj.opacities, proj.depths, proj.radii_xy, width, height,
+                          tile_size=ts, chunk_elements=chunk_elements, tile_cull=tile_cull)
+        img, alphas = composite_tiles(means2d, proj.conics, proj.opacities, cols.to(means2d.dtype), plan,
+                                      width, height, alpha_max=alpha_max)
+        stats = {"tile_size": plan.tile_size, "tile_pairs": plan.pairs, "padded_elements": plan.elements,
+                 "n_chunks": len(plan.chunks)}
     if bg is not None:
         img = img + (1.0 - alphas) * bg[:, None, None, :]
     if render_mode in ("ED", "RGB+ED"):
@@ -304,12 +337,9 @@ def _rasterize_torch(means, quats, scales, opacities, colors, viewmats, Ks, widt
         "colors": cols,
         "width": width,
         "height": height,
-        "tile_size": plan.tile_size,
         "n_cameras": C,
-        "tile_pairs": plan.pairs,
-        "padded_elements": plan.elements,
-        "n_chunks": len(plan.chunks),
-        "backend": "torch",
+        **stats,
+        "backend": composite,
     }
     return img, alphas, meta
 

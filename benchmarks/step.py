@@ -1,0 +1,254 @@
+"""One full training step of the demo model and its parts (data, networks, render, losses, optimizer, density).
+
+python benchmarks/step.py [--n 10000 35000] [--size 128 256 512] [--backends torch numba] [--threads 1] [--clock cpu]
+Every time is printed beside its ratio to the GEMM unit (8 float32 matmuls of 1024^3) timed in the same process,
+because the project's CPU is shared and absolute seconds drift with the load. Writes benchmarks/results/step_cpu.json.
+
+The step is the module's training_step written out with detach points between the parts, so each backward is
+timed on its own (render backward = the rasterizer's; networks backward = decoder, skinning, colour, encoder):
+data -> networks fwd -> render fwd -> losses fwd -> losses bwd -> render bwd -> networks bwd -> optimizer -> density.
+"step" is module.training_step itself (one backward; optimizers and logging stubbed, no Trainer). Data is a synthetic batch
+(random pose window, one camera framing the body, random target image) built the way the DataModule collates one.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import platform
+import statistics
+import time
+from pathlib import Path
+
+import torch
+
+_clock = time.perf_counter  # --clock cpu: time.process_time
+
+PARTS = ("data", "networks_fwd", "render_fwd", "losses_fwd", "losses_bwd", "render_bwd", "networks_bwd", "optimizer",
+         "density")
+
+
+def gemm_unit(repeats: int = 3) -> float:
+    """Seconds for 8 float32 matmuls of 1024^3 (median of repeats): the issue's reference workload."""
+    g = torch.Generator().manual_seed(0)
+    a, b = torch.randn(1024, 1024, generator=g), torch.randn(1024, 1024, generator=g)
+    a @ b
+    times = []
+    for _ in range(repeats):
+        t = _clock()
+        for _ in range(8):
+            a @ b
+        times.append(_clock() - t)
+    return statistics.median(times)
+
+
+def look_at(campos, target, up):
+    """World-to-camera OpenCV matrix (z forward, y down) for a camera at campos looking at target."""
+    z = torch.nn.functional.normalize(target - campos, dim=0)
+    x = torch.nn.functional.normalize(torch.linalg.cross(z, up), dim=0)
+    y = torch.linalg.cross(z, x)
+    vm = torch.eye(4)
+    vm[:3, :3] = torch.stack([x, y, z])
+    vm[:3, 3] = -vm[:3, :3] @ campos
+    return vm
+
+
+def build(n: int, backend: str, overrides: list[str]):
+    from hydra import compose, initialize_config_dir
+    from hydra.utils import instantiate
+
+    from realityavatar.build import build_module
+    from realityavatar.config import config_dir
+
+    with initialize_config_dir(config_dir=config_dir(), version_base="1.3"):
+        cfg = compose("train", overrides=[f"gaussians.num_points={n}", f"render={backend}", "iterations=2000",
+                                          "out_dir=/tmp/realityavatar_step_bench", *overrides])
+    body = instantiate(cfg.body)
+    module = build_module(cfg, body, num_train_frames=100, scene_extent=1.0)
+    opt_cfg = module.configure_optimizers()
+    return cfg, module, opt_cfg["optimizer"], opt_cfg["lr_scheduler"]["scheduler"]
+
+
+def make_batch_fn(module, size: int, window: int):
+    """A DataModule-shaped batch of one sample: pose window, one camera framing the body, target image and mask."""
+    verts = module.body.canonical_vertices().detach().float()
+    lo, hi = verts.min(0).values, verts.max(0).values
+    centre, ext = 0.5 * (lo + hi), hi - lo
+    up_axis = int(torch.argmax(ext))
+    up = torch.zeros(3)
+    up[up_axis] = 1.0
+    side = (up_axis + 1) % 3
+    campos = centre.clone()
+    campos[side] -= 3.0
+    vm = look_at(campos, centre, up)
+    f = 0.92 * size * 3.0 / float(ext[up_axis])
+    K = torch.tensor([[f, 0, size / 2], [0, f, size / 2], [0, 0, 1.0]])
+    g = torch.Generator().manual_seed(0)
+
+    def make():
+        return {
+            "poses": torch.randn(1, window, 24, 3, generator=g) * 0.1,
+            "transl": torch.zeros(1, window, 3),
+            "frame_idx": torch.tensor([3]),
+            "viewmat": vm[None].clone(),
+            "K": K[None].clone(),
+            "width": torch.tensor([size]),
+            "height": torch.tensor([size]),
+            "image": torch.rand(1, size, size, 3, generator=g),
+            "mask": (torch.rand(1, size, size, 1, generator=g) > 0.5).float(),
+        }
+
+    return make
+
+
+def step_parts(module, opt, sched, make_batch, step: int) -> dict:
+    """One training step with detach points; seconds per part."""
+    t = {}
+    c = _clock
+    t0 = c()
+    batch = make_batch()
+    t["data"] = c() - t0
+    opt.zero_grad(set_to_none=True)
+    t0 = c()
+    posed = module.deform(batch["poses"], batch["transl"], deform=module.schedule.deform_on(step))
+    rgb = module.shade(posed, batch["viewmat"], batch["frame_idx"])  # [B,N,3]
+    t["networks_fwd"] = c() - t0
+    net_out = [posed["means"], posed["quats"], posed["scales"], posed["opacities"], rgb]
+    leaves = [x.detach().requires_grad_() for x in net_out]
+    p = {"means": leaves[0], "quats": leaves[1], "scales": leaves[2], "opacities": leaves[3]}
+    W, H = int(batch["width"][0]), int(batch["height"][0])
+    t0 = c()
+    img, alpha, meta = module.splat(p, 0, leaves[4][0], batch["viewmat"], batch["K"], W, H)
+    t["render_fwd"] = c() - t0
+    img_l, alpha_l = img.detach().requires_grad_(), alpha.detach().requires_grad_()
+    t0 = c()
+    skin_pts, skin_w = module._skin_targets()
+    total, _ = module.loss_fn(img_l, alpha_l, batch["image"], batch["mask"], skinning=module.skinning,
+                              skin_points=skin_pts, skin_weights=skin_w, skin_decayed=module.schedule.skin_decayed(step))
+    if getattr(module, "silhouette", None) is not None:  # as training_step: a loss on the posed means and alpha
+        sil = module.silhouette(p["means"][0], batch["viewmat"][0], batch["K"][0], batch["mask"][0], alpha_l[0])
+        if sil:
+            total = total + module.silhouette.total(sil)
+    t["losses_fwd"] = c() - t0
+    t0 = c()
+    total.backward()
+    t["losses_bwd"] = c() - t0
+    t0 = c()
+    torch.autograd.backward([img, alpha], [img_l.grad, alpha_l.grad])
+    t["render_bwd"] = c() - t0
+    t0 = c()
+    torch.autograd.backward(net_out, [x.grad for x in leaves])
+    t["networks_bwd"] = c() - t0
+    t0 = c()
+    if module.grad_clip:
+        from realityavatar.model.module import COMPONENTS
+
+        nets = [q for n in COMPONENTS for q in getattr(module, n).parameters() if q.grad is not None]
+        torch.nn.utils.clip_grad_norm_(nets, module.grad_clip)
+    opt.step()
+    sched.step()
+    t["optimizer"] = c() - t0
+    t0 = c()
+    module.density.step_post_backward(module.gaussians, opt, [meta], step, (W, H))
+    t["density"] = c() - t0
+    return t
+
+
+def step_whole(module, opt, sched, make_batch, step: int) -> float:
+    """module.training_step itself (one backward), with the trainer's hooks stubbed: optimizers, logging."""
+    t0 = _clock()
+    module.training_step(make_batch(), 0)
+    return _clock() - t0
+
+
+def _stub_trainer_hooks(module, opt, sched, step: int) -> None:
+    module.optimizers = lambda: opt
+    module.lr_schedulers = lambda: sched
+    module.manual_backward = lambda loss: loss.backward()
+    module.log = lambda *args, **kwargs: None
+    type(module).global_step = property(lambda self: step)  # no trainer: the step the schedule sees
+
+
+def run_config(n: int, size: int, backend: str, repeats: int, overrides: list[str]) -> dict:
+    torch.manual_seed(0)
+    cfg, module, opt, sched = build(n, backend, overrides)
+    make_batch = make_batch_fn(module, size, int(cfg.data.window_len))
+    step = max(int(cfg.schedule.deform_start), 1) + 1  # motion-trend decoder on; not a densification step
+    _stub_trainer_hooks(module, opt, sched, step)
+    step_parts(module, opt, sched, make_batch, step)  # warm-up (and numba's cache load)
+    parts = {k: [] for k in PARTS}
+    whole = []
+    for _ in range(repeats):
+        for k, v in step_parts(module, opt, sched, make_batch, step).items():
+            parts[k].append(v)
+        whole.append(step_whole(module, opt, sched, make_batch, step))
+    med = {k: statistics.median(v) for k, v in parts.items()}
+    return {"n": n, "size": size, "backend": backend, "num_gaussians": int(module.gaussians.num_points),
+            "step_s": statistics.median(whole), "sum_of_parts_s": sum(med.values()), "parts_s": med}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--n", type=int, nargs="+", default=[10000, 35000])
+    ap.add_argument("--size", type=int, nargs="+", default=[128, 256, 512])
+    ap.add_argument("--backends", nargs="+", default=["torch", "numba"], help="conf/render options")
+    ap.add_argument("--threads", type=int, default=1, help="torch (and numba) threads; 1 is the shared-CPU default")
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--clock", choices=["wall", "cpu"], default="wall",
+                    help="cpu: process CPU seconds, steadier than wall time on a shared CPU (only with --threads 1)")
+    ap.add_argument("--override", nargs="*", default=[], help="extra hydra overrides, e.g. encoder=whole_pose")
+    ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "step_cpu.json"))
+    a = ap.parse_args()
+    torch.set_num_threads(a.threads)
+    global _clock
+    _clock = time.process_time if a.clock == "cpu" else time.perf_counter
+    load_before = list(os.getloadavg())
+    units = [gemm_unit()]
+    results = []
+    for n in a.n:
+        for size in a.size:
+            for backend in a.backends:
+                r = run_config(n, size, backend, a.repeats, a.override)
+                units.append(gemm_unit())  # the load drifts: each row is divided by the unit measured next to it
+                r["gemm_unit_s"] = statistics.median(units[-2:])
+                results.append(r)
+                u = r["gemm_unit_s"]
+                print(f"  {backend:6s} N={n:6d} {size}^2  step {r['step_s']:.3f}s = {r['step_s'] / u:.2f} units "
+                      f"(render fwd+bwd {r['parts_s']['render_fwd'] + r['parts_s']['render_bwd']:.3f}s)", flush=True)
+    cols = ["step", *PARTS]
+    print("\nseconds (GEMM units); GEMM unit = 8 float32 matmuls of 1024^3 timed in this process")
+    print("| backend | N | image | " + " | ".join(cols) + " |")
+    print("|---|---:|---:|" + "---:|" * len(cols))
+    for r in results:
+        u = r["gemm_unit_s"]
+        vals = [r["step_s"], *(r["parts_s"][k] for k in PARTS)]
+        print(f"| {r['backend']} | {r['n']} | {r['size']}² | " + " | ".join(f"{v:.3f} ({v / u:.2f})" for v in vals) + " |")
+    meta = {
+        "command": " ".join(["python", "benchmarks/step.py", *os.sys.argv[1:]]),
+        "threads": a.threads,
+        "clock": a.clock,
+        "torch": torch.__version__,
+        "machine": platform.platform(),
+        "cpu": platform.processor() or platform.machine(),
+        "cores": os.cpu_count(),
+        "load_average_before": load_before,
+        "load_average_after": list(os.getloadavg()),
+        "gemm_units_s": units,
+        "note": "medians (wall or process-CPU seconds, see clock); parts are timed with detach points between them, step without; "
+                "ratio = seconds / GEMM unit measured in the same process next to the row",
+    }
+    try:
+        from realityavatar.build import git_commit
+
+        meta["commit"] = git_commit()
+    except Exception as exc:  # noqa: BLE001 - a missing git is not a reason to lose the numbers
+        meta["commit"] = f"unknown ({type(exc).__name__})"
+    if math.isfinite(units[0]):
+        Path(a.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(a.out).write_text(json.dumps({"meta": meta, "results": results}, indent=1))
+        print(f"wrote {a.out}")
+
+
+if __name__ == "__main__":
+    main()

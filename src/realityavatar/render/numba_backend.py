@@ -1,0 +1,740 @@
+"""Compiled CPU renderer (Numba): EWA projection, tile binning and compositing, each with its backward.
+
+Same per-pixel rules as tiles.py and gsplat's rasterize_to_pixels: pixel centres at +0.5, alpha = min(alpha_max,
+o*exp(-sigma)), skip sigma < 0 or alpha < 1/255, stop before the Gaussian that takes T to <= 1e-4. Arithmetic is
+float64 inside the kernels whatever the input dtype. The backward walks each pixel's list back to front from its
+last contributing Gaussian (gsplat's backward), so forward keeps only the final T and that index per pixel.
+Gradients go to per-pair slots (one tile = one thread, no races) and are summed per Gaussian in a second pass,
+so results do not depend on the thread count. The projection follows project.py (float64 inside as well).
+"""
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+import torch
+
+try:  # the torch backend stays the fallback where numba cannot be imported
+    import numba
+    from numba import njit, prange
+
+    NUMBA_ERROR: str | None = None
+    # numba's OpenMP layer shares libgomp with torch: with a pool of 2 it made torch's own ops (and the kernels) 4x
+    # slower in CPU time at 1 thread here. The workqueue layer does not interfere. NUMBA_THREADING_LAYER still wins.
+    if "NUMBA_THREADING_LAYER" not in __import__("os").environ:
+        numba.config.THREADING_LAYER = "workqueue"
+except Exception as exc:  # noqa: BLE001 - ImportError or a broken llvmlite: any means fall back
+    numba = None
+    NUMBA_ERROR = f"{type(exc).__name__}: {exc}"
+
+    def njit(*args, **kwargs):  # keeps the module importable; the kernels are never called
+        return (lambda f: f) if not args or not callable(args[0]) else args[0]
+
+    prange = range
+
+ALPHA_THRESHOLD = 1.0 / 255.0
+T_MIN = 1e-4
+# sigma above log(255*o) + slack means alpha < 1/255 whatever the rounding, so exp() is skipped there;
+# pixels below it still take the exact alpha test.
+_SIGMA_SLACK = 1e-6
+_PIX_EPS = 1e-3  # pixels: row/column bounds of an ellipse are widened by this much against rounding
+
+
+@njit(cache=True, inline="always")
+def _keep_pair(mx, my, A, B, Cc, lim, x0, y0, x1, y1):
+    """tiles._tile_cull for one pair: the exact minimum of sigma over the box of pixel centres vs lim = log(255*o)+1e-3."""
+    if mx >= x0 and mx <= x1 and my >= y0 and my <= y1:
+        best = 0.0
+    else:
+        best = np.inf
+        for e in range(2):
+            xe = x0 if e == 0 else x1
+            dx = mx - xe
+            dy = min(max(-B * dx / Cc, my - y1), my - y0)
+            best = min(best, 0.5 * (A * dx * dx + Cc * dy * dy) + B * dx * dy)
+        for e in range(2):
+            ye = y0 if e == 0 else y1
+            dy = my - ye
+            dx = min(max(-B * dy / A, mx - x1), mx - x0)
+            best = min(best, 0.5 * (A * dx * dx + Cc * dy * dy) + B * dx * dy)
+    return best <= lim
+
+
+@njit(cache=True)
+def _bin(means2d, radii, conics, opac, order, C, N, width, height, ts, tile_cull):
+    """Tile lists in depth order. means2d [G,2], radii [G,2] int32, conics [G,3], opac [G], order [C,N].
+
+    Returns starts [C*T+1] int64 (list of tile t is ids[starts[t]:starts[t+1]]) and ids [pairs] int32 (G ids).
+    Visiting Gaussians in depth order and appending makes every list depth-sorted without a sort.
+    """
+    tx_n = (width + ts - 1) // ts
+    ty_n = (height + ts - 1) // ts
+    T = tx_n * ty_n
+    counts = np.zeros(C * T + 1, np.int64)
+    fill = np.zeros(C * T + 1, np.int64)
+    ids = np.empty(0, np.int32)
+    for sweep in range(2):
+        if sweep == 1:
+            for t in range(C * T):
+                counts[t + 1] += counts[t]
+            ids = np.empty(counts[C * T], np.int32)
+            fill[:] = counts
+        for cam in range(C):
+            for j in range(N):
+                g = cam * N + order[cam, j]
+                rx, ry = radii[g, 0], radii[g, 1]
+                if rx <= 0 or ry <= 0:
+                    continue
+                mx, my = float(means2d[g, 0]), float(means2d[g, 1])
+                tx0 = int(min(max(math.floor((mx - rx) / ts), 0), tx_n))
+                tx1 = int(min(max(math.ceil((mx + rx) / ts), 0), tx_n))
+                ty0 = int(min(max(math.floor((my - ry) / ts), 0), ty_n))
+                ty1 = int(min(max(math.ceil((my + ry) / ts), 0), ty_n))
+                A, B, Cc = float(conics[g, 0]), float(conics[g, 1]), float(conics[g, 2])
+                lim = math.log(max(float(opac[g]), 1e-30) / ALPHA_THRESHOLD) + 1e-3
+                for ty in range(ty0, ty1):
+                    y0 = ty * ts + 0.5
+                    y1 = min(y0 + ts - 1, height - 0.5)
+                    for tx in range(tx0, tx1):
+                        x0 = tx * ts + 0.5
+                        x1 = min(x0 + ts - 1, width - 0.5)
+                        if tile_cull and not _keep_pair(mx, my, A, B, Cc, lim, x0, y0, x1, y1):
+                            continue
+                        t = cam * T + ty * tx_n + tx
+                        if sweep == 0:
+                            counts[t + 1] += 1
+                        else:
+                            ids[fill[t]] = g
+                            fill[t] += 1
+    return counts, ids
+
+
+@njit(cache=True, parallel=True)
+def _prep(conics, opac, out):
+    """Per-Gaussian constants of the pixel loops, out [G,4]: thr, 1/A, q = B^2 - A*Cc and the row half-extent.
+
+    sigma <= thr = log(255*o) + slack is necessary for alpha >= 1/255. min over dx of sigma is
+    0.5*dy^2*(A*Cc - B^2)/A, so only rows with |dy| <= sqrt(2*A*thr/-q) can hold such pixels. ry < 0: no pixel can;
+    ry = inf: not a positive-definite conic, every pixel takes the exact test.
+    """
+    for g in prange(opac.shape[0]):
+        A, B, Cc, o = float(conics[g, 0]), float(conics[g, 1]), float(conics[g, 2]), float(opac[g])
+        q = B * B - A * Cc
+        if not o > 0.0:
+            out[g, 0], out[g, 1], out[g, 2], out[g, 3] = -1.0, 0.0, q, -1.0
+            continue
+        thr = math.log(o / ALPHA_THRESHOLD) + _SIGMA_SLACK
+        out[g, 0] = thr
+        if A > 0.0 and q < 0.0:
+            out[g, 1] = 1.0 / A
+            out[g, 2] = q
+            out[g, 3] = math.sqrt(2.0 * A * thr / -q) + _PIX_EPS if thr >= 0.0 else -1.0
+        else:
+            out[g, 1], out[g, 2], out[g, 3] = 0.0, q, np.inf
+
+
+@njit(cache=True, inline="always")
+def _rows(my, ry, oy, ny):
+    """Tile rows [lo, hi) within ry of the Gaussian's centre."""
+    if ry == np.inf:
+        return 0, ny
+    lo = max(my - oy - 0.5 - ry, 0.0)
+    hi = min(max(my - oy - 0.5 + ry + 1.0, 0.0), float(ny))
+    return math.ceil(lo), int(hi)
+
+
+@njit(cache=True, inline="always")
+def _cols(mx, dy, A, B, inv_a, q, thr, ox, nx, ry):
+    """Tile columns [lo, hi) of one row where sigma <= thr can hold (the parabola in dx has its minimum at -B*dy/A).
+
+    A small margin (_PIX_EPS pixels) absorbs rounding; every pixel inside still takes the exact test.
+    """
+    if ry == np.inf:
+        return 0, nx
+    disc = 2.0 * A * thr + dy * dy * q
+    if disc < 0.0:
+        return 0, 0
+    hw = math.sqrt(disc) * inv_a + _PIX_EPS
+    cx = mx + B * dy * inv_a - ox - 0.5
+    lo = max(cx - hw, 0.0)
+    hi = min(max(cx + hw + 1.0, 0.0), float(nx))
+    return math.ceil(lo), int(hi)
+
+
+@njit(cache=True, parallel=True)
+def _forward(means2d, conics, opac, colors, prep, starts, ids, C, width, height, ts, alpha_max,
+             img, alpha_out, t_final, last):
+    """img [C,H,W,D], alpha_out [C,H,W] (input dtype); t_final [C,H,W] float64, last [C,H,W] int64 (-1: none)."""
+    tx_n = (width + ts - 1) // ts
+    ty_n = (height + ts - 1) // ts
+    T = tx_n * ty_n
+    P = ts * ts
+    D = colors.shape[1]
+    for t in prange(C * T):
+        cam = t // T
+        ti = t - cam * T
+        oy = (ti // tx_n) * ts
+        ox = (ti - (ti // tx_n) * tx_n) * ts
+        nx = min(ts, width - ox)  # edge tiles: only pixels inside the image
+        ny = min(ts, height - oy)
+        Tp = np.ones(P)
+        acc = np.zeros((P, D))
+        lastp = np.full(P, -1, np.int64)
+        done = np.zeros(P, np.bool_)
+        col = np.empty(D)
+        n_left = nx * ny
+        row_left = np.full(ts, nx, np.int64)  # pixels of each row still compositing
+        for k in range(starts[t], starts[t + 1]):
+            if n_left == 0:
+                break
+            g = ids[k]
+            mx, my = float(means2d[g, 0]), float(means2d[g, 1])
+            A, B, Cc, o = float(conics[g, 0]), float(conics[g, 1]), float(conics[g, 2]), float(opac[g])
+            thr, inv_a, q, ry = prep[g, 0], prep[g, 1], prep[g, 2], prep[g, 3]
+            if ry < 0.0:
+                continue
+            for d in range(D):
+                col[d] = colors[g, d]
+            y_lo, y_hi = _rows(my, ry, oy, ny)
+            for y in range(y_lo, y_hi):
+                if row_left[y] == 0:
+                    continue
+                dy = my - (oy + y + 0.5)
+                x_lo, x_hi = _cols(mx, dy, A, B, inv_a, q, thr, ox, nx, ry)
+                for x in range(x_lo, x_hi):
+                    p = y * ts + x
+                    if done[p]:
+                        continue
+                    dx = mx - (ox + x + 0.5)
+                    sigma = 0.5 * (A * dx * dx + Cc * dy * dy) + B * dx * dy
+                    if sigma < 0.0 or sigma > thr:
+                        continue
+                    alpha = min(alpha_max, o * math.exp(-sigma))
+                    if alpha < ALPHA_THRESHOLD:
+                        continue
+                    next_T = Tp[p] * (1.0 - alpha)
+                    if next_T <= T_MIN:
+                        done[p] = True
+                        n_left -= 1
+                        row_left[y] -= 1
+                        continue
+                    w = alpha * Tp[p]
+                    for d in range(D):
+                        acc[p, d] += w * col[d]
+                    Tp[p] = next_T
+                    lastp[p] = k
+        for y in range(ny):
+            for x in range(nx):
+                p = y * ts + x
+                for d in range(D):
+                    img[cam, oy + y, ox + x, d] = acc[p, d]
+                alpha_out[cam, oy + y, ox + x] = 1.0 - Tp[p]
+                t_final[cam, oy + y, ox + x] = Tp[p]
+                last[cam, oy + y, ox + x] = lastp[p]
+
+
+@njit(cache=True, parallel=True)
+def _backward(means2d, conics, opac, colors, prep, starts, ids, C, width, height, ts, alpha_max,
+              t_final, last, g_img, g_alpha, pair_grad):
+    """pair_grad [pairs, 6+D] float64 (means2d x,y, conic a,b,c, opacity, colour...), one row per tile-list slot."""
+    tx_n = (width + ts - 1) // ts
+    ty_n = (height + ts - 1) // ts
+    T = tx_n * ty_n
+    P = ts * ts
+    D = colors.shape[1]
+    for t in prange(C * T):
+        cam = t // T
+        ti = t - cam * T
+        oy = (ti // tx_n) * ts
+        ox = (ti - (ti // tx_n) * tx_n) * ts
+        nx = min(ts, width - ox)
+        ny = min(ts, height - oy)
+        Tp = np.ones(P)
+        tfin = np.ones(P)
+        lastp = np.full(P, -1, np.int64)
+        go = np.zeros((P, D))
+        ga = np.zeros(P)
+        buf = np.zeros((P, D))  # sum of colour * weight of the Gaussians behind, per pixel
+        col = np.empty(D)
+        gcol = np.empty(D)
+        kmax = -1
+        row_last = np.full(ts, -1, np.int64)  # last contributing slot of any pixel in the row
+        for y in range(ny):
+            for x in range(nx):
+                p = y * ts + x
+                tfin[p] = t_final[cam, oy + y, ox + x]
+                Tp[p] = tfin[p]
+                lastp[p] = last[cam, oy + y, ox + x]
+                row_last[y] = max(row_last[y], lastp[p])
+                kmax = max(kmax, lastp[p])
+                for d in range(D):
+                    go[p, d] = g_img[cam, oy + y, ox + x, d]
+                ga[p] = g_alpha[cam, oy + y, ox + x]
+        for k in range(kmax, starts[t] - 1, -1):
+            g = ids[k]
+            mx, my = float(means2d[g, 0]), float(means2d[g, 1])
+            A, B, Cc, o = float(conics[g, 0]), float(conics[g, 1]), float(conics[g, 2]), float(opac[g])
+            thr, inv_a, q, ry = prep[g, 0], prep[g, 1], prep[g, 2], prep[g, 3]
+            if ry < 0.0:
+                continue
+            for d in range(D):
+                col[d] = colors[g, d]
+                gcol[d] = 0.0
+            g_mx = g_my = g_a = g_b = g_c = g_o = 0.0
+            y_lo, y_hi = _rows(my, ry, oy, ny)
+            for y in range(y_lo, y_hi):
+                if row_last[y] < k:
+                    continue
+                dy = my - (oy + y + 0.5)
+                x_lo, x_hi = _cols(mx, dy, A, B, inv_a, q, thr, ox, nx, ry)
+                for x in range(x_lo, x_hi):
+                    p = y * ts + x
+                    if lastp[p] < k:
+                        continue
+                    dx = mx - (ox + x + 0.5)
+                    sigma = 0.5 * (A * dx * dx + Cc * dy * dy) + B * dx * dy
+                    if sigma < 0.0 or sigma > thr:
+                        continue
+                    vis = math.exp(-sigma)
+                    alpha_raw = o * vis
+                    alpha = min(alpha_max, alpha_raw)
+                    if alpha < ALPHA_THRESHOLD:
+                        continue
+                    ra = 1.0 / (1.0 - alpha)
+                    Tp[p] *= ra  # transmittance in front of this Gaussian
+                    fac = alpha * Tp[p]
+                    v_alpha = tfin[p] * ra * ga[p]
+                    for d in range(D):
+                        gcol[d] += fac * go[p, d]
+                        v_alpha += (col[d] * Tp[p] - buf[p, d] * ra) * go[p, d]
+                        buf[p, d] += col[d] * fac
+                    if alpha_raw < alpha_max:  # no gradient through the clamp
+                        v_sigma = -alpha * v_alpha
+                        g_mx += v_sigma * (A * dx + B * dy)
+                        g_my += v_sigma * (B * dx + Cc * dy)
+                        g_a += 0.5 * v_sigma * dx * dx
+                        g_b += v_sigma * dx * dy
+                        g_c += 0.5 * v_sigma * dy * dy
+                        g_o += vis * v_alpha
+            pair_grad[k, 0] = g_mx
+            pair_grad[k, 1] = g_my
+            pair_grad[k, 2] = g_a
+            pair_grad[k, 3] = g_b
+            pair_grad[k, 4] = g_c
+            pair_grad[k, 5] = g_o
+            for d in range(D):
+                pair_grad[k, 6 + d] = gcol[d]
+
+
+@njit(cache=True)
+def _reduce(ids, pair_grad, out):
+    """out[g] += pair_grad[k] for every slot k of Gaussian g = ids[k] (serial: ids repeat)."""
+    for k in range(ids.shape[0]):
+        g = ids[k]
+        for j in range(pair_grad.shape[1]):
+            out[g, j] += pair_grad[k, j]
+
+
+def _np(t: torch.Tensor) -> np.ndarray:
+    return t.detach().contiguous().numpy()
+
+
+def set_threads() -> int:
+    """Numba threads follow torch's intra-op setting (the project's `threads`; 1 is the safe shared default)."""
+    n = max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS))
+    numba.set_num_threads(n)
+    return n
+
+
+class NumbaPlan:
+    def __init__(self, starts: np.ndarray, ids: np.ndarray, C: int, width: int, height: int, tile_size: int):
+        self.starts, self.ids = starts, ids
+        self.C, self.width, self.height, self.tile_size = C, width, height, tile_size
+
+    @property
+    def pairs(self) -> int:
+        return int(self.ids.shape[0])
+
+
+def build_plan_numba(means2d, conics, opacities, depths, radii_xy, width, height, tile_size=8,
+                     tile_cull=True) -> NumbaPlan:
+    """Tile lists for [C,N,...] projections (the same pairs and order as tiles.build_plan)."""
+    C, N = depths.shape
+    order = torch.argsort(depths.detach(), dim=1, stable=True)  # [C,N], torch's tie order
+    set_threads()
+    starts, ids = _bin(_np(means2d.reshape(C * N, 2)), _np(radii_xy.reshape(C * N, 2).to(torch.int32)),
+                       _np(conics.reshape(C * N, 3)), _np(opacities.reshape(C * N)), _np(order),
+                       C, N, int(width), int(height), int(tile_size), bool(tile_cull))
+    return NumbaPlan(starts, ids, C, int(width), int(height), int(tile_size))
+
+
+class _CompositeNumba(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means2d, conics, opacities, colors, plan: NumbaPlan, alpha_max: float):
+        # means2d [G,2], conics [G,3], opacities [G], colors [G,D]
+        C, H, W, D = plan.C, plan.height, plan.width, colors.shape[1]
+        arrs = [_np(means2d), _np(conics), _np(opacities), _np(colors)]
+        img = np.empty((C, H, W, D), arrs[0].dtype)
+        alpha = np.empty((C, H, W), arrs[0].dtype)
+        t_final = np.empty((C, H, W), np.float64)
+        last = np.empty((C, H, W), np.int64)
+        prep = np.empty((arrs[0].shape[0], 4))
+        set_threads()
+        _prep(arrs[1], arrs[2], prep)
+        _forward(*arrs, prep, plan.starts, plan.ids, C, W, H, plan.tile_size, float(alpha_max), img, alpha, t_final,
+                 last)
+        ctx.save_for_backward(means2d, conics, opacities, colors)
+        ctx.plan, ctx.alpha_max, ctx.t_final, ctx.last, ctx.prep = plan, float(alpha_max), t_final, last, prep
+        return torch.from_numpy(img), torch.from_numpy(alpha)[..., None]
+
+    @staticmethod
+    def backward(ctx, g_img, g_alpha):
+        means2d, conics, opacities, colors = ctx.saved_tensors
+        plan = ctx.plan
+        C, H, W, D = plan.C, plan.height, plan.width, colors.shape[1]
+        G = means2d.shape[0]
+        g_img = torch.zeros(C, H, W, D, dtype=means2d.dtype) if g_img is None else g_img
+        g_alpha = torch.zeros(C, H, W, 1, dtype=means2d.dtype) if g_alpha is None else g_alpha
+        pair_grad = np.zeros((plan.pairs, 6 + D), np.float64)  # slots past a tile's last pixel stay 0
+        set_threads()
+        _backward(_np(means2d), _np(conics), _np(opacities), _np(colors), ctx.prep, plan.starts, plan.ids, C, W, H,
+                  plan.tile_size, ctx.alpha_max, ctx.t_final, ctx.last, _np(g_img), _np(g_alpha[..., 0]), pair_grad)
+        grad = np.zeros((G, 6 + D), np.float64)
+        _reduce(plan.ids, pair_grad, grad)
+        grad = torch.from_numpy(grad).to(means2d.dtype)
+        return grad[:, 0:2], grad[:, 2:5], grad[:, 5], grad[:, 6:], None, None
+
+
+def composite_numba(means2d, conics, opacities, colors, depths, radii_xy, width, height, *, tile_size=8,
+                    alpha_max=0.999, tile_cull=True):
+    """[C,N,...] projections -> premultiplied colours [C,H,W,D], alphas [C,H,W,1] and plan statistics."""
+    if means2d.device.type != "cpu":
+        raise ValueError("realityavatar/render/numba_backend.py: `means2d` expected CPU tensors, got "
+                         f"{means2d.device}")
+    dt = means2d.dtype if means2d.dtype in (torch.float32, torch.float64) else torch.float32
+    C, N, D = colors.shape
+    plan = build_plan_numba(means2d, conics, opacities, depths, radii_xy, width, height, tile_size, tile_cull)
+    img, alpha = _CompositeNumba.apply(
+        means2d.reshape(C * N, 2).to(dt), conics.reshape(C * N, 3).to(dt), opacities.reshape(C * N).to(dt),
+        colors.reshape(C * N, D).to(dt), plan, float(alpha_max),
+    )
+    stats = {"tile_size": plan.tile_size, "tile_pairs": plan.pairs, "padded_elements": plan.pairs * tile_size**2,
+             "n_chunks": 1}
+    return img, alpha, stats
+
+
+def warm_up() -> float:
+    """Compile (or load from numba's cache) every kernel for float32 and float64; returns the seconds it took."""
+    t0 = time.perf_counter()
+    for dt in (torch.float32, torch.float64):
+        m = torch.tensor([[[4.0, 4.0]]], dtype=dt, requires_grad=True)
+        con = torch.tensor([[[0.5, 0.0, 0.5]]], dtype=dt)
+        op = torch.tensor([[0.9]], dtype=dt)
+        col = torch.ones(1, 1, 3, dtype=dt)
+        radii = torch.tensor([[[3, 3]]], dtype=torch.int32)
+        img, a, _ = composite_numba(m, con, op, col, torch.ones(1, 1, dtype=dt), radii, 8, 8)
+        (img.sum() + a.sum()).backward()
+    return time.perf_counter() - t0
+
+
+# ---- projection (project.py's EWA rules) with a hand-written backward -------------------------------------------
+
+
+@njit(cache=True, inline="always")
+def _mm(A, B, out, ta=False, tb=False):
+    """out = A @ B for small matrices (optionally transposed), as loops: numba's matmul calls BLAS, slow at 3x3."""
+    n = A.shape[1] if ta else A.shape[0]
+    k = A.shape[0] if ta else A.shape[1]
+    m = B.shape[0] if tb else B.shape[1]
+    for i in range(n):
+        for j in range(m):
+            acc = 0.0
+            for t in range(k):
+                acc += (A[t, i] if ta else A[i, t]) * (B[j, t] if tb else B[t, j])
+            out[i, j] = acc
+    return out
+
+
+@njit(cache=True, inline="always")
+def _rotmat(w, x, y, z):
+    return (1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y))
+
+
+@njit(cache=True)
+def _scratch():
+    """Small work arrays, allocated once per block of Gaussians (per-Gaussian allocations cost more than the math)."""
+    return (np.empty(4), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)),
+            np.empty(3), np.empty((2, 3)), np.empty((2, 3)), np.empty((2, 2)))
+
+
+@njit(cache=True, inline="always")
+def _cam_cov(means, quats, scales, W, t, n, q, Rq, M, S, Sc, tmp, p):
+    """Fills unit quaternion q, Rq, M = Rq diag(s), world covariance S, camera covariance Sc, camera-space mean p.
+
+    Returns the quaternion's norm (F.normalize's eps)."""
+    nrm = 0.0
+    for i in range(4):
+        q[i] = quats[n, i]
+        nrm += q[i] * q[i]
+    nrm = max(math.sqrt(nrm), 1e-12)
+    for i in range(4):
+        q[i] /= nrm
+    r = _rotmat(q[0], q[1], q[2], q[3])
+    for i in range(3):
+        for j in range(3):
+            Rq[i, j] = r[3 * i + j]
+            M[i, j] = r[3 * i + j] * scales[n, j]
+    _mm(M, M, S, tb=True)
+    _mm(W, S, tmp)
+    _mm(tmp, W, Sc, tb=True)
+    for i in range(3):
+        p[i] = W[i, 0] * means[n, 0] + W[i, 1] * means[n, 1] + W[i, 2] * means[n, 2] + t[i]
+    return nrm
+
+
+@njit(cache=True, inline="always")
+def _jacobian(p, K, width, height, near, far, J):
+    x, y, z = p[0], p[1], p[2]
+    in_range = z >= near and z <= far
+    zz = z if in_range else 1.0
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    tan_fovx, tan_fovy = 0.5 * width / fx, 0.5 * height / fy
+    lim_xp, lim_xn = (width - cx) / fx + 0.3 * tan_fovx, cx / fx + 0.3 * tan_fovx
+    lim_yp, lim_yn = (height - cy) / fy + 0.3 * tan_fovy, cy / fy + 0.3 * tan_fovy
+    rz = 1.0 / zz
+    u, v = x * rz, y * rz
+    uc, vc = min(lim_xp, max(-lim_xn, u)), min(lim_yp, max(-lim_yn, v))
+    tx, ty = zz * uc, zz * vc
+    J[0, 0] = fx * rz
+    J[0, 1] = 0.0
+    J[0, 2] = -fx * tx * rz * rz
+    J[1, 0] = 0.0
+    J[1, 1] = fy * rz
+    J[1, 2] = -fy * ty * rz * rz
+    u_free = u > -lim_xn and u < lim_xp  # gradient passes the clamp
+    v_free = v > -lim_yn and v < lim_yp
+    return in_range, zz, rz, uc, vc, tx, ty, u_free, v_free
+
+
+@njit(cache=True, inline="always")
+def _cov2d(J, Sc, tmp23):
+    _mm(J, Sc, tmp23)
+    c00 = c01 = c10 = c11 = 0.0
+    for t in range(3):
+        c00 += tmp23[0, t] * J[0, t]
+        c01 += tmp23[0, t] * J[1, t]
+        c10 += tmp23[1, t] * J[0, t]
+        c11 += tmp23[1, t] * J[1, t]
+    return c00, 0.5 * (c01 + c10), c11
+
+
+_BLOCK = 256
+
+
+@njit(cache=True, parallel=True)
+def _project_fwd(means, quats, scales, opac, viewmats, Ks, width, height, near, far, eps2d, radius_clip,
+                 antialiased, means2d, conics, depths, opac_out, comp, radii, visible):
+    C, N = viewmats.shape[0], means.shape[0]
+    for blk in prange((N + _BLOCK - 1) // _BLOCK):
+        q, Rq, M, S, Sc, tmp, p, J, tmp23, _ = _scratch()
+        for n in range(blk * _BLOCK, min(N, (blk + 1) * _BLOCK)):
+            for c in range(C):
+                _cam_cov(means, quats, scales, viewmats[c, :3, :3], viewmats[c, :3, 3], n, q, Rq, M, S, Sc, tmp, p)
+                in_range, _zz, rz, _uc, _vc, _tx, _ty, _uf, _vf = _jacobian(p, Ks[c], width, height, near, far, J)
+                a, b, cc = _cov2d(J, Sc, tmp23)
+                mx = Ks[c, 0, 0] * p[0] * rz + Ks[c, 0, 2]
+                my = Ks[c, 1, 1] * p[1] * rz + Ks[c, 1, 2]
+                det_orig = a * cc - b * b
+                a2, c2 = a + eps2d, cc + eps2d
+                det = a2 * c2 - b * b
+                vis = in_range and det > 0
+                if not vis:
+                    det = 1.0
+                o = float(opac[n])
+                if antialiased:
+                    cm = math.sqrt(max(det_orig / det, 0.0))
+                    comp[c, n] = cm
+                    o = o * cm
+                opac_out[c, n] = o
+                vis = vis and o >= ALPHA_THRESHOLD
+                ext = min(math.sqrt(2.0 * math.log(max(o, ALPHA_THRESHOLD) / ALPHA_THRESHOLD)), 3.33)
+                rx = math.ceil(ext * math.sqrt(max(a2, 0.0)))
+                ry = math.ceil(ext * math.sqrt(max(c2, 0.0)))
+                vis = vis and not (rx <= radius_clip and ry <= radius_clip)
+                vis = vis and not (mx + rx <= 0 or mx - rx >= width or my + ry <= 0 or my - ry >= height)
+                vis = vis and math.isfinite(rx) and math.isfinite(ry)
+                visible[c, n] = vis
+                if vis:
+                    means2d[c, n, 0], means2d[c, n, 1] = mx, my
+                    conics[c, n, 0], conics[c, n, 1], conics[c, n, 2] = c2 / det, -b / det, a2 / det
+                    depths[c, n] = p[2]
+                    radii[c, n, 0], radii[c, n, 1] = int(rx), int(ry)
+                else:
+                    means2d[c, n, 0] = means2d[c, n, 1] = 0.0
+                    conics[c, n, 0] = conics[c, n, 1] = conics[c, n, 2] = 0.0
+                    depths[c, n] = 0.0
+                    radii[c, n, 0] = radii[c, n, 1] = 0
+
+
+@njit(cache=True, parallel=True)
+def _project_bwd(means, quats, scales, opac, viewmats, Ks, width, height, near, far, eps2d, antialiased, visible,
+                 g_m2, g_con, g_dep, g_op, g_comp, d_means, d_quats, d_scales, d_opac):
+    """Gradients of project.py's outputs (means2d, conics, depths, opacities, compensations) w.r.t. its inputs."""
+    C, N = viewmats.shape[0], means.shape[0]
+    for blk in prange((N + _BLOCK - 1) // _BLOCK):
+        q, Rq, M, S, Sc, tmp, p, J, tmp23, dcov = _scratch()
+        dJ, dSc, dS = np.empty((2, 3)), np.empty((3, 3)), np.empty((3, 3))
+        dM_sum, tmp2 = np.empty((3, 3)), np.empty((3, 3))
+        dp, dq_n = np.empty(3), np.empty(4)
+        for n in range(blk * _BLOCK, min(N, (blk + 1) * _BLOCK)):
+            dM_sum[:] = 0.0
+            nrm = 1.0
+            for c in range(C):
+                W = viewmats[c, :3, :3]
+                nrm = _cam_cov(means, quats, scales, W, viewmats[c, :3, 3], n, q, Rq, M, S, Sc, tmp, p)
+                in_range, zz, rz, uc, vc, tx, ty, u_free, v_free = _jacobian(p, Ks[c], width, height, near, far, J)
+                fx, fy = Ks[c, 0, 0], Ks[c, 1, 1]
+                a, b, cc = _cov2d(J, Sc, tmp23)
+                det_orig = a * cc - b * b
+                a2, c2 = a + eps2d, cc + eps2d
+                det = a2 * c2 - b * b
+                det_kept = in_range and det > 0
+                if not det_kept:
+                    det = 1.0
+                da = db = dc = 0.0  # w.r.t. cov2d's a, b, c (a2 = a + eps2d has the same gradient)
+                ddet = 0.0
+                dp[:] = 0.0
+                drz = 0.0
+                if visible[c, n]:
+                    g0, g1, g2 = g_con[c, n, 0], g_con[c, n, 1], g_con[c, n, 2]
+                    dc += g0 / det
+                    db -= g1 / det
+                    da += g2 / det
+                    ddet += (-g0 * c2 + g1 * b - g2 * a2) / (det * det)
+                    dp[0] += g_m2[c, n, 0] * fx * rz
+                    dp[1] += g_m2[c, n, 1] * fy * rz
+                    drz += g_m2[c, n, 0] * fx * p[0] + g_m2[c, n, 1] * fy * p[1]
+                    dp[2] += g_dep[c, n]
+                if antialiased:
+                    r = det_orig / det
+                    cm = math.sqrt(max(r, 0.0))
+                    gc = g_comp[c, n] + g_op[c, n] * opac[n]
+                    d_opac[n] += g_op[c, n] * cm
+                    if r >= 0.0 and cm > 0.0:
+                        dr = gc * 0.5 / cm
+                        ddo = dr / det
+                        if det_kept:
+                            ddet -= dr * det_orig / (det * det)
+                        da += ddo * cc
+                        dc += ddo * a
+                        db -= 2.0 * b * ddo
+                else:
+                    d_opac[n] += g_op[c, n]
+                if det_kept:
+                    da += ddet * c2
+                    dc += ddet * a2
+                    db -= 2.0 * b * ddet
+                dcov[0, 0], dcov[0, 1], dcov[1, 0], dcov[1, 1] = da, 0.5 * db, 0.5 * db, dc
+                _mm(dcov, J, tmp23)
+                _mm(tmp23, Sc, dJ)
+                for i in range(3):
+                    for j in range(3):
+                        dSc[i, j] = (J[0, i] * dcov[0, 0] + J[1, i] * dcov[1, 0]) * J[0, j] + \
+                                    (J[0, i] * dcov[0, 1] + J[1, i] * dcov[1, 1]) * J[1, j]
+                drz += 2.0 * (dJ[0, 0] * fx + dJ[1, 1] * fy - 2.0 * rz * (dJ[0, 2] * fx * tx + dJ[1, 2] * fy * ty))
+                dtx = -2.0 * dJ[0, 2] * fx * rz * rz
+                dty = -2.0 * dJ[1, 2] * fy * rz * rz
+                dzz = dtx * uc + dty * vc
+                if u_free:
+                    du = dtx * zz
+                    dp[0] += du * rz
+                    drz += du * p[0]
+                if v_free:
+                    dv = dty * zz
+                    dp[1] += dv * rz
+                    drz += dv * p[1]
+                dzz -= drz * rz * rz
+                if in_range:
+                    dp[2] += dzz
+                for j in range(3):
+                    d_means[n, j] += W[0, j] * dp[0] + W[1, j] * dp[1] + W[2, j] * dp[2]
+                _mm(W, dSc, tmp2, ta=True)
+                _mm(tmp2, W, dS)
+                _mm(dS, M, tmp2)
+                for i in range(3):
+                    for j in range(3):
+                        dM_sum[i, j] += 2.0 * tmp2[i, j]
+            # M = Rq diag(s): scales and rotation entries (q, Rq are the same for every camera)
+            for j in range(3):
+                d_scales[n, j] = dM_sum[0, j] * Rq[0, j] + dM_sum[1, j] * Rq[1, j] + dM_sum[2, j] * Rq[2, j]
+            for i in range(3):
+                for j in range(3):
+                    tmp2[i, j] = dM_sum[i, j] * scales[n, j]
+            dR = tmp2
+            w, x, y, z = q[0], q[1], q[2], q[3]
+            dq_n[0] = 2 * (-z * dR[0, 1] + y * dR[0, 2] + z * dR[1, 0] - x * dR[1, 2] - y * dR[2, 0] + x * dR[2, 1])
+            dq_n[1] = 2 * (y * dR[0, 1] + z * dR[0, 2] + y * dR[1, 0] - 2 * x * dR[1, 1] - w * dR[1, 2]
+                           + z * dR[2, 0] + w * dR[2, 1] - 2 * x * dR[2, 2])
+            dq_n[2] = 2 * (-2 * y * dR[0, 0] + x * dR[0, 1] + w * dR[0, 2] + x * dR[1, 0] + z * dR[1, 2]
+                           - w * dR[2, 0] + z * dR[2, 1] - 2 * y * dR[2, 2])
+            dq_n[3] = 2 * (-2 * z * dR[0, 0] - w * dR[0, 1] + x * dR[0, 2] + w * dR[1, 0] - 2 * z * dR[1, 1]
+                           + y * dR[1, 2] + x * dR[2, 0] + y * dR[2, 1])
+            dot = q[0] * dq_n[0] + q[1] * dq_n[1] + q[2] * dq_n[2] + q[3] * dq_n[3]
+            raw = 0.0
+            for i in range(4):
+                raw += quats[n, i] * quats[n, i]
+            for i in range(4):  # through F.normalize (its eps branch divides by a constant)
+                d_quats[n, i] = (dq_n[i] - q[i] * dot) / nrm if math.sqrt(raw) > 1e-12 else dq_n[i] / nrm
+
+
+class _ProjectNumba(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means, quats, scales, opacities, viewmats, Ks, width, height, near, far, eps2d, radius_clip,
+                antialiased):
+        C, N = viewmats.shape[0], means.shape[0]
+        dt = means.dtype
+        a = [_np(t.to(torch.float64)) for t in (means, quats, scales, opacities, viewmats, Ks)]
+        m2, con = np.empty((C, N, 2), np.float64), np.empty((C, N, 3), np.float64)
+        dep, op, comp = np.empty((C, N)), np.empty((C, N)), np.ones((C, N))
+        radii, vis = np.empty((C, N, 2), np.int32), np.empty((C, N), np.bool_)
+        set_threads()
+        _project_fwd(*a, int(width), int(height), float(near), float(far), float(eps2d), float(radius_clip),
+                     bool(antialiased), m2, con, dep, op, comp, radii, vis)
+        ctx.args = (int(width), int(height), float(near), float(far), float(eps2d), bool(antialiased))
+        ctx.save_for_backward(means, quats, scales, opacities, viewmats, Ks)
+        vis_t = torch.from_numpy(vis)
+        ctx.vis = vis
+        ctx.mark_non_differentiable(vis_t)
+        out = [torch.from_numpy(x).to(dt) for x in (m2, con, dep, op, comp)]
+        return (*out, torch.from_numpy(radii), vis_t)
+
+    @staticmethod
+    def backward(ctx, g_m2, g_con, g_dep, g_op, g_comp, _g_radii, _g_vis):
+        means, quats, scales, opacities, viewmats, Ks = ctx.saved_tensors
+        C, N = viewmats.shape[0], means.shape[0]
+        a = [_np(t.to(torch.float64)) for t in (means, quats, scales, opacities, viewmats, Ks)]
+        gs = []
+        for g, shape in ((g_m2, (C, N, 2)), (g_con, (C, N, 3)), (g_dep, (C, N)), (g_op, (C, N)), (g_comp, (C, N))):
+            gs.append(np.zeros(shape) if g is None else _np(g.to(torch.float64)))
+        d = [np.zeros(x.shape) for x in a[:4]]
+        set_threads()
+        _project_bwd(*a, *ctx.args, ctx.vis, *gs, *d)
+        dt = means.dtype
+        return (*[torch.from_numpy(x).to(dt) for x in d], None, None, None, None, None, None, None, None, None)
+
+
+def project_gaussians_numba(means, quats, scales, opacities, viewmats, Ks, width, height, near, far, eps2d=0.3,
+                            radius_clip=0.0, antialiased=False):
+    """project.project_gaussians in compiled kernels (float64 inside); the torch version where cameras need grads."""
+    from .project import Projection, project_gaussians
+
+    if viewmats.requires_grad or Ks.requires_grad:
+        return project_gaussians(means, quats, scales, opacities, viewmats, Ks, width, height, near, far,
+                                 eps2d=eps2d, radius_clip=radius_clip, antialiased=antialiased)
+    m2, con, dep, op, comp, radii, vis = _ProjectNumba.apply(
+        means, quats, scales, opacities, viewmats, Ks, width, height, near, far, eps2d, radius_clip, antialiased)
+    return Projection(means2d=m2, conics=con, depths=dep, opacities=op, radii_xy=radii, visible=vis,
+                      compensations=comp if antialiased else None)
