@@ -37,7 +37,7 @@ def phase_of(frame: int, events: dict, fps: float) -> str:
 
 
 @torch.no_grad()
-def probe_run(run_dir: Path, threads: int = 1) -> tuple[list[dict], dict]:
+def probe_run(run_dir: Path, threads: int = 1, kinds: tuple[str, ...] = ("train", "heldout")) -> tuple[list[dict], dict]:
     torch.set_num_threads(threads)
     cfg, module, _ = load_run(run_dir)
     dm = build_data(cfg, module.body)
@@ -48,7 +48,7 @@ def probe_run(run_dir: Path, threads: int = 1) -> tuple[list[dict], dict]:
     offsets: dict[int, tuple[float, float, float]] = {}
     for kind, split in (("train", "train"), ("heldout", "novel_view")):
         ds = dm.datasets.get(split)
-        if ds is None:
+        if ds is None or kind not in kinds:
             continue
         for i, rec in enumerate(ds.records):
             batch = default_collate([ds[i]])
@@ -109,6 +109,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", required=True)
     ap.add_argument("--labels", default=None, help="comma-separated labels, one per run (default: folder names)")
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--heldout-only", action="store_true", help="skip the training cameras (3x faster)")
     a = ap.parse_args(argv)
     runs = [Path(r) for r in a.runs]
     labels = a.labels.split(",") if a.labels else [r.name for r in runs]
@@ -119,7 +120,7 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     results, summaries, events = {}, {}, {}
     for label, run in zip(labels, runs):
-        rows, summary = probe_run(run, a.threads)
+        rows, summary = probe_run(run, a.threads, ("heldout",) if a.heldout_only else ("train", "heldout"))
         results[label], summaries[label] = rows, summary
         events = summary["events"]
     with open(out / "probe.csv", "w", newline="") as f:
@@ -140,6 +141,21 @@ def main(argv: list[str] | None = None) -> int:
         vals += [s.get(f"heldout/{p}/psnr") for p in ("rest", "spin", "after")]
         vals += [100 * s[f"heldout/{p}/dx_p99"] if f"heldout/{p}/dx_p99" in s else None for p in ("rest", "spin")]
         print(f"{label:<22}" + "".join(f"{v:14.3f}" if v is not None else f"{'-':>14}" for v in vals))
+    groups: dict[str, list[dict]] = {}
+    for label, sm in summaries.items():  # labels "<name>@<seed>" are averaged per name
+        groups.setdefault(label.split("@")[0], []).append(sm)
+    if any(len(v) > 1 for v in groups.values()):
+        keys = [f"heldout/{p}/{m}" for m in ("psnr", "iou") for p in ("rest", "spin", "after", "settled")]
+        lines = ["| run | n | " + " | ".join(k.replace("heldout/", "").replace("/", " ") for k in keys) + " |",
+                 "|---|---:|" + "---:|" * len(keys)]
+        for name, sms in groups.items():
+            cells = []
+            for k in keys:
+                v = np.array([sm[k] for sm in sms if k in sm])
+                cells.append(f"{v.mean():.3f} ± {v.std(ddof=1):.3f}" if len(v) > 1 else (f"{v.mean():.3f}" if len(v) else "-"))
+            lines.append(f"| {name} | {len(sms)} | " + " | ".join(cells) + " |")
+        (out / "probe_groups.md").write_text("\n".join(lines) + "\n")
+        print("\n".join(lines))
     print(f"wrote {out}/probe.csv, probe.json, probe.png")
     return 0
 
