@@ -43,11 +43,13 @@ class I3DSplitWriter:
     """Writes one split folder of this layout (the inverse of the reader below): images/ and masks/ as PNG,
     cameras.pkl and mesh_infos.pkl keyed by frame name, canonical_joints.pkl when `canonical_joints` is given."""
 
-    def __init__(self, folder: Path, canonical_joints: np.ndarray | None = None) -> None:
+    def __init__(self, folder: Path, canonical_joints: np.ndarray | None = None, png_compress_level: int = 6,
+                 pickle_protocol: int | None = None) -> None:
         self.folder = Path(folder)
         (self.folder / "images").mkdir(parents=True, exist_ok=True)
         (self.folder / "masks").mkdir(parents=True, exist_ok=True)
         self.canonical_joints = canonical_joints
+        self.png_compress_level, self.pickle_protocol = int(png_compress_level), pickle_protocol
         self.cameras: dict = {}
         self.infos: dict = {}
 
@@ -58,8 +60,11 @@ class I3DSplitWriter:
         from PIL import Image
 
         name = frame_name(frame, view)
-        Image.fromarray(image).save(self.folder / "images" / f"{name}.png")
-        Image.fromarray(mask).save(self.folder / "masks" / f"{name}.png")
+        # PIL writes no timestamps into PNGs: the same arrays give the same bytes (scene caches rely on it).
+        Image.fromarray(image).save(self.folder / "images" / f"{name}.png", format="PNG",
+                                    compress_level=self.png_compress_level)
+        Image.fromarray(mask).save(self.folder / "masks" / f"{name}.png", format="PNG",
+                                   compress_level=self.png_compress_level)
         self.cameras[name] = {"intrinsics": K, "extrinsics": viewmat,
                               "distortions": np.zeros(5, np.float32) if distortions is None else distortions}
         self.infos[name] = info
@@ -70,10 +75,10 @@ class I3DSplitWriter:
 
         for fname, obj in (("cameras.pkl", self.cameras), ("mesh_infos.pkl", self.infos)):
             with open(self.folder / fname, "wb") as fh:
-                pickle.dump(obj, fh)
+                pickle.dump(obj, fh, protocol=self.pickle_protocol)
         if self.canonical_joints is not None:
             with open(self.folder / "canonical_joints.pkl", "wb") as fh:
-                pickle.dump({"joints": self.canonical_joints}, fh)
+                pickle.dump({"joints": self.canonical_joints}, fh, protocol=self.pickle_protocol)
         return self.folder
 
 

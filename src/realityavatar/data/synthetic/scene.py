@@ -8,10 +8,8 @@ cached by a hash of the parameters, written to a temporary folder and moved into
 from __future__ import annotations
 
 import hashlib
-import io
 import json
 import os
-import pickle
 import shutil
 import tempfile
 from importlib import metadata
@@ -19,7 +17,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from PIL import Image
 
 from realityavatar.data.synthetic.cameras import novel_view_ids, ring_cameras
 from realityavatar.data.synthetic.motions import MOTIONS, Motion, make_motion
@@ -139,10 +136,6 @@ def _versions() -> dict:
     return out
 
 
-def frame_name(frame: int, view: int) -> str:
-    return f"frame_{frame:06d}_view_{view:02d}"
-
-
 def body_sequence(body, motion: Motion):
     """Posed body per frame: vertices_world [F,V,3], joints_body [F,24,3], joints_world [F,24,3], rots_world [F,24,3,3]."""
     from realityavatar.geometry import axis_angle_to_matrix
@@ -158,17 +151,6 @@ def body_sequence(body, motion: Motion):
     rots_w = R[:, None] @ A[..., :3, :3]
     body.float()
     return verts_w.numpy(), joints_body.numpy(), joints_w.numpy(), rots_w.numpy()
-
-
-def _save_png(path: Path, array: np.ndarray) -> None:
-    buf = io.BytesIO()
-    Image.fromarray(array).save(buf, format="PNG", compress_level=PNG_COMPRESS)  # no timestamps/metadata
-    path.write_bytes(buf.getvalue())
-
-
-def _dump(path: Path, obj) -> None:
-    with open(path, "wb") as f:
-        pickle.dump(obj, f, protocol=PICKLE_PROTOCOL)
 
 
 def is_built(prefix: Path, phash: str) -> bool:
@@ -268,14 +250,11 @@ def _write(tmp: Path, p: dict, seed: int, phash: str, body, motion: Motion, Ks, 
            verts_w, joints_body, garment, progress: bool) -> None:
     from tqdm import tqdm
 
+    from realityavatar.data.i3d import I3DSplitWriter
+
     name = p["name"]
-    split_dirs = {k: tmp / f"{name}-{v}" for k, v in SPLITS.items()}
-    for d in split_dirs.values():
-        (d / "images").mkdir(parents=True)
-        (d / "masks").mkdir()
-    cams = {k: {} for k in SPLITS}
-    infos = {k: {} for k in SPLITS}
     tpose = body.rest_joints.numpy().astype(np.float32)
+    writers = {k: I3DSplitWriter(tmp / f"{name}-{v}", tpose, PNG_COMPRESS, PICKLE_PROTOCOL) for k, v in SPLITS.items()}
     body_tex = BodyTexture(body.rest_vertices.numpy(), body.skin_weights.numpy(), seed)
     garm_tex = GarmentTexture(garment.uv, seed)
     body_faces = body.faces.numpy()
@@ -293,16 +272,9 @@ def _write(tmp: Path, p: dict, seed: int, phash: str, body, motion: Motion, Ks, 
         else:
             targets = [("novel_pose", c) for c in all_ids]
         for split, c in targets:
-            fn = frame_name(f, c)
-            _save_png(split_dirs[split] / "images" / f"{fn}.png", rgb[c])
-            _save_png(split_dirs[split] / "masks" / f"{fn}.png", mask[c])
-            cams[split][fn] = {"intrinsics": Ks[c].astype(np.float32), "extrinsics": viewmats[c].astype(np.float32),
-                               "distortions": np.zeros(5, np.float32)}
-            infos[split][fn] = info
-    for split, d in split_dirs.items():
-        _dump(d / "cameras.pkl", cams[split])
-        _dump(d / "mesh_infos.pkl", infos[split])
-        _dump(d / "canonical_joints.pkl", {"joints": tpose})
+            writers[split].add(f, c, rgb[c], mask[c], Ks[c].astype(np.float32), viewmats[c].astype(np.float32), info)
+    for w in writers.values():
+        w.close()
     frames = np.arange(F, dtype=np.int64)
     with open(tmp / f"{name}-garment.npz", "wb") as fh:
         np.savez(fh, vertices=garment.vertices.astype(np.float32), faces=np.asarray(garment.faces, np.int64),
