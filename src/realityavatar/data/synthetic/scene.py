@@ -223,14 +223,7 @@ def remove_stale_builds(root: Path, name: str, max_age_s: float = 24 * 3600) -> 
     without a pid in its name (older builds) is removed once it is older than `max_age_s`."""
     import time
 
-    def pid_alive(pid: int) -> bool:
-        try:
-            os.kill(pid, 0)
-        except ProcessLookupError:
-            return False
-        except PermissionError:
-            return True
-        return True
+    from realityavatar.runs import pid_alive
 
     removed = []
     for d in Path(root).glob(f".tmp-{name}-*"):
