@@ -414,7 +414,7 @@ def test_rebuild_overrides_move_interpolated_keys(trained_run):
     out, _ = trained_run
     cfg, _, _ = load_run(out, ["seed=5", "iterations=1000"])
     assert cfg.gaussians.seed == 5 and cfg.density.seed == 5  # ${seed}
-    assert cfg.schedule.deform_start == 100 and cfg.density.refine_start == 100  # ${int_mul:${iterations},0.1}
+    assert cfg.schedule.skin_switch == 100 and cfg.density.refine_start == 100  # ${int_mul:${iterations},0.1}
     assert cfg.data.root == load_run(out)[0].data.root  # environment values stay those of the run
 
 
