@@ -24,6 +24,7 @@ from realityavatar.data.records import (
     image_size,
     load_record,
 )
+from realityavatar.geometry import camera_centres
 
 log = logging.getLogger(__name__)
 READERS = ("i3d", "zju")
@@ -355,7 +356,7 @@ class AvatarDataModule(pl.LightningDataModule):
     def _extent(train: list[ImageRecord], poses: PoseTable) -> float:
         """1.1 x the largest distance of a training camera centre from the mean body position (LR/threshold scale)."""
         E = np.stack([r.viewmat for r in {r.view: r for r in train}.values()])  # [C,4,4]
-        centres = -np.einsum("cji,cj->ci", E[:, :3, :3], E[:, :3, 3])  # [C,3] = -R^T t
+        centres = camera_centres(torch.from_numpy(E)).numpy()  # [C,3]
         body = poses.transl.double().mean(0).numpy()
         return float(1.1 * np.linalg.norm(centres - body, axis=-1).max())
 
