@@ -79,7 +79,6 @@ def test_node_deformer_starts_at_identity_and_moves_neighbourhoods_coherently():
     out = d(x, h)
     assert torch.allclose(out["dx"][0], torch.tensor([0.1, 0.0, 0.0]).expand(400, 3), atol=1e-5)
     # One node's translation moves its neighbourhood, not far-away Gaussians.
-    node_out = {k: torch.zeros_like(v) for k, v in d(x, h).items()}
     node_out = {"dx": torch.zeros(1, 32, 3), "ds": torch.zeros(1, 32, 3), "f_mt": torch.zeros(1, 32, d.feature_dim),
                 "dq": torch.tensor([1.0, 0, 0, 0]).expand(1, 32, 4)}
     node_out["dx"][0, 0, 0] = 0.1
