@@ -204,5 +204,5 @@ class NoSilhouette(nn.Module):
     def forward(self, means, viewmat, K, mask, alpha) -> dict[str, torch.Tensor]:
         return {}
 
-    def total(self, terms: dict[str, torch.Tensor]) -> float:
-        return 0.0  # forward returns no terms, so the module adds nothing
+    def total(self, terms: dict[str, torch.Tensor]) -> torch.Tensor:
+        return torch.zeros(())  # never added by the module: forward returns no terms
