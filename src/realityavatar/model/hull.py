@@ -36,8 +36,8 @@ def hull_views(dm, frame: int | None = None) -> HullViews:
     return HullViews(masks, np.stack(Ks), np.stack(E), poses[-1], transl[-1], frame)
 
 
-def carve(views: HullViews, lo: np.ndarray, hi: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
-    """Voxel centres [P,3] on the surface of the visual hull inside the box [lo, hi], and the full occupancy grid.
+def carve(views: HullViews, lo: np.ndarray, hi: np.ndarray, voxel: float) -> np.ndarray:
+    """Voxel centres [P,3] on the surface of the visual hull inside the box [lo, hi].
 
     A voxel is occupied when its centre projects inside the mask of every camera (outside an image counts as
     outside); a surface voxel is occupied with at least one free 6-neighbour.
@@ -46,12 +46,11 @@ def carve(views: HullViews, lo: np.ndarray, hi: np.ndarray, voxel: float) -> tup
     X = np.stack(np.meshgrid(*axes, indexing="ij"), -1)  # [I,J,K,3]
     pts = X.reshape(-1, 3)
     occ = np.ones(len(pts), bool)
+    from realityavatar.losses import project_points
+
     for mask, K, E in zip(views.masks, views.Ks, views.viewmats):
-        cam = pts @ E[:3, :3].T + E[:3, 3]
-        z = cam[:, 2]
-        zs = np.where(z > 1e-3, z, 1.0)
-        u = np.round(K[0, 0] * cam[:, 0] / zs + K[0, 2]).astype(np.int64)
-        v = np.round(K[1, 1] * cam[:, 1] / zs + K[1, 2]).astype(np.int64)
+        uv, z = project_points(torch.from_numpy(pts), torch.from_numpy(E), torch.from_numpy(K))
+        u, v, z = uv[:, 0].round().long().numpy(), uv[:, 1].round().long().numpy(), z.numpy()
         H, W = mask.shape
         ok = (z > 1e-3) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
         inside = np.zeros(len(pts), bool)
@@ -63,8 +62,7 @@ def carve(views: HullViews, lo: np.ndarray, hi: np.ndarray, voxel: float) -> tup
     for a in range(3):
         for s in (-1, 1):
             interior &= np.roll(pad, s, axis=a)[1:-1, 1:-1, 1:-1]
-    surface = grid & ~interior
-    return X[surface], grid
+    return X[grid & ~interior]
 
 
 def garment_points(body, views: HullViews, n: int, voxel: float = 0.015, min_body_distance: float = 0.02,
@@ -84,7 +82,7 @@ def garment_points(body, views: HullViews, n: int, voxel: float = 0.015, min_bod
         verts = body.posed_vertices(pose, transl).cpu().numpy().astype(np.float64)  # [V,3]
         lo = verts.min(0) - np.array([margin, 0.05, margin])
         hi = verts.max(0) + np.array([margin, 0.05, margin])
-        surf, _ = carve(views, lo, hi, voxel)
+        surf = carve(views, lo, hi, voxel)
         if len(surf) == 0:
             raise ValueError(f"gaussians=hull: the visual hull of frame {views.frame} is empty; check the masks "
                              "and cameras of the training split")
