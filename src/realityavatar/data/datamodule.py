@@ -84,6 +84,7 @@ class AvatarDataset(Dataset):
             "height": int(image.shape[0]),
             "poses": poses,
             "transl": transl,
+            "index": int(i),
             "frame": int(rec.frame),
             "frame_idx": int(self.train_frame_index.get(rec.frame, -1)),
             "view": int(rec.view),
@@ -125,6 +126,100 @@ class EpochShuffle(torch.utils.data.Sampler):
                         "epoch starts over", state.get("n"), state.get("seed"), self.n, self.seed)
             return
         self.epoch, self.consumed = int(state["epoch"]), int(state["consumed"])
+
+
+class HardFrameSampler(EpochShuffle):
+    """Frames drawn in proportion to their recent training loss, mixed with uniform draws (`data.sampler=hard_frames`).
+
+    The first pass over the training images is the uniform EpochShuffle order, so every frame is seen and scored.
+    From then on each draw is, with probability `mix`, a uniform image; otherwise a frame chosen with probability
+    proportional to score_f ** power, then one of that frame's images (camera) uniformly. score_f is an exponential
+    moving average (weight `ema` on the newest value) of the per-image training losses that `observe` receives for
+    the frame's images (SamplerFeedback, conf/callbacks/default.yaml, passes them after every step), so one camera's
+    loss updates the whole frame. Frames the garment flares in (the spin) and the swing after an abrupt stop have the
+    highest photometric error: uniform sampling spends most steps on the easy rest frames.
+    Resumable like EpochShuffle: scores, epoch and position are in the checkpoint, and draw k of epoch e comes from a
+    generator seeded by (seed, e, k), so a resumed run draws what the uninterrupted run would have.
+    """
+
+    def __init__(self, frames: Sequence[int], seed: int, mix: float = 0.5, power: float = 1.0, ema: float = 0.3) -> None:
+        super().__init__(len(frames), seed)
+        if not 0.0 <= float(mix) <= 1.0:
+            raise ValueError(f"data.sampler.mix must be in [0, 1], got {mix!r}")
+        if not 0.0 < float(ema) <= 1.0:
+            raise ValueError(f"data.sampler.ema must be in (0, 1], got {ema!r}")
+        if float(power) < 0.0:
+            raise ValueError(f"data.sampler.power must be >= 0, got {power!r}")
+        self.mix, self.power, self.ema = float(mix), float(power), float(ema)
+        ids = sorted({int(f) for f in frames})
+        col = {f: j for j, f in enumerate(ids)}
+        self.frame_of = torch.tensor([col[int(f)] for f in frames], dtype=torch.long)  # image -> frame column
+        self.images_of = [torch.nonzero(self.frame_of == j).flatten() for j in range(len(ids))]
+        self.score = torch.full((len(ids),), float("nan"), dtype=torch.float64)  # NaN: not observed yet
+        self.observed = 0
+
+    def observe(self, indices: torch.Tensor, losses: torch.Tensor) -> None:
+        """Per-image training losses of the images `indices` (dataset positions) just trained on."""
+        for i, v in zip(torch.as_tensor(indices).flatten().tolist(), torch.as_tensor(losses).flatten().tolist()):
+            if not np.isfinite(v):
+                continue
+            j = int(self.frame_of[int(i)])
+            old = float(self.score[j])
+            self.score[j] = v if np.isnan(old) else (1.0 - self.ema) * old + self.ema * v
+            self.observed += 1
+
+    def frame_probabilities(self) -> torch.Tensor:
+        """Probability of each frame column on a loss-driven draw (before mixing with the uniform draw)."""
+        s = self.score.clone()
+        seen = ~torch.isnan(s)
+        if not bool(seen.any()):
+            return torch.full_like(s, 1.0 / len(s))
+        s[~seen] = s[seen].max()  # a frame nobody has scored counts as the hardest seen so far
+        w = s.clamp_min(1e-12) ** self.power
+        return w / w.sum()
+
+    def __iter__(self):
+        if self.epoch == 0 or self.observed == 0:
+            if self.epoch >= 1 and self.consumed == 0:
+                log.warning("data.sampler=hard_frames received no training losses (is callbacks.sampler_feedback "
+                            "disabled?): it samples uniformly")
+            yield from super().__iter__()
+            return
+        if self.consumed >= self.n:
+            self.epoch, self.consumed = self.epoch + 1, 0
+        while self.consumed < self.n:
+            g = torch.Generator().manual_seed((self.seed * 1_000_003 + self.epoch) * 1_000_033 + self.consumed)
+            self.consumed += 1
+            if float(torch.rand((), generator=g)) < self.mix:
+                yield int(torch.randint(self.n, (), generator=g))
+            else:
+                j = int(torch.multinomial(self.frame_probabilities().float(), 1, generator=g))
+                imgs = self.images_of[j]
+                yield int(imgs[int(torch.randint(len(imgs), (), generator=g))])
+
+    def state_dict(self) -> dict:
+        return {**super().state_dict(), "score": self.score.tolist(), "observed": self.observed}
+
+    def load_state_dict(self, state: dict) -> None:
+        super().load_state_dict(state)
+        if state.get("n") == self.n and len(state.get("score", [])) == len(self.score):
+            self.score = torch.tensor(state["score"], dtype=torch.float64)
+            self.observed = int(state.get("observed", 0))
+
+
+class SamplerFeedback(pl.Callback):
+    """Passes each training step's per-image losses to the training sampler when it wants them (`observe`)."""
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
+        sampler = getattr(trainer.datamodule, "train_sampler", None) if trainer.datamodule is not None else None
+        if sampler is None or not hasattr(sampler, "observe"):
+            return
+        if not isinstance(outputs, dict) or "image_loss" not in outputs or "index" not in batch:
+            return
+        sampler.observe(batch["index"].detach().cpu(), outputs["image_loss"].detach().cpu())
+
+
+SAMPLERS = ("uniform", "hard_frames")
 
 
 class ResumableLoader(DataLoader):
@@ -180,6 +275,7 @@ class AvatarDataModule(pl.LightningDataModule):
         zju_novel_pose_frames: Sequence[int] | None = None,
         check_images: bool = True,
         shuffle_seed: int | None = None,
+        sampler: dict | None = None,
     ) -> None:
         super().__init__()
         if reader not in READERS:
@@ -214,6 +310,17 @@ class AvatarDataModule(pl.LightningDataModule):
             "novel_pose": None if zju_novel_pose_frames is None else list(zju_novel_pose_frames),
         }
         self.check_images = bool(check_images)
+        self.sampler = dict(sampler or {"kind": "uniform"})
+        kind = self.sampler.pop("kind", "uniform")
+        if kind not in SAMPLERS:
+            raise ValueError(f"data.sampler.kind: unknown sampler {kind!r}; expected one of {SAMPLERS}")
+        if kind == "uniform" and self.sampler:
+            raise ValueError(f"data.sampler: options {sorted(self.sampler)} are for hard_frames, not uniform")
+        unknown = set(self.sampler) - {"mix", "power", "ema"}
+        if unknown:
+            raise ValueError(f"data.sampler: unknown option(s) {sorted(unknown)} (hard_frames takes mix, power, ema)")
+        self.sampler_kind = kind
+        self.train_sampler: EpochShuffle | None = None
         self.shuffle_seed = shuffle_seed  # None: torch.initial_seed() at set-up (the run's seed_everything seed)
         self.scene: SceneData | None = None
         self.datasets: dict[str, AvatarDataset] = {}
@@ -367,7 +474,13 @@ class AvatarDataModule(pl.LightningDataModule):
         # resumed run restores that RNG and must see the same stream as the uninterrupted run).
         gen = torch.Generator().manual_seed(int(self.shuffle_seed or 0))
         if shuffle:
-            return ResumableLoader(ds, batch_size=self.batch_size, sampler=EpochShuffle(len(ds), self.shuffle_seed or 0),
+            seed = self.shuffle_seed or 0
+            if self.sampler_kind == "hard_frames":
+                sampler = HardFrameSampler([r.frame for r in ds.records], seed, **self.sampler)
+            else:
+                sampler = EpochShuffle(len(ds), seed)
+            self.train_sampler = sampler
+            return ResumableLoader(ds, batch_size=self.batch_size, sampler=sampler,
                                    num_workers=self.num_workers, persistent_workers=self.num_workers > 0,
                                    drop_last=False, generator=gen)
         return DataLoader(ds, batch_size=self.batch_size, shuffle=False, num_workers=self.num_workers,

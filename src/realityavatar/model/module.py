@@ -233,7 +233,11 @@ class AvatarModule(pl.LightningModule):
             for k, v in stats.items():
                 if isinstance(v, (int, float)):
                     self.log(f"train/density_{k}", float(v), batch_size=bs)
-        return total.detach()
+        # Per-image error for samplers that draw hard frames more often (data.sampler=hard_frames, SamplerFeedback):
+        # colour L1 plus the mask disagreement, both means over the image.
+        with torch.no_grad():
+            image_loss = (rgb - batch["image"]).abs().mean((1, 2, 3)) + (alpha - batch["mask"]).abs().mean((1, 2, 3))
+        return {"loss": total.detach(), "image_loss": image_loss}
 
     def param_groups(self) -> list[dict]:
         """Optimizer groups as each component names them (`param_groups()`, else one group under its own name); a
