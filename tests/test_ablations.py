@@ -35,6 +35,9 @@ EXPECTED = {
     "speed": (18, {"iterations": {"500", "1000", "2000"}, "data.image_scale": {"0.5", "1.0"}, "render": {"torch"},
                    "seed": SEEDS}),
     "tiny": (2, {"+variant": {"full", "no_lstm"}, "seed": {"0"}, "data": {"synthetic_ci"}, "trainer": {"ci"}}),
+    "scenes": (8, {"+variant": {"full", "no_lstm"}, "seed": {"0"},
+                   "data": {"synthetic_sweep", "synthetic_sweep_dress_spin", "synthetic_sweep_skirt_flap",
+                            "synthetic_sweep_dress_walk"}}),
     "dynamics": (15, {"+garment": {"all", "no_silhouette", "no_hull", "no_graph", "none"}, "seed": SEEDS,
                       "data": {"synthetic_sweep"}}),
 }
@@ -47,7 +50,8 @@ VARIANT_CHOICES = {"full": ("latentbone", "lstm"), "no_zc": ("no_zc", "lstm"),
 # Option names fixed by the project; a stand-in tree with exactly these lets the sweep files be checked on
 # their own, independent of the other groups' contents.
 GROUPS = {
-    "data": ["synthetic_ci", "synthetic_demo", "synthetic_sweep"], "body": ["mannequin", "smpl"],
+    "data": ["synthetic_ci", "synthetic_demo", "synthetic_sweep", "synthetic_sweep_dress_spin",
+             "synthetic_sweep_skirt_flap", "synthetic_sweep_dress_walk"], "sampler": ["uniform", "hard_frames"], "body": ["mannequin", "smpl"],
     "gaussians": ["default", "hull"], "encoder": ["latentbone", "no_split", "no_zc"], "temporal": ["lstm", "gru", "none"],
     "deformer": ["motion_trend", "motion_trend_nodes"], "silhouette": ["chamfer", "none"], "skinning": ["mlp"], "color": ["mlp", "sh"], "density": ["default", "off"],
     "loss": ["default"], "render": ["torch", "gsplat", "auto"], "optim": ["default"], "trainer": ["cpu", "gpu", "ci"],

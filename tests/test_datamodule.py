@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
@@ -18,7 +19,8 @@ from realityavatar.data.datamodule import AvatarDataModule
 from realityavatar.data.poses import PoseTable
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
-KEYS = {"image", "mask", "K", "viewmat", "width", "height", "poses", "transl", "frame", "frame_idx", "view", "split"}
+KEYS = {"image", "mask", "K", "viewmat", "width", "height", "poses", "transl", "index", "frame", "frame_idx", "view",
+        "split"}
 
 
 @pytest.fixture(scope="module")
@@ -32,6 +34,12 @@ def scene_root(tmp_path_factory, body):
     write_i3d(root, "seq", body, train_frames=tuple(range(8)), pose_frames=(8, 9, 10), train_views=(0, 1, 3),
               test_views=(2, 5))
     return root
+
+
+def compose_data(option: str):
+    """The data group's option as the command line composes it (option files may inherit from another)."""
+    with initialize_config_dir(str(CONF), version_base="1.3"):
+        return compose("train", overrides=[f"data={option}"]).data
 
 
 def make(scene_root, body, **kw):
@@ -186,7 +194,7 @@ def test_every_data_config_instantiates(path, body, monkeypatch):
     """Invariants each data config must keep (no YAML value re-typed here): disjoint train/test cameras, and for
     ZJU-MoCap every one of its 23 cameras used once."""
     monkeypatch.delenv("I3D_ROOT", raising=False)
-    dm = instantiate(OmegaConf.load(path), body=body)
+    dm = instantiate(compose_data(path.stem), body=body)
     assert isinstance(dm, AvatarDataModule) and dm.body is body
     if dm.train_views is not None and dm.test_views is not None:
         assert not set(dm.train_views) & set(dm.test_views), "a camera is in both the training and the test split"
