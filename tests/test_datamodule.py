@@ -268,3 +268,55 @@ def test_training_command_runs_on_fixture_dataset(tmp_path):
     metrics = json.loads((run / "metrics.json").read_text())
     assert metrics["config"]["data"] == "capture" and metrics["iterations"] == 3
     assert np.isfinite(metrics["test/novel_view/psnr"]) and np.isfinite(metrics["test/novel_pose/psnr"])
+
+
+def test_hard_frame_sampler_draws_frames_in_proportion_to_their_loss():
+    """After a uniform first pass, a frame whose images had 9x the loss of the others is drawn about as often as
+    mix/n + (1-mix) * 9/(9 + n_frames - 1) predicts; every draw is one of that frame's cameras; a resumed sampler
+    continues with the draws the uninterrupted one makes."""
+    from realityavatar.data.datamodule import HardFrameSampler
+
+    frames = [f for f in range(10) for _ in range(4)]  # 10 frames x 4 cameras, image i belongs to frame i // 4
+    s = HardFrameSampler(frames, seed=3, mix=0.5, power=1.0, ema=1.0)
+    first = list(s)
+    assert sorted(first) == list(range(40))  # the first epoch is a plain permutation
+    s.observe(torch.arange(40), torch.tensor([9.0 if frames[i] == 7 else 1.0 for i in range(40)]))
+    p = s.frame_probabilities()
+    assert p[7] == pytest.approx(9 / 18) and p[0] == pytest.approx(1 / 18)
+    draws = [i for _ in range(50) for i in s]
+    share = np.mean([frames[i] == 7 for i in draws])
+    expected = 0.5 / 10 + 0.5 * 9 / 18
+    assert abs(share - expected) < 0.03, (share, expected)
+    cams = {i % 4 for i in draws if frames[i] == 7}
+    assert cams == {0, 1, 2, 3}
+    # resume mid-epoch from the state dict
+    state = s.state_dict()
+    it = iter(s)
+    head = [next(it) for _ in range(7)]
+    state_mid = s.state_dict()
+    rest = list(it)
+    t = HardFrameSampler(frames, seed=3, mix=0.5, power=1.0, ema=1.0)
+    t.load_state_dict(state_mid)
+    assert list(t) == rest and len(head) + len(rest) == 40
+    assert state["score"][7] == 9.0
+
+
+def test_sampler_feedback_passes_per_image_losses_to_the_sampler():
+    """SamplerFeedback hands the training step's per-image losses to the sampler by dataset index."""
+    from types import SimpleNamespace
+
+    from realityavatar.data.datamodule import HardFrameSampler, SamplerFeedback
+
+    s = HardFrameSampler([0, 0, 1, 1], seed=0)
+    trainer = SimpleNamespace(datamodule=SimpleNamespace(train_sampler=s))
+    batch = {"index": torch.tensor([2, 0])}
+    SamplerFeedback().on_train_batch_end(trainer, None, {"loss": 1.0, "image_loss": torch.tensor([4.0, 2.0])},
+                                         batch, 0)
+    assert s.observed == 2 and s.score.tolist() == [2.0, 4.0]
+
+
+def test_unknown_sampler_option_names_the_field(scene_root, body):
+    with pytest.raises(ValueError, match="data.sampler.kind"):
+        make(scene_root, body, sampler={"kind": "hardest"})
+    with pytest.raises(ValueError, match="unknown option"):
+        make(scene_root, body, sampler={"kind": "hard_frames", "temperature": 2})
