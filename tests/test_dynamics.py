@@ -97,7 +97,7 @@ def test_node_deformer_nodes_are_saved_with_the_checkpoint():
 
 
 @pytest.mark.parametrize("group,on,off", [("silhouette", "chamfer", "none"), ("gaussians", "hull", "default"),
-                                          ("deformer", "motion_trend_nodes", "motion_trend")])
+                                          ("deformer", "motion_trend_nodes", "motion_trend"), ("skinning", "grid", "mlp")])
 def test_each_mechanism_composes_and_switches_off(group, on, off):
     from realityavatar.body import build_body
 
@@ -107,7 +107,8 @@ def test_each_mechanism_composes_and_switches_off(group, on, off):
         kw = {"body": body} if group == "gaussians" else {}
         obj = instantiate(cfg[group], **kw)
         name = type(obj).__name__
-        assert (name in ("SilhouetteChamfer", "HullGaussians", "NodeDeformer")) == (opt == on), (group, opt, name)
+        assert (name in ("SilhouetteChamfer", "HullGaussians", "NodeDeformer", "SkinningGrid")) == (opt == on), \
+            (group, opt, name)
 
 
 def test_hull_gaussians_seed_the_garment_from_the_masks(scenes_root):
@@ -173,3 +174,43 @@ def test_trained_model_depends_on_motion_history(scenes_root, tmp_path, temporal
         assert float(diff.max()) == 0.0
     else:
         assert float(diff.min()) > 1e-7 and float(diff.mean()) > 2e-6, f"history moved the Gaussians {float(diff.mean()):.2e} m"
+
+
+def test_nearest_index_matches_the_dense_argmin():
+    from realityavatar.losses import nearest_index
+
+    g = torch.Generator().manual_seed(0)
+    pts, q = torch.rand(3000, 2, generator=g) * 128, torch.rand(500, 2, generator=g) * 128
+    assert torch.equal(nearest_index(q, pts), torch.cdist(q.double(), pts.double()).argmin(1))
+
+
+def test_skinning_grid_follows_the_body_and_blends_between_the_legs():
+    """Built from the body: on the surface it reproduces the body's dominant bone about as well as the MLP's pre-fit
+    does; half-way between the two thighs a point takes both thighs' weights (the MLP's nearest-side weights tear
+    a skirt apart there); gradients reach the query positions; a checkpoint restores the grid's shape and box."""
+    from realityavatar.body import build_body
+    from realityavatar.geometry import sample_surface
+    from realityavatar.model.skinning import SkinningGrid
+
+    body = build_body("mannequin")
+    v = body.canonical_vertices().detach()
+    grid = SkinningGrid(voxel_size=0.04)
+    info = grid.init_from_body(v, body.faces, body.skin_weights)
+    p, w = sample_surface(v, body.faces, body.skin_weights, 5000, torch.Generator().manual_seed(1))
+    with torch.no_grad():
+        pred = grid(p)
+    assert torch.allclose(pred.sum(-1), torch.ones(len(p)), atol=1e-5)
+    assert (pred.argmax(-1) == w.argmax(-1)).float().mean() > 0.85
+    assert info["surface_fit"] < 0.2
+    # between the knees: left and right thigh/knee joints (SMPL 1/4 left, 2/5 right) share the weight
+    j = body.joints(body.canonical_pose()).detach()
+    mid = ((j[4] + j[5]) / 2 + (j[1] + j[2]) / 2) / 2  # between the thighs, half-way down
+    wm = grid(mid[None])[0]
+    left, right = float(wm[[1, 4]].sum()), float(wm[[2, 5]].sum())
+    assert left > 0.25 and right > 0.25, (left, right)
+    x = p[:10].clone().requires_grad_()
+    (grid(x) * torch.randn(10, 24)).sum().backward()
+    assert x.grad is not None and x.grad.abs().sum() > 0
+    fresh = SkinningGrid(voxel_size=0.04)
+    fresh.load_state_dict(grid.state_dict())
+    assert torch.equal(fresh(p[:50]), grid(p[:50]).detach())

@@ -174,11 +174,17 @@ class AvatarModule(pl.LightningModule):
         # short CPU run, which blurs every frame; a few hundred cheap steps on surface samples fix that up front.
         # Once per run: a resumed run restores run_info["skin_pretrain"] from its checkpoint (on_load_checkpoint runs
         # before this hook, while global_step is still 0) and keeps the checkpoint's skinning weights.
-        if "skin_pretrain" not in self.run_info and self.schedule.skin_pretrain_steps > 0:
+        if "skin_pretrain" in self.run_info:
+            return
+        verts = self.body.canonical_vertices().detach()
+        if hasattr(self.skinning, "init_from_body"):  # a field built from the body (skinning=grid), not fitted
+            t0 = time.perf_counter()
+            info = self.skinning.init_from_body(verts, self.body.faces, self.body.skin_weights)
+            self.run_info["skin_pretrain"] = {"steps": 0, **info, "seconds": time.perf_counter() - t0}
+        elif self.schedule.skin_pretrain_steps > 0:
             t0 = time.perf_counter()
             loss = pretrain_skinning(
-                self.skinning, self.body.canonical_vertices().detach(), self.body.faces, self.body.skin_weights,
-                steps=self.schedule.skin_pretrain_steps,
+                self.skinning, verts, self.body.faces, self.body.skin_weights, steps=self.schedule.skin_pretrain_steps,
             )
             self.run_info["skin_pretrain"] = {"steps": self.schedule.skin_pretrain_steps, "loss": loss,
                                               "seconds": time.perf_counter() - t0}

@@ -1,4 +1,4 @@
-"""Learned skinning: an MLP field of weights over the 24 bones, LBS of Gaussians, and the skinning loss."""
+"""Skinning fields over the 24 bones (an MLP, or a voxel grid diffused from the body), LBS of Gaussians, skinning loss."""
 
 from __future__ import annotations
 
@@ -53,6 +53,102 @@ class SkinningField(nn.Module):
         """x [...,3] -> weights [...,24] (rows sum to 1)."""
         u = (x - self.center) / self.half_extent
         return torch.softmax(self.mlp(self.encoding(u)), dim=-1)
+
+
+class SkinningGrid(nn.Module):
+    """Skinning weights on a voxel grid over canonical space, trilinearly interpolated (`skinning=grid`).
+
+    Built from the body once per run (`init_from_body`, before step 0, instead of the MLP's pre-fit): every voxel
+    takes the inverse-distance blend of the skin weights of its `k` nearest body-surface samples; away from the body
+    the weights are blended with a smoothed copy (`smooth_iters` passes of a 3x3x3 box filter), fully so beyond
+    `smooth_ramp` metres. So a point between the thighs, where a skirt hangs, gets a blend of both thighs instead
+    of the side it happens to be closer to (Animatable Gaussians diffuses the weights into a volume for this reason),
+    and a flared hem 40 cm from the body gets the hips' weights, not an MLP's extrapolation. The grid holds the
+    weights themselves (trilinear blends of them stay convex; interpolated log weights smeared sharp joint borders);
+    a lookup is one `grid_sample` (gradients reach the query positions, i.e. the decoder's offsets), instead of a
+    4-layer MLP per Gaussian. `learnable: true` trains the weights with the `skinning` learning rate (clamped at 0
+    and renormalised at lookup); by default they stay as built (no optimizer state, no skinning-loss gradient).
+    """
+
+    def __init__(
+        self,
+        voxel_size: float = 0.03,
+        padding: float = 0.3,
+        k: int = 8,
+        smooth_iters: int = 8,
+        smooth_ramp: float = 0.1,
+        learnable: bool = False,
+        max_voxels: int = 400_000,
+        num_bones: int = NUM_BONES,
+    ) -> None:
+        super().__init__()
+        if voxel_size <= 0 or padding < 0 or k < 1 or smooth_iters < 0 or smooth_ramp <= 0:
+            raise ValueError(
+                f"skinning (grid): expected voxel_size > 0, padding >= 0, k >= 1, smooth_iters >= 0, smooth_ramp > 0; "
+                f"got {voxel_size}, {padding}, {k}, {smooth_iters}, {smooth_ramp}")
+        self.voxel_size, self.padding, self.k = float(voxel_size), float(padding), int(k)
+        self.smooth_iters, self.smooth_ramp, self.max_voxels = int(smooth_iters), float(smooth_ramp), int(max_voxels)
+        self.num_bones = num_bones
+        # [1,24,D,H,W] weights (D along z, H along y, W along x: grid_sample's order); resized by init_from_body.
+        self.grid = nn.Parameter(torch.full((1, num_bones, 2, 2, 2), 1.0 / num_bones), requires_grad=bool(learnable))
+        self.register_buffer("lo", torch.full((3,), -1.0))
+        self.register_buffer("hi", torch.full((3,), 1.0))
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        # A checkpoint's grid has the resolution its body gave it: take that shape before loading.
+        key = prefix + "grid"
+        if key in state_dict and state_dict[key].shape != self.grid.shape:
+            self.grid.data = torch.empty_like(state_dict[key], device=self.grid.device, dtype=self.grid.dtype)
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
+    @torch.no_grad()
+    def init_from_body(self, vertices: torch.Tensor, faces: torch.Tensor, weights: torch.Tensor, seed: int = 0) -> dict:
+        """Fill the grid from the body's canonical surface: vertices [V,3], faces [F,3], weights [V,24]."""
+        import numpy as np
+        from scipy.spatial import cKDTree
+
+        lo = vertices.min(0).values - self.padding
+        hi = vertices.max(0).values + self.padding
+        size = ((hi - lo) / self.voxel_size).ceil().long() + 1  # voxels along x, y, z
+        if int(size.prod()) > self.max_voxels:
+            raise ValueError(
+                f"skinning.voxel_size={self.voxel_size}: {size.tolist()} = {int(size.prod())} voxels over the body's box "
+                f"(+{self.padding} m), more than skinning.max_voxels={self.max_voxels}; use a larger voxel_size")
+        hi = lo + (size - 1).to(lo) * self.voxel_size
+        gen = torch.Generator().manual_seed(seed)
+        pts, w = sample_surface(vertices.detach().float().cpu(), faces.cpu(), weights.detach().float().cpu(),
+                                200_000, gen)
+        nx, ny, nz = (int(v) for v in size)
+        axes = [np.linspace(float(lo[i]), float(hi[i]), n) for i, n in enumerate((nx, ny, nz))]
+        zz, yy, xx = np.meshgrid(axes[2], axes[1], axes[0], indexing="ij")  # [D,H,W] each
+        centres = np.stack([xx, yy, zz], -1).reshape(-1, 3)
+        dist, idx = cKDTree(pts.numpy()).query(centres, k=self.k)
+        dist, idx = dist.reshape(len(centres), -1), idx.reshape(len(centres), -1)
+        inv = 1.0 / np.maximum(dist, 1e-4)
+        near = (w.numpy()[idx] * (inv / inv.sum(1, keepdims=True))[..., None]).sum(1)  # [P,24]
+        near = torch.from_numpy(near).float().T.reshape(1, self.num_bones, nz, ny, nx)
+        smooth = near
+        for _ in range(self.smooth_iters):
+            smooth = F.avg_pool3d(F.pad(smooth, (1, 1, 1, 1, 1, 1), mode="replicate"), 3, stride=1)
+        ramp = torch.from_numpy(np.clip(dist[:, 0] / self.smooth_ramp, 0.0, 1.0)).float().reshape(1, 1, nz, ny, nx)
+        blended = (1 - ramp) * near + ramp * smooth
+        blended = blended / blended.sum(1, keepdim=True).clamp_min(1e-8)
+        self.grid.data = blended.to(self.grid).contiguous()
+        self.lo.copy_(lo.to(self.lo))
+        self.hi.copy_(hi.to(self.hi))
+        return {"voxels": [nx, ny, nz], "voxel_size": self.voxel_size,
+                "surface_fit": float(((self(pts.to(self.lo)) - w.to(self.lo)) ** 2).sum(-1).mean())}
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """x [...,3] -> weights [...,24] (rows sum to 1); outside the grid the border voxels' weights."""
+        u = (x - self.lo) / (self.hi - self.lo) * 2 - 1
+        flat = u.reshape(1, -1, 1, 1, 3).to(self.grid.dtype)
+        w = F.grid_sample(self.grid, flat, mode="bilinear", padding_mode="border", align_corners=True)
+        w = w[0, :, :, 0, 0].transpose(0, 1).reshape(x.shape[:-1] + (self.num_bones,))
+        if self.grid.requires_grad:  # trained weights may leave the simplex
+            w = w.clamp_min(0)
+            w = w / w.sum(-1, keepdim=True).clamp_min(1e-8)
+        return w
 
 
 def skinning_loss(field: nn.Module, points: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
