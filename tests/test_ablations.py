@@ -38,13 +38,17 @@ EXPECTED = {
     "scenes": (8, {"+variant": {"full", "no_lstm"}, "seed": {"0"},
                    "data": {"synthetic_sweep", "synthetic_sweep_dress_spin", "synthetic_sweep_skirt_flap",
                             "synthetic_sweep_dress_walk"}}),
-    "dynamics": (15, {"+garment": {"all", "no_silhouette", "no_hull", "no_graph", "none"}, "seed": SEEDS,
+    "dynamics": (15, {"+garment": {"default", "no_silhouette", "no_grid", "plus_hull", "plus_graph"}, "seed": SEEDS,
                       "data": {"synthetic_sweep"}}),
 }
-# conf/garment option -> (silhouette, gaussians, deformer) it selects
-GARMENT_CHOICES = {"all": ("chamfer", "hull", "motion_trend_nodes"), "no_silhouette": ("none", "hull", "motion_trend_nodes"),
-                   "no_hull": ("chamfer", "default", "motion_trend_nodes"), "no_graph": ("chamfer", "hull", "motion_trend"),
-                   "none": ("none", "default", "motion_trend")}
+# conf/garment option -> (silhouette, skinning, gaussians, deformer) it selects
+GARMENT_CHOICES = {"default": ("chamfer", "grid", "default", "motion_trend"),
+                   "no_silhouette": ("none", "grid", "default", "motion_trend"),
+                   "no_grid": ("chamfer", "mlp", "default", "motion_trend"),
+                   "plus_hull": ("chamfer", "grid", "hull", "motion_trend"),
+                   "plus_graph": ("chamfer", "grid", "default", "motion_trend_nodes"),
+                   "all": ("chamfer", "grid", "hull", "motion_trend_nodes"),
+                   "none": ("none", "mlp", "default", "motion_trend")}
 VARIANT_CHOICES = {"full": ("latentbone", "lstm"), "no_zc": ("no_zc", "lstm"),
                    "no_lstm": ("latentbone", "none"), "no_split": ("no_split", "lstm")}
 # Option names fixed by the project; a stand-in tree with exactly these lets the sweep files be checked on
@@ -53,7 +57,7 @@ GROUPS = {
     "data": ["synthetic_ci", "synthetic_demo", "synthetic_sweep", "synthetic_sweep_dress_spin",
              "synthetic_sweep_skirt_flap", "synthetic_sweep_dress_walk"], "sampler": ["uniform", "hard_frames"], "body": ["mannequin", "smpl"],
     "gaussians": ["default", "hull"], "encoder": ["latentbone", "no_split", "no_zc"], "temporal": ["lstm", "gru", "none"],
-    "deformer": ["motion_trend", "motion_trend_nodes"], "silhouette": ["chamfer", "none"], "skinning": ["mlp"], "color": ["mlp", "sh"], "density": ["default", "off"],
+    "deformer": ["motion_trend", "motion_trend_nodes"], "silhouette": ["chamfer", "none"], "skinning": ["mlp", "grid"], "color": ["mlp", "sh"], "density": ["default", "off"],
     "loss": ["default"], "render": ["torch", "gsplat", "auto"], "optim": ["default"], "trainer": ["cpu", "gpu", "ci"],
 }
 
@@ -124,7 +128,7 @@ def test_sweep_expands_to_expected_jobs(standin_conf, name):
         if "+variant" in ov:
             assert (choices["encoder"], choices["temporal"]) == VARIANT_CHOICES[ov["+variant"]]
         if "+garment" in ov:
-            assert (choices["silhouette"], choices["gaussians"], choices["deformer"]) == GARMENT_CHOICES[ov["+garment"]]
+            assert (choices["silhouette"], choices["skinning"], choices["gaussians"], choices["deformer"]) == GARMENT_CHOICES[ov["+garment"]]
         for key in ("temporal", "color", "density", "render", "trainer", "data"):
             if key in ov:
                 assert choices[key] == ov[key]
@@ -159,7 +163,7 @@ def test_sweep_jobs_compose_in_the_real_tree(name):
         if "+variant" in ov:
             assert (choices["encoder"], choices["temporal"]) == VARIANT_CHOICES[ov["+variant"]]
         if "+garment" in ov:
-            assert (choices["silhouette"], choices["gaussians"], choices["deformer"]) == GARMENT_CHOICES[ov["+garment"]]
+            assert (choices["silhouette"], choices["skinning"], choices["gaussians"], choices["deformer"]) == GARMENT_CHOICES[ov["+garment"]]
         for key in ("temporal", "color", "density", "render", "trainer", "data"):
             if key in ov:
                 assert choices[key] == ov[key]
