@@ -3,8 +3,10 @@
 Usage: python ablations/probe.py <run_dir> [...] --out <folder> [--labels a,b,...]
 For every training frame it renders the training cameras and the held-out (novel-view) cameras, and measures the
 decoder's offsets |Δx| (median, 99th percentile, max over Gaussians). Frames are grouped into phases from the scene's
-motion events: rest (before the spin), spin, after (the second after the stop), settled (later). Writes
-probe.csv (per frame and camera kind), probe.json (phase means per run) and probe.png (per-frame curves).
+motion events: rest (before the spin), spin, after (the second after the stop), settled (later); "stop" is the first
+0.3 s of "after" again, on its own. Writes probe.csv (per frame and camera kind), probe.json (phase means per run) and
+probe.png (per-frame curves; its last panel is the ground-truth garment's hem radius and height from the scene's
+<scene>-garment.npz, so the model's offsets can be read against how far and how long the simulated skirt moves).
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from realityavatar.build import build_data, load_run
 from realityavatar.metrics import psnr, silhouette_iou
 
 PHASES = ("rest", "spin", "after", "settled")
+STOP_SECONDS = 0.3  # the "stop" summary: the first 0.3 s after the abrupt stop
 
 
 def phase_of(frame: int, events: dict, fps: float) -> str:
@@ -34,6 +37,24 @@ def phase_of(frame: int, events: dict, fps: float) -> str:
     if frame < stop:
         return "spin"
     return "after" if frame < stop + round(fps) else "settled"
+
+
+def garment_curves(npz: Path) -> dict[int, tuple[float, float]] | None:
+    """Per frame of a synthetic scene's garment: (hem radius, hem depth below the waist) in metres. The waist ring
+    is the 10% highest vertices of the first frame, the hem the 10% lowest; the radius is the hem's mean horizontal
+    distance (world y up) from the waist ring's centre, which a spin does not change but a flare does."""
+    if not npz.is_file():
+        return None
+    g = np.load(npz)
+    V, frames = g["vertices"], g["frames"]  # [F,Vg,3], [F]
+    order = np.argsort(V[0, :, 1])
+    k = max(1, len(order) // 10)
+    hem, waist = order[:k], order[-k:]
+    out = {}
+    for f, v in zip(frames, V):
+        c = v[waist].mean(0)
+        out[int(f)] = (float(np.linalg.norm((v[hem] - c)[:, [0, 2]], axis=1).mean()), float(c[1] - v[hem, 1].mean()))
+    return out
 
 
 @torch.no_grad()
@@ -65,10 +86,19 @@ def probe_run(run_dir: Path, threads: int = 1, kinds: tuple[str, ...] = ("train"
             })
     for r in rows:
         r["dx_p50"], r["dx_p99"], r["dx_max"] = offsets[r["frame"]]
+    garment = garment_curves(Path(str(cfg.data.root)) / f"{cfg.data.sequence}-garment.npz")
+    if garment:
+        for r in rows:
+            r["hem_radius"], r["hem_depth"] = garment.get(r["frame"], (float("nan"), float("nan")))
+    stop = events.get("spin_stop_frame")
     summary: dict = {"events": events, "fps": fps}
     for kind in ("train", "heldout"):
-        for ph in PHASES + ("all",):
-            sel = [r for r in rows if r["kind"] == kind and (ph == "all" or r["phase"] == ph)]
+        for ph in PHASES + ("all", "stop"):
+            if ph == "stop":
+                sel = [r for r in rows if r["kind"] == kind and stop is not None
+                       and stop <= r["frame"] < stop + round(STOP_SECONDS * fps)]
+            else:
+                sel = [r for r in rows if r["kind"] == kind and (ph == "all" or r["phase"] == ph)]
             if sel:
                 summary[f"{kind}/{ph}/iou"] = float(np.mean([r["iou"] for r in sel]))
                 summary[f"{kind}/{ph}/psnr"] = float(np.mean([r["psnr"] for r in sel]))
@@ -82,7 +112,14 @@ def plot(results: dict[str, list[dict]], events: dict, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(3, 1, figsize=(9, 8), sharex=True)
+    with_garment = any("hem_radius" in r for rows in results.values() for r in rows)
+    fig, axes = plt.subplots(4 if with_garment else 3, 1, figsize=(9, 10.5 if with_garment else 8), sharex=True)
+    if with_garment:
+        rows = next(iter(results.values()))
+        gt = sorted({(r["frame"], r["hem_radius"], r["hem_depth"]) for r in rows if "hem_radius" in r})
+        axes[3].plot([g[0] for g in gt], [100 * g[1] for g in gt], "k-", label="hem radius")
+        axes[3].plot([g[0] for g in gt], [100 * g[2] for g in gt], "k--", label="hem depth below waist")
+        axes[3].legend(fontsize=8)
     for label, rows in results.items():
         held = [r for r in rows if r["kind"] == "heldout"]
         frames = sorted({r["frame"] for r in held})
@@ -90,14 +127,14 @@ def plot(results: dict[str, list[dict]], events: dict, path: Path) -> None:
         axes[0].plot(frames, [np.mean([r["iou"] for r in by[f]]) for f in frames], label=label)
         axes[1].plot(frames, [np.mean([r["psnr"] for r in by[f]]) for f in frames], label=label)
         axes[2].plot(frames, [100 * by[f][0]["dx_p99"] for f in frames], label=label)
-    for ax, name in zip(axes, ("held-out IoU", "held-out PSNR (dB)", "p99 |Δx| (cm)")):
+    for ax, name in zip(axes, ("held-out IoU", "held-out PSNR (dB)", "p99 |Δx| (cm)", "ground-truth garment (cm)")):
         ax.set_ylabel(name)
         for k in ("spin_start_frame", "spin_stop_frame"):
             if k in events:
                 ax.axvline(events[k], color="grey", ls="--", lw=0.8)
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=8)
-    axes[2].set_xlabel("frame (dashed: spin start, abrupt stop)")
+    axes[-1].set_xlabel("frame (dashed: spin start, abrupt stop)")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -133,19 +170,20 @@ def main(argv: list[str] | None = None) -> int:
                                                indent=2))
     plot(results, events, out / "probe.png")
     hdr = f"{'run':<22}" + "".join(f"{k:>14}" for k in ("IoU rest", "IoU spin", "IoU after", "PSNR rest",
-                                                           "PSNR spin", "PSNR after", "p99dx rest", "p99dx spin"))
+                                                           "PSNR spin", "PSNR after", "PSNR stop", "p99dx rest",
+                                                           "p99dx spin"))
     print("held-out cameras, training frames")
     print(hdr)
     for label, s in summaries.items():
         vals = [s.get(f"heldout/{p}/iou") for p in ("rest", "spin", "after")]
-        vals += [s.get(f"heldout/{p}/psnr") for p in ("rest", "spin", "after")]
+        vals += [s.get(f"heldout/{p}/psnr") for p in ("rest", "spin", "after", "stop")]
         vals += [100 * s[f"heldout/{p}/dx_p99"] if f"heldout/{p}/dx_p99" in s else None for p in ("rest", "spin")]
         print(f"{label:<22}" + "".join(f"{v:14.3f}" if v is not None else f"{'-':>14}" for v in vals))
     groups: dict[str, list[dict]] = {}
     for label, sm in summaries.items():  # labels "<name>@<seed>" are averaged per name
         groups.setdefault(label.split("@")[0], []).append(sm)
     if any(len(v) > 1 for v in groups.values()):
-        keys = [f"heldout/{p}/{m}" for m in ("psnr", "iou") for p in ("rest", "spin", "after", "settled")]
+        keys = [f"heldout/{p}/{m}" for m in ("psnr", "iou") for p in ("rest", "spin", "after", "stop", "settled")]
         lines = ["| run | n | " + " | ".join(k.replace("heldout/", "").replace("/", " ") for k in keys) + " |",
                  "|---|---:|" + "---:|" * len(keys)]
         for name, sms in groups.items():

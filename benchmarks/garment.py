@@ -1,4 +1,5 @@
-"""Cost of the garment-motion mechanisms per training step: silhouette chamfer, deformation graph vs per-Gaussian decoder.
+"""Cost of the garment-motion mechanisms per training step: silhouette chamfer, deformation graph vs per-Gaussian
+decoder, skinning grid vs skinning MLP.
 
 Usage: python benchmarks/garment.py [--threads 1] [--out benchmarks/results/garment_cpu.json]
 Prints seconds and GEMM units (8 float32 matmuls of 1024³ timed in the same process) for forward+backward.
@@ -72,6 +73,22 @@ def main(argv=None) -> int:
             def step(dec=dec):
                 out = dec(x, h)
                 (out["dx"].sum() + out["ds"].sum() + out["dq"].sum() + out["f_mt"].sum()).backward()
+
+            rows.append({"part": name, "resolution": None, "gaussians": n, "seconds": timeit(step)})
+    from realityavatar.body import build_body
+    from realityavatar.model.skinning import SkinningField, SkinningGrid
+
+    body = build_body("mannequin")
+    verts = body.canonical_vertices().detach()
+    grid = SkinningGrid()
+    grid.init_from_body(verts, body.faces, body.skin_weights)
+    mlp = SkinningField()
+    for n in (5000, 10000):
+        x = (verts[torch.randint(0, verts.shape[0], (n,))] + 0.05 * torch.randn(n, 3)).requires_grad_(True)
+        for name, field in (("skinning MLP", mlp), ("skinning grid", grid)):
+            def step(field=field):
+                w = field(x)
+                (w * torch.arange(24.0)).sum().backward()
 
             rows.append({"part": name, "resolution": None, "gaussians": n, "seconds": timeit(step)})
     for r in rows:
