@@ -358,11 +358,17 @@ def test_module_wiring_optimizer_groups_decoder_box_and_sh_export(body, tmp_path
     from realityavatar.render import eval_sh
 
     cfg = compose(["gaussians.num_points=500", "deformer=motion_trend_hash", "color=sh", "deformer.hash_levels=4",
-                   "deformer.hash_log2_table_size=10"])
+                   "deformer.hash_log2_table_size=10", "skinning=mlp"])
     module = build_module(cfg, body, num_train_frames=2, scene_extent=2.0)
     groups = {g["name"]: g for g in module.param_groups()}
     assert set(groups) == {"means", "log_scales", "quats", "opacity_logits", "features", "encoder", "temporal",
                            "deformer", "deformer_encoding", "skinning"}  # SH colour has no weights: no group
+    # the skinning grid as built (learnable: false) has no trainable weights either; learnable, it has its group
+    for learnable in (False, True):
+        grid = build_module(compose(["gaussians.num_points=200", "skinning=grid", f"skinning.learnable={learnable}"]),
+                            body, num_train_frames=2, scene_extent=2.0)
+        names = {g["name"] for g in grid.param_groups()}
+        assert ("skinning" in names) == learnable, names
     assert groups["deformer_encoding"]["params"] == [module.deformer.encoding.table]
     assert groups["deformer_encoding"]["lr"] == cfg.optim.lr.deformer and groups["means"]["lr"] == 2.0 * cfg.optim.lr.means
     ids = [id(p) for g in groups.values() for p in g["params"]]
