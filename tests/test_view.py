@@ -140,6 +140,7 @@ def test_browser_draws_the_avatar_and_the_timeline_moves_it(view_run, tmp_path):
                                  for i in range(len(seq.frames))]))
             # drag the timeline's thumb along its track (arrow keys would also orbit viser's camera)
             thumb = page.get_by_role("slider").first
+            thumb.scroll_into_view_if_needed()  # the panel scrolls when a control further down is clicked
             track = thumb.locator("xpath=..").bounding_box()
             at = thumb.bounding_box()
             page.mouse.move(at["x"] + at["width"] / 2, at["y"] + at["height"] / 2)

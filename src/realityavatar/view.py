@@ -222,7 +222,7 @@ class AvatarViewer:
         _, pos0 = camera_pose(cam0["viewmat"].numpy())
         # Behind camera 0 and 30 degrees round the avatar, so camera 0's frustum does not cover it.
         a, u = np.deg2rad(30.0), self.up
-        off = 1.4 * (pos0 - self.centre)
+        off = 1.3 * (pos0 - self.centre)
         off = off * np.cos(a) + np.cross(u, off) * np.sin(a) + u * np.dot(u, off) * (1 - np.cos(a))  # Rodrigues
         self.server.initial_camera.position = tuple(self.centre + off)
         self.server.initial_camera.look_at = tuple(self.centre)
@@ -256,6 +256,9 @@ class AvatarViewer:
             self.speed = gui.add_slider("speed", min=0.1, max=4.0, step=0.1, initial_value=1.0)
             self.fps = gui.add_number("fps at speed 1", initial_value=float(fps), min=0.1, step=1.0)
             self.rate_label = gui.add_markdown("")
+        with gui.add_folder("Metrics"):
+            gui.add_markdown(run_metrics_markdown(self.metrics))
+            self.frame_metrics = gui.add_markdown("")
         with gui.add_folder("Pose file"):
             self.pose_path = gui.add_text("path (.npz)", initial_value="")
             self.pose_load = gui.add_button("Load pose file")
@@ -269,9 +272,6 @@ class AvatarViewer:
             self.canonical = gui.add_checkbox("canonical Gaussians", initial_value=False)
             self.blur_px = gui.add_slider("training-pixel blur (px²)", min=0.0, max=2.0, step=0.05,
                                           initial_value=self.eps2d)
-        with gui.add_folder("Metrics"):
-            gui.add_markdown(run_metrics_markdown(self.metrics))
-            self.frame_metrics = gui.add_markdown("")
 
         self.frame_slider.on_update(lambda _: self.show(int(self.frame_slider.value)))
         self.seq_dropdown.on_update(lambda _: self.select_sequence(self.seq_dropdown.value))
