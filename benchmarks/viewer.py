@@ -92,7 +92,7 @@ def measure_count(run_dir: Path, n: int, frames: int, size: int, browser: bool) 
     viewer, module, dm = build_viewer(run_dir, n)
     try:
         seq = viewer.current
-        idx = lambda i=0: i % len(seq.frames)  # noqa: E731
+        idx = lambda i=0: i % len(seq.frames)
         row = {"num_gaussians": int(module.gaussians.num_points)}
         # browser path: viewer.show = pose + colour + covariances + viser's buffer (the send runs on viser's thread)
         t = timed(lambda i=0: viewer.show(idx(i)), frames)
