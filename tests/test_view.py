@@ -159,6 +159,18 @@ def test_browser_draws_the_avatar_and_the_timeline_moves_it(view_run, tmp_path):
             change = np.abs(moved - first).sum(-1)[Y0:Y1, X0:X1] > 40
             assert change.mean() > 0.05, f"frame {seq.frames[last]} looks like frame {seq.frames[0]} ({change.mean():.1%} changed)"
             assert (np.abs(moved - empty).sum(-1)[y0b:y1b, max(x0b, 0):x1b] > 40).mean() > 0.15
+
+            # Jump to camera (the first in the list) puts the browser's camera at that dataset camera
+            page.get_by_role("button", name="Jump to camera").click()
+            centre = np.linalg.inv(viewer.cameras[0]["viewmat"].numpy())[:3, 3]
+            wait_for(lambda: np.allclose(client.camera.position, centre, atol=1e-3), 10, "the camera jump")
+            # a pose file uploaded from the page becomes the timeline
+            poses = np.zeros((4, 24, 3), np.float32)
+            poses[:, 16, 2] = np.linspace(0, 1.2, 4)
+            np.savez(tmp_path / "wave.npz", poses=poses, transl=np.zeros((4, 3), np.float32))
+            page.locator("input[type=file]").first.set_input_files(str(tmp_path / "wave.npz"))
+            wait_for(lambda: viewer.current.name == "file: wave.npz" and viewer.timings[-1]["frame"] == 0, 20,
+                     "the uploaded pose file to become the timeline")
             browser.close()
     finally:
         viewer.close()

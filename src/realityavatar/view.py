@@ -33,7 +33,7 @@ class ViewerError(Exception):
 
 
 @dataclass
-class Sequence:
+class Timeline:
     """A timeline: frame ids in order, looked up (with their pose windows) in `table` (a PoseTable)."""
 
     name: str
@@ -123,12 +123,12 @@ class AvatarViewer:
         self.module, self.dm, self.run_dir = module, dm, Path(run_dir)
         if fps <= 0:
             raise ViewerError(f"fps={fps}: expected a playback rate > 0 frames per second")
-        self.sequences: dict[str, Sequence] = {}
+        self.sequences: dict[str, Timeline] = {}
         for s in SPLITS:
             if s in dm.datasets:
                 ids = dm.pose_sequence(s)[0].tolist()
                 if ids:
-                    self.sequences[s] = Sequence(s, dm.scene.poses, ids, s)
+                    self.sequences[s] = Timeline(s, dm.scene.poses, ids, s)
         if split not in self.sequences:
             raise ViewerError(f"split={split!r}: this run has the splits {list(self.sequences)}")
         self.current = self.sequences[split]
@@ -154,14 +154,18 @@ class AvatarViewer:
             raise ViewerError(f"port={port}: {host}:{port} is in use; give another port or port=0")
         self.host, self.port = host, self.server.get_port()
         self.url = f"http://{host}:{self.port}"
-        self._build_scene(frustum_scale)
-        self._build_gui(fps)
-        self.show(0)
+        try:
+            self._build_scene(frustum_scale)
+            self._build_gui(fps)
+            self.show(0)
+        except BaseException:
+            self.server.stop()
+            raise
         self._thread = threading.Thread(target=self._play_loop, name="realityavatar-view-play", daemon=True)
         self._thread.start()
 
     # ------------------------------------------------------------------ data
-    def _read_pose_file(self, path: str | Path) -> Sequence:
+    def _read_pose_file(self, path: str | Path) -> Timeline:
         from realityavatar.animate import load_pose_file
 
         try:
@@ -169,7 +173,7 @@ class AvatarViewer:
         except (OSError, KeyError, ValueError) as e:
             raise ViewerError(str(e).strip("'\"")) from None
         name = f"file: {Path(path).name}"
-        self.sequences[name] = Sequence(name, table, [int(f) for f in table.frames])
+        self.sequences[name] = Timeline(name, table, [int(f) for f in table.frames])
         return self.sequences[name]
 
     def _cameras(self, dataset_cameras) -> list[dict]:
@@ -191,7 +195,7 @@ class AvatarViewer:
         return float(self.blur_px.value) * self.pixel_size**2
 
     @torch.no_grad()
-    def posed(self, seq: Sequence, index: int) -> dict:
+    def posed(self, seq: Timeline, index: int) -> dict:
         """The Gaussians of frame `seq.frames[index]` as export writes them: means, quats, scales, opacities, rgb."""
         poses, transl = seq.table.window(seq.frames[index], self.dm.window_len, self.dm.window_step)
         return self._gaussians_for(self.module, poses, transl)
@@ -301,7 +305,7 @@ class AvatarViewer:
             else:
                 self.show(int(self.frame_slider.value))
 
-    def load_pose_file(self, path: str | Path, display_name: str | None = None) -> bool:
+    def load_pose_file(self, path: str | Path) -> bool:
         """Add a pose file as a timeline and switch to it; a bad file is reported in the panel, not raised."""
         try:
             seq = self._read_pose_file(path)
@@ -309,9 +313,6 @@ class AvatarViewer:
             self.pose_status.content = f"**could not load**: {e}"
             log.warning("%s", e)
             return False
-        if display_name:
-            seq.name = f"file: {display_name}"
-            self.sequences[seq.name] = self.sequences.pop(f"file: {Path(path).name}")
         self.seq_dropdown.options = tuple(self.sequences)
         self.pose_status.content = f"loaded {seq.name}: {len(seq.frames)} frames"
         self.seq_dropdown.value = seq.name  # switches through the dropdown's callback
@@ -322,7 +323,7 @@ class AvatarViewer:
         with tempfile.TemporaryDirectory() as tmp:
             path = Path(tmp) / Path(up.name or "upload.npz").name
             path.write_bytes(up.content)
-            self.load_pose_file(path, display_name=path.name)
+            self.load_pose_file(path)  # named after the uploaded file
 
     # ------------------------------------------------------------------ updates
     def show(self, index: int) -> dict:
