@@ -52,6 +52,17 @@ def chromium_path() -> str | None:
     return None
 
 
+@pytest.fixture(scope="module")  # module scope like view_run, so it is set up (or skips) first
+def browser_exe() -> str:
+    """Chromium for playwright, or a skip saying what is missing (requested before view_run: no training to skip)."""
+    pytest.importorskip("playwright.sync_api", reason="playwright is not installed (pip install -e '.[dev]')")
+    exe = chromium_path()
+    if exe is None:
+        pytest.skip("no chromium browser found (Debian: apt-get install chromium, as .ci/run does; or set "
+                    "REALITYAVATAR_CHROMIUM=<path>)")
+    return exe
+
+
 def wait_for(cond, timeout: float, what: str):
     t0 = time.perf_counter()
     while time.perf_counter() - t0 < timeout:
@@ -100,14 +111,13 @@ def projected_box(camera, means: np.ndarray, W: int, H: int, margin: int = 6) ->
 
 @pytest.mark.slow
 @pytest.mark.timeout(240)
-def test_browser_draws_the_avatar_and_the_timeline_moves_it(view_run, tmp_path):
+def test_browser_draws_the_avatar_and_the_timeline_moves_it(browser_exe, view_run, tmp_path):
     """Headless chromium on the viewer: the avatar is drawn inside the box its Gaussians project to for the browser's
     camera (and hardly anywhere else), the frusta checkbox and the timeline slider work from the page, and the image
     changes between the first and the last frame."""
-    pw = pytest.importorskip("playwright.sync_api", reason="playwright is not installed (pip install -e '.[dev]')")
-    exe = chromium_path()
-    if exe is None:
-        pytest.skip("no chromium browser found (Debian: apt-get install chromium; or set REALITYAVATAR_CHROMIUM)")
+    from playwright import sync_api as pw
+
+    exe = browser_exe
     viewer = start(view_run)
     try:
         with pw.sync_playwright() as p:
