@@ -14,7 +14,7 @@ from torch import nn
 from realityavatar.body.base import BodyModel
 from realityavatar.geometry import camera_centres, sample_surface
 from realityavatar.model.deform import apply_deformation
-from realityavatar.model.skinning import lbs_gaussians, pretrain_skinning
+from realityavatar.model.skinning import lbs_gaussians
 from realityavatar.render import rasterize
 
 # Per-Gaussian parameter groups; component groups use the component's name.
@@ -170,24 +170,17 @@ class AvatarModule(pl.LightningModule):
 
     def on_fit_start(self) -> None:
         self.run_info["device"] = str(self.device)  # Lightning's teardown moves the module back to the CPU
-        # A skinning field learnt from scratch at the paper's small LR is still far from the body's weights after a
-        # short CPU run, which blurs every frame; a few hundred cheap steps on surface samples fix that up front.
-        # Once per run: a resumed run restores run_info["skin_pretrain"] from its checkpoint (on_load_checkpoint runs
+        # The skinning field starts from the body's weights: the MLP is pre-fitted for schedule.skin_pretrain_steps
+        # cheap steps on surface samples (learnt from scratch at the paper's small LR it is still far from them after
+        # a short CPU run, which blurs every frame); the grid is built from them. Once per run: a resumed run restores run_info["skin_pretrain"] from its checkpoint (on_load_checkpoint runs
         # before this hook, while global_step is still 0) and keeps the checkpoint's skinning weights.
         if "skin_pretrain" in self.run_info:
             return
-        verts = self.body.canonical_vertices().detach()
-        if hasattr(self.skinning, "init_from_body"):  # a field built from the body (skinning=grid), not fitted
-            t0 = time.perf_counter()
-            info = self.skinning.init_from_body(verts, self.body.faces, self.body.skin_weights)
-            self.run_info["skin_pretrain"] = {"steps": 0, **info, "seconds": time.perf_counter() - t0}
-        elif self.schedule.skin_pretrain_steps > 0:
-            t0 = time.perf_counter()
-            loss = pretrain_skinning(
-                self.skinning, verts, self.body.faces, self.body.skin_weights, steps=self.schedule.skin_pretrain_steps,
-            )
-            self.run_info["skin_pretrain"] = {"steps": self.schedule.skin_pretrain_steps, "loss": loss,
-                                              "seconds": time.perf_counter() - t0}
+        t0 = time.perf_counter()
+        record = self.skinning.init_from_body(self.body.canonical_vertices().detach(), self.body.faces,
+                                              self.body.skin_weights, steps=self.schedule.skin_pretrain_steps)
+        if record is not None:
+            self.run_info["skin_pretrain"] = {**record, "seconds": time.perf_counter() - t0}
 
     def _skin_targets(self):
         if self._surface is None or self._surface[0].device != self.device or self._surface[0].dtype != self.dtype:

@@ -49,6 +49,14 @@ class SkinningField(nn.Module):
         self.center.copy_((lo + hi) / 2)
         self.half_extent.fill_(float((hi - lo).max()) / 2 * (1 + padding))
 
+    def init_from_body(self, vertices: torch.Tensor, faces: torch.Tensor, weights: torch.Tensor,
+                       steps: int = 300) -> dict | None:
+        """Before step 0: fit the field to the body's skin weights for `steps` steps (`pretrain_skinning`); the
+        record of the fit, or None when steps <= 0 (no pre-fit)."""
+        if steps <= 0:
+            return None
+        return {"steps": int(steps), "loss": pretrain_skinning(self, vertices, faces, weights, steps=steps)}
+
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """x [...,3] -> weights [...,24] (rows sum to 1)."""
         u = (x - self.center) / self.half_extent
@@ -102,8 +110,10 @@ class SkinningGrid(nn.Module):
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     @torch.no_grad()
-    def init_from_body(self, vertices: torch.Tensor, faces: torch.Tensor, weights: torch.Tensor, seed: int = 0) -> dict:
-        """Fill the grid from the body's canonical surface: vertices [V,3], faces [F,3], weights [V,24]."""
+    def init_from_body(self, vertices: torch.Tensor, faces: torch.Tensor, weights: torch.Tensor, steps: int = 0,
+                       seed: int = 0) -> dict:
+        """Fill the grid from the body's canonical surface: vertices [V,3], faces [F,3], weights [V,24]. Built, not
+        fitted: `steps` (the MLP's pre-fit length) is not used, and the record says 0 steps."""
         import numpy as np
         from scipy.spatial import cKDTree
 
@@ -136,7 +146,7 @@ class SkinningGrid(nn.Module):
         self.grid.data = blended.to(self.grid).contiguous()
         self.lo.copy_(lo.to(self.lo))
         self.hi.copy_(hi.to(self.hi))
-        return {"voxels": [nx, ny, nz], "voxel_size": self.voxel_size,
+        return {"steps": 0, "voxels": [nx, ny, nz], "voxel_size": self.voxel_size,
                 "surface_fit": float(((self(pts.to(self.lo)) - w.to(self.lo)) ** 2).sum(-1).mean())}
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
