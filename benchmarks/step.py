@@ -199,8 +199,13 @@ def main() -> None:
                     help="cpu: process CPU seconds, steadier than wall time on a shared CPU (only with --threads 1)")
     ap.add_argument("--override", nargs="*", default=[], help="extra hydra overrides, e.g. encoder=whole_pose")
     ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "step_cpu.json"))
+    ap.add_argument("--no-tune-malloc", action="store_true",
+                    help="leave glibc malloc as it is (training tunes it: realityavatar.runtime.tune_malloc)")
     a = ap.parse_args()
     torch.set_num_threads(a.threads)
+    from realityavatar.runtime import tune_malloc
+
+    allocator = "untouched (--no-tune-malloc)" if a.no_tune_malloc else tune_malloc()
     global _clock
     _clock = time.process_time if a.clock == "cpu" else time.perf_counter
     load_before = list(os.getloadavg())
@@ -228,6 +233,7 @@ def main() -> None:
         "command": " ".join(["python", "benchmarks/step.py", *os.sys.argv[1:]]),
         "threads": a.threads,
         "clock": a.clock,
+        "allocator": allocator,
         "torch": torch.__version__,
         "machine": platform.platform(),
         "cpu": platform.processor() or platform.machine(),

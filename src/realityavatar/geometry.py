@@ -26,23 +26,19 @@ def axis_angle_to_matrix(aa: torch.Tensor) -> torch.Tensor:
 
 def matrix_to_quat(R: torch.Tensor) -> torch.Tensor:
     """R: [...,3,3] -> unit quaternion [...,4] (wxyz, w >= 0)."""
-    m = R
-    t = torch.stack(
-        [
-            1 + m[..., 0, 0] + m[..., 1, 1] + m[..., 2, 2],
-            1 + m[..., 0, 0] - m[..., 1, 1] - m[..., 2, 2],
-            1 - m[..., 0, 0] + m[..., 1, 1] - m[..., 2, 2],
-            1 - m[..., 0, 0] - m[..., 1, 1] + m[..., 2, 2],
-        ],
-        -1,
-    )
+    # One unbind instead of 30 element selects: each select's backward wrote a full-size zero tensor and added it.
+    m00, m01, m02, m10, m11, m12, m20, m21, m22 = R.reshape(R.shape[:-2] + (9,)).unbind(-1)
+    t = torch.stack([1 + m00 + m11 + m22, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22], -1)
     q_abs = torch.sqrt(t.clamp_min(1e-12))  # [...,4], 2*|component|
+    qa0, qa1, qa2, qa3 = q_abs.unbind(-1)
+    a, b, c = m21 - m12, m02 - m20, m10 - m01
+    d, e, f = m10 + m01, m02 + m20, m21 + m12
     cands = torch.stack(
         [
-            torch.stack([q_abs[..., 0] ** 2, m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]], -1),
-            torch.stack([m[..., 2, 1] - m[..., 1, 2], q_abs[..., 1] ** 2, m[..., 1, 0] + m[..., 0, 1], m[..., 0, 2] + m[..., 2, 0]], -1),
-            torch.stack([m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] + m[..., 0, 1], q_abs[..., 2] ** 2, m[..., 2, 1] + m[..., 1, 2]], -1),
-            torch.stack([m[..., 1, 0] - m[..., 0, 1], m[..., 2, 0] + m[..., 0, 2], m[..., 2, 1] + m[..., 1, 2], q_abs[..., 3] ** 2], -1),
+            torch.stack([qa0 * qa0, a, b, c], -1),
+            torch.stack([a, qa1 * qa1, d, e], -1),
+            torch.stack([b, d, qa2 * qa2, f], -1),
+            torch.stack([c, e, f, qa3 * qa3], -1),
         ],
         -2,
     )  # [...,4,4]

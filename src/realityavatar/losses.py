@@ -7,9 +7,9 @@ from typing import Literal
 
 import torch
 import torch.nn.functional as F
-from kornia.losses import ssim_loss
 from torch import nn
 
+from realityavatar.kernels import dssim
 from realityavatar.metrics import load_features_state, vgg_features
 from realityavatar.model.skinning import skinning_loss
 
@@ -115,7 +115,7 @@ class AvatarLoss(nn.Module):
             if self.vgg is not None:
                 terms["perceptual"] = self.vgg(x, y)
             else:
-                terms["perceptual"] = ssim_loss(x, y, window_size=11)
+                terms["perceptual"] = dssim(x, y)  # kornia's ssim_loss(x, y, 11); fused Numba kernel on the CPU
         total = terms["l1"] + self.lambda_mask * terms["mask"]
         if "perceptual" in terms:
             total = total + self.lambda_perceptual * terms["perceptual"]

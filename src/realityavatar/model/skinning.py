@@ -7,6 +7,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from realityavatar.geometry import matrix_to_quat, quat_multiply, sample_surface
+from realityavatar.kernels import polar_rotation
 from realityavatar.model.encodings import FrequencyEncoding
 
 NUM_BONES = 24
@@ -191,23 +192,6 @@ def pretrain_skinning(
     return float(loss.detach())
 
 
-def _polar_rotation(M: torch.Tensor, iters: int = 6) -> torch.Tensor:
-    """Rotation factor of the polar decomposition of M [...,3,3] by Newton's iteration X <- (X + X^-T)/2.
-
-    X^-T is the cofactor matrix over the determinant, so this stays elementwise (no batched solver) and
-    differentiable. Converges quadratically for any non-singular M with det > 0, which holds for blends of
-    rotations unless two bones with nearly opposite rotations share a point.
-    """
-    X = M
-    for _ in range(iters):
-        r0, r1, r2 = X[..., 0, :], X[..., 1, :], X[..., 2, :]
-        cof = torch.stack([torch.linalg.cross(r1, r2), torch.linalg.cross(r2, r0), torch.linalg.cross(r0, r1)], -2)
-        det = (r0 * cof[..., 0, :]).sum(-1)[..., None, None]
-        det = torch.where(det.abs() < 1e-8, torch.full_like(det, 1e-8), det)
-        X = 0.5 * (X + cof / det)
-    return X
-
-
 def lbs_gaussians(
     means: torch.Tensor, quats: torch.Tensor, weights: torch.Tensor, A: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -235,6 +219,6 @@ def lbs_gaussians(
     RT = torch.bmm(weights, R).reshape(B, -1, 3, 3)  # [B,N,3,3]
     tT = torch.bmm(weights, t)  # [B,N,3]
     means_o = (RT @ means[..., None]).squeeze(-1) + tT
-    rot = _polar_rotation(RT)
+    rot = polar_rotation(RT)  # closed-form gradient (realityavatar.kernels), no graph through the iterations
     quats_o = quat_multiply(matrix_to_quat(rot), F.normalize(quats, dim=-1))
     return means_o, quats_o, rot

@@ -1,0 +1,138 @@
+"""The fused CPU kernels (realityavatar.kernels) equal the reference paths they replace, in values and gradients."""
+from __future__ import annotations
+
+import pytest
+import torch
+from kornia.losses import ssim_loss
+
+from realityavatar import kernels
+from realityavatar.geometry import axis_angle_to_matrix, matrix_to_quat, quat_to_matrix
+from realityavatar.kernels import dssim, polar_rotation
+
+needs_numba = pytest.mark.skipif(kernels.NUMBA_ERROR is not None, reason=f"numba: {kernels.NUMBA_ERROR}")
+
+
+@needs_numba
+@pytest.mark.parametrize("shape", [(1, 3, 64, 64), (2, 3, 37, 23), (1, 1, 12, 80)])
+@pytest.mark.parametrize("near", [False, True])
+def test_dssim_numba_equals_kornia(shape, near):
+    g = torch.Generator().manual_seed(1)
+    y = torch.rand(*shape, generator=g)
+    x = torch.rand(*shape, generator=g)
+    if near:  # the regime of training: prediction close to the target, SSIM near 1
+        x = 0.9 * y + 0.1 * x
+    x_ref = x.clone().requires_grad_()
+    ref = ssim_loss(x_ref, y, window_size=11)
+    (g_ref,) = torch.autograd.grad(ref, x_ref)
+    x_new = x.clone().requires_grad_()
+    out = dssim(x_new, y, backend="numba")
+    (g_new,) = torch.autograd.grad(out * 3.0, x_new)  # upstream gradient scales the saved one
+    torch.testing.assert_close(out, ref.detach(), rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(g_new, 3.0 * g_ref, rtol=1e-4, atol=1e-4 * float(g_ref.abs().max()))
+
+
+@needs_numba
+def test_dssim_numba_on_a_permuted_view_and_without_grad():
+    """Training passes pred.permute(0, 3, 1, 2): a non-contiguous view; evaluation calls it without a graph."""
+    g = torch.Generator().manual_seed(2)
+    pred = torch.rand(1, 30, 40, 3, generator=g, requires_grad=True)
+    gt = torch.rand(1, 30, 40, 3, generator=g)
+    out = dssim(pred.permute(0, 3, 1, 2), gt.permute(0, 3, 1, 2), backend="numba")
+    out.backward()
+    ref_pred = pred.detach().clone().requires_grad_()
+    ssim_loss(ref_pred.permute(0, 3, 1, 2), gt.permute(0, 3, 1, 2), 11).backward()
+    torch.testing.assert_close(pred.grad, ref_pred.grad, rtol=1e-4, atol=1e-8)
+    with torch.no_grad():
+        torch.testing.assert_close(dssim(pred.permute(0, 3, 1, 2), gt.permute(0, 3, 1, 2)), out.detach())
+
+
+def test_dssim_falls_back_and_refuses_clearly():
+    x = torch.rand(1, 3, 16, 16, requires_grad=True)
+    y = torch.rand(1, 3, 16, 16, requires_grad=True)
+    # y needing a gradient: the fused kernel only differentiates x, so auto takes kornia and both get gradients
+    dssim(x, y).backward()
+    assert y.grad is not None and x.grad is not None
+    with pytest.raises(RuntimeError, match="backend=numba"):
+        dssim(x, y, backend="numba")
+    with pytest.raises(ValueError, match="dssim backend"):
+        dssim(x, y.detach(), backend="fast")
+
+
+def _svd_polar(M: torch.Tensor) -> torch.Tensor:
+    U, _, Vh = torch.linalg.svd(M)
+    return U @ Vh
+
+
+def _newton_polar(M: torch.Tensor) -> torch.Tensor:
+    """Autograd through Newton's iteration run to convergence (float64): the reference gradient. (The SVD's
+    gradient is NaN here: a blend of two rotations has two equal singular values; the polar factor's is not.)"""
+    return kernels._polar_newton_torch(M, 30)
+
+
+def _blends(n: int, seed: int) -> torch.Tensor:
+    """Blends of two bone rotations (what LBS produces): shrunk, non-orthogonal, det > 0."""
+    g = torch.Generator().manual_seed(seed)
+    Ra = axis_angle_to_matrix(torch.randn(n, 3, generator=g, dtype=torch.float64) * 1.2)
+    Rb = axis_angle_to_matrix(torch.randn(n, 3, generator=g, dtype=torch.float64) * 1.2)
+    w = torch.rand(n, 1, 1, generator=g, dtype=torch.float64) * 0.8 + 0.1
+    M = w * Ra + (1 - w) * Rb
+    return M[torch.linalg.det(M) > 0.05]
+
+
+@pytest.mark.parametrize("numba_path", [True, False])
+def test_polar_rotation_values_and_gradient_equal_the_converged_reference(numba_path, monkeypatch):
+    if numba_path and kernels.NUMBA_ERROR is not None:
+        pytest.skip(f"numba: {kernels.NUMBA_ERROR}")
+    if not numba_path:
+        monkeypatch.setattr(kernels, "NUMBA_ERROR", "forced torch path")
+    M = _blends(200, 0)
+    G = torch.randn(M.shape, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    Mr = M.clone().requires_grad_()
+    ref = _newton_polar(Mr)
+    (g_ref,) = torch.autograd.grad((ref * G).sum(), Mr)
+    torch.testing.assert_close(ref.detach(), _svd_polar(M), rtol=0, atol=1e-9)
+    Mn = M.clone().requires_grad_()
+    R = polar_rotation(Mn)
+    (g_new,) = torch.autograd.grad((R * G).sum(), Mn)
+    torch.testing.assert_close(R, ref.detach(), rtol=0, atol=1e-9)
+    torch.testing.assert_close(g_new, g_ref, rtol=1e-6, atol=1e-8)
+
+
+def test_polar_rotation_gradcheck_and_float32():
+    M = _blends(12, 4).requires_grad_()
+    assert torch.autograd.gradcheck(polar_rotation, (M,))
+    M32 = _blends(50, 5).float()
+    R = polar_rotation(M32)
+    assert R.dtype == torch.float32
+    torch.testing.assert_close(R.transpose(-1, -2) @ R, torch.eye(3).expand_as(R), atol=1e-5, rtol=0)
+    with pytest.raises(ValueError, match="polar_rotation backend"):
+        polar_rotation(M32, backend="svd")
+
+
+def test_matrix_to_quat_round_trip_and_gradient_over_all_branches():
+    """Rotations near each of the four branches (w, x, y, z largest), including angles near 180 degrees."""
+    g = torch.Generator().manual_seed(6)
+    aa = torch.randn(400, 3, generator=g, dtype=torch.float64)
+    aa = aa / aa.norm(dim=-1, keepdim=True) * torch.rand(400, 1, generator=g, dtype=torch.float64) * 3.1
+    R = axis_angle_to_matrix(aa)
+    q = matrix_to_quat(R)
+    torch.testing.assert_close(quat_to_matrix(q), R, atol=1e-9, rtol=0)
+    assert (q[:, 0] >= 0).all()
+    Rg = R[:8].clone().requires_grad_()
+    assert torch.autograd.gradcheck(matrix_to_quat, (Rg,))
+
+
+def test_decoder_condition_as_first_layer_bias_equals_the_concatenated_input():
+    """The decoder adds h_t's projection as the first layer's bias per sample: same as x-part + h-part, for B = 2."""
+    from realityavatar.model.deform import MotionTrendDecoder
+
+    torch.manual_seed(0)
+    dec = MotionTrendDecoder(cond_dim=8, encoding="frequency", hidden_dim=16, num_layers=3, feature_dim=4, num_freqs=2)
+    x = torch.rand(50, 3)
+    h = torch.randn(2, 8)
+    out = dec(x, h)
+    u = (x - dec.bbox_min) / (dec.bbox_max - dec.bbox_min) * 2 - 1
+    z = torch.nn.functional.silu(dec.in_x(dec.encoding(u))[None] + dec.in_h(h)[:, None])
+    o = dec.out(dec.hidden(z))
+    torch.testing.assert_close(out["dx"], o[..., :3])
+    torch.testing.assert_close(out["f_mt"], o[..., 10:])
