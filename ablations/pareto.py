@@ -1,12 +1,16 @@
-"""Speed-vs-accuracy chart from a hydra multirun: training time and render FPS against novel-view PSNR
-(marker area ∝ number of Gaussians, error bars = seed std), as PNG plus the CSV behind it.
+"""Speed-vs-accuracy chart from a hydra multirun: training time, render FPS and model size (final Gaussian count)
+against novel-view PSNR (marker area ∝ number of Gaussians, error bars = seed std), as PNG plus the CSV behind it.
 
     python ablations/pareto.py outputs/sweeps/speed/<timestamp> [more multirun dirs] [--out ablations/results/speed]
+
+With a `gaussians.num_points` axis (the `budget` sweep) it also picks the model a scene needs: the row with the
+fewest final Gaussians whose novel-view PSNR is within --tolerance (0.2 dB) of the best row's, written to choice.json.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
 
@@ -24,7 +28,7 @@ from ablations.common import aggregate, display_label, load_runs, metric_key, pr
 
 PSNR = metric_key("novel_view", "psnr")
 QUANTITIES = {"train_seconds": "train_seconds", "render_fps": "render_fps", PSNR: "novel_view_psnr",
-              "num_gaussians": "num_gaussians"}
+              metric_key("novel_pose", "psnr"): "novel_pose_psnr", "num_gaussians": "num_gaussians"}
 MAX_MARKER_AREA = 600.0   # points^2 of the row with the most Gaussians
 
 
@@ -44,10 +48,29 @@ def pareto_table(runs) -> pd.DataFrame:
                         "n_runs": table["n_runs"], "scenes": table["scenes"]})
     for q, short in QUANTITIES.items():
         out[f"{short}_mean"], out[f"{short}_std"] = table[f"{q}:mean"], table[f"{q}:std"]
+    for axis in runs.axes:  # the sweep's settings per row (e.g. gaussians.num_points, density)
+        first = runs.frame.drop_duplicates("label").set_index("label")["axes"]
+        out[axis] = [first[lab].get(axis, "-") for lab in table["label"]]
     acc = out["novel_view_psnr_mean"].to_numpy(float)
     out["pareto_time"] = frontier(out["train_seconds_mean"].to_numpy(float), acc)
     out["pareto_fps"] = frontier(-out["render_fps_mean"].to_numpy(float), acc)   # more FPS = cheaper
+    out["pareto_size"] = frontier(out["num_gaussians_mean"].to_numpy(float), acc)
     return out
+
+
+def smallest_within(df: pd.DataFrame, tolerance: float = 0.2) -> dict:
+    """The row with the fewest final Gaussians whose mean novel-view PSNR is within `tolerance` dB of the best row."""
+    acc = df["novel_view_psnr_mean"].to_numpy(float)
+    if not np.isfinite(acc).any():
+        raise ValueError("no row has a novel-view PSNR: nothing to choose from")
+    best = int(np.nanargmax(acc))
+    ok = df[np.isfinite(acc) & (acc >= acc[best] - tolerance)]
+    pick = ok.sort_values(["num_gaussians_mean", "novel_view_psnr_mean"], ascending=[True, False]).iloc[0]
+    keep = [c for c in df.columns if not c.startswith("pareto_")]
+    row = {k: (v.item() if hasattr(v, "item") else v) for k, v in pick[keep].items()}
+    best_row = {k: (v.item() if hasattr(v, "item") else v) for k, v in df.iloc[best][keep].items()}
+    return {"tolerance_db": tolerance, "choice": row, "best": best_row,
+            "rule": "fewest final Gaussians with mean novel-view PSNR >= best - tolerance"}
 
 
 def _panel(ax, df: pd.DataFrame, x: str, xlabel: str, front_col: str, higher_x_better: bool) -> None:
@@ -87,10 +110,11 @@ def pareto(dirs, out: str | Path | None = None, prefer: str = "eval", name: str 
     df.to_csv(out / "pareto.csv", index=False)
 
     prov = provenance(runs)
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4.8), layout="constrained")
+    fig, axes = plt.subplots(1, 3, figsize=(16, 4.8), layout="constrained")
     fig.get_layout_engine().set(rect=(0, 0.04, 1, 0.96))   # room for the provenance line at the bottom
     _panel(axes[0], df, "train_seconds", "training time (s) ↓", "pareto_time", higher_x_better=False)
     _panel(axes[1], df, "render_fps", "render speed (FPS) ↑", "pareto_fps", higher_x_better=True)
+    _panel(axes[2], df, "num_gaussians", "Gaussians at the end of training ↓", "pareto_size", higher_x_better=False)
     seeds = sorted({int(s) for s in runs.frame["seed"]})
     fig.suptitle(f"{name}: speed vs accuracy — mean ± std over seeds {seeds}, averaged over "
                  f"{', '.join(runs.scenes)}; marker area ∝ Gaussians", fontsize=10)
@@ -108,10 +132,26 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--prefer", choices=("eval", "train"), default="eval",
                    help="per job, take <job>/eval/metrics.json from a re-evaluation (default) or the training one")
     p.add_argument("--name", default=None, help="chart name (default: the ablation config name)")
+    p.add_argument("--tolerance", type=float, default=0.2,
+                   help="dB below the best row that still counts as as good (the smallest such row is chosen)")
     a = p.parse_args(argv)
     df = pareto(a.dirs, a.out, a.prefer, a.name)
     print(df.to_string(index=False))
+    if "gaussians.num_points" in df.columns:
+        choice = smallest_within(df, a.tolerance)
+        out = Path(a.out) if a.out is not None else Path("ablations/results") / (a.name or _sweep_name(a.dirs))
+        (out / "choice.json").write_text(json.dumps(choice, indent=1))
+        c, b = choice["choice"], choice["best"]
+        print(f"\nchoice (fewest Gaussians within {a.tolerance} dB of the best): {c['label']} -> "
+              f"{c['num_gaussians_mean']:.0f} Gaussians, NV {c['novel_view_psnr_mean']:.2f} dB "
+              f"(best {b['label']}: {b['novel_view_psnr_mean']:.2f} dB, {b['num_gaussians_mean']:.0f} Gaussians)")
     return 0
+
+
+def _sweep_name(dirs) -> str:
+    runs = load_runs([Path(d) for d in dirs])
+    names = {c.get("ablation") for c in runs.frame["config"]}
+    return str(names.pop()) if len(names) == 1 and None not in names else Path(dirs[0]).resolve().name
 
 
 if __name__ == "__main__":

@@ -110,7 +110,7 @@ def _bin(means2d, radii, conics, opac, order, C, N, width, height, ts, tile_cull
     return counts, ids
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, error_model="numpy")
 def _prep(conics, opac, out):
     """Per-Gaussian constants of the pixel loops, out [G,4]: thr, 1/A, q = B^2 - A*Cc and the row half-extent.
 
@@ -162,7 +162,7 @@ def _cols(mx, dy, A, B, inv_a, q, thr, ox, nx, ry):
     return math.ceil(lo), int(hi)
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, error_model="numpy")
 def _forward(means2d, conics, opac, colors, prep, starts, ids, C, width, height, ts, alpha_max,
              img, alpha_out, t_final, last):
     """img [C,H,W,D], alpha_out [C,H,W] (input dtype); t_final [C,H,W] float64, last [C,H,W] int64 (-1: none)."""
@@ -234,7 +234,7 @@ def _forward(means2d, conics, opac, colors, prep, starts, ids, C, width, height,
                 last[cam, oy + y, ox + x] = lastp[p]
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, error_model="numpy")
 def _backward(means2d, conics, opac, colors, prep, starts, ids, C, width, height, ts, alpha_max,
               t_final, last, g_img, g_alpha, pair_grad):
     """pair_grad [pairs, 6+D] float64 (means2d x,y, conic a,b,c, opacity, colour...), one row per tile-list slot."""
@@ -534,7 +534,7 @@ def _cov2d(J, Sc, tmp23):
 _BLOCK = 256
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, error_model="numpy")
 def _project_fwd(means, quats, scales, opac, viewmats, Ks, width, height, near, far, eps2d, radius_clip,
                  antialiased, means2d, conics, depths, opac_out, comp, radii, visible):
     C, N = viewmats.shape[0], means.shape[0]
@@ -579,7 +579,7 @@ def _project_fwd(means, quats, scales, opac, viewmats, Ks, width, height, near, 
                     radii[c, n, 0] = radii[c, n, 1] = 0
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, error_model="numpy")
 def _project_bwd(means, quats, scales, opac, viewmats, Ks, width, height, near, far, eps2d, antialiased, visible,
                  g_m2, g_con, g_dep, g_op, g_comp, d_means, d_quats, d_scales, d_opac):
     """Gradients of project.py's outputs (means2d, conics, depths, opacities, compensations) w.r.t. its inputs."""
