@@ -1,0 +1,52 @@
+"""realityavatar.runtime.tune_malloc: freed multi-MB tensors are reused from the heap instead of being mapped again."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+PROBE = r"""
+import json, resource, sys, torch
+if sys.argv[1] == "tune":
+    from realityavatar.runtime import tune_malloc
+    print(tune_malloc(), file=sys.stderr)
+def step():  # a training step's pattern: 20 activations of 5 MB alive together (forward), then all freed
+    acts = [torch.ones(1_250_000) for _ in range(20)]
+    del acts
+for _ in range(2):                      # warm up: the heap grows once
+    step()
+before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+for _ in range(10):
+    step()
+print(json.dumps(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before))
+"""
+
+
+def _faults(mode: str) -> int:
+    env = {"OMP_NUM_THREADS": "1", "PATH": "/usr/bin:/bin"}
+    import os
+
+    env.update({k: v for k, v in os.environ.items() if k in ("PYTHONPATH", "HOME", "VIRTUAL_ENV")})
+    env.pop("LD_PRELOAD", None)
+    out = subprocess.run([sys.executable, "-c", PROBE, mode], capture_output=True, text=True, env=env, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    return int(json.loads(out.stdout.strip().splitlines()[-1]))
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc mallopt and minor-fault counts: Linux only")
+def test_tuned_malloc_stops_page_faults_of_freed_tensors():
+    plain, tuned = _faults("plain"), _faults("tune")
+    # untuned, glibc hands freed blocks back to the OS and faults them in again every step (measured: ~24,000
+    # faults over the 10 steps); tuned, the heap keeps its pages (~1,200)
+    assert plain > 10_000, plain
+    assert tuned < plain / 8, (tuned, plain)
+
+
+def test_tune_malloc_reports_and_runs_once():
+    from realityavatar.runtime import tune_malloc
+
+    first = tune_malloc()
+    assert isinstance(first, str) and first
+    assert tune_malloc() == first
