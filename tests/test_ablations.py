@@ -169,6 +169,14 @@ def test_sweep_jobs_compose_in_the_real_tree(name):
             if key in ov:
                 assert choices[key] == ov[key]
         assert cfg.seed == int(ov["seed"])
+        # the job's density strategy builds with what the preset merged into it (density=off under preset=sweep's
+        # density.prune_opacity crashed every density=off job of the budget sweep)
+        from hydra.utils import instantiate
+
+        from realityavatar.config import _register
+
+        _register()  # the ${int_mul:...} resolver the training entry point registers
+        instantiate(cfg.density)
         if name == "tiny":
             assert (cfg.iterations, cfg.gaussians.num_points, cfg.eval.save_video) == (30, 1500, False)
 

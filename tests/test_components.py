@@ -408,8 +408,10 @@ def test_density_cap_reset_state_and_disabled(body):
         g.log_scales[:] = math.log(0.001)
         g.opacity_logits[:] = 2.0
     opt = _adam_with_state(g)
-    off = NoDensityControl()
+    off = NoDensityControl(prune_opacity=0.02, refine_every=50)  # what a preset tuned for density control passes
     assert off.step_post_backward(g, opt, _meta(20, list(range(20))), 10, (64, 64)) == {} and g.num_points == 20
+    with pytest.raises(TypeError, match="density=off: unknown option.*prune_opacty"):
+        NoDensityControl(prune_opacty=0.02)
     dc = DensityControl(refine_start=0, refine_stop=100, refine_every=10, reset_every=5, max_points=24, prune_opacity=0.05)
     dc.step_post_backward(g, opt, _meta(20, list(range(20))), step=3, image_size=(64, 64))
     state = dc.state_dict()

@@ -34,7 +34,21 @@ def _swap_in_optimizer(
 
 class NoDensityControl:
     """Density control off (`density=off`): the Gaussian count stays at gaussians.num_points (gsplat's null
-    strategy). Same interface as DensityControl, no state."""
+    strategy). Same interface as DensityControl, no state.
+
+    DensityControl's settings are accepted and unused, so a preset or experiment that tunes density control
+    (`density.prune_opacity` in `preset=sweep` and `experiment=demo`) composes with `density=off`; any other key is
+    an error naming it.
+    """
+
+    def __init__(self, **settings) -> None:
+        import inspect
+
+        known = set(inspect.signature(DensityControl.__init__).parameters) - {"self"}
+        unknown = sorted(set(settings) - known)
+        if unknown:
+            raise TypeError(f"density=off: unknown option(s) {unknown}; density settings are {sorted(known)}")
+        self.unused_settings = dict(settings)
 
     def state_dict(self) -> dict:
         return {}
