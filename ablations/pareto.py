@@ -42,9 +42,14 @@ def frontier(cost: np.ndarray, acc: np.ndarray) -> np.ndarray:
     return on
 
 
+def _short(name: str) -> str:
+    """Chart label: the budget sweep's long axis names shortened (N = gaussians.num_points)."""
+    return name.replace("gaussians.num_points=", "N=").replace("density=default", "density on").replace("density=off", "density off")
+
+
 def pareto_table(runs) -> pd.DataFrame:
     table, _ = aggregate(runs, list(QUANTITIES))
-    out = pd.DataFrame({"label": table["label"], "name": [display_label(lab) for lab in table["label"]],
+    out = pd.DataFrame({"label": table["label"], "name": [_short(display_label(lab)) for lab in table["label"]],
                         "n_runs": table["n_runs"], "scenes": table["scenes"]})
     for q, short in QUANTITIES.items():
         out[f"{short}_mean"], out[f"{short}_std"] = table[f"{q}:mean"], table[f"{q}:std"]
