@@ -34,7 +34,7 @@ def tune_malloc(mmap_threshold: int = 32 << 20, trim_threshold: int = 1 << 30, t
             ok = all(mallopt(opt, val) == 1 for opt, val in ((_M_MMAP_THRESHOLD, mmap_threshold),
                                                             (_M_TRIM_THRESHOLD, trim_threshold),
                                                             (_M_TOP_PAD, top_pad)))
-            result = ("glibc malloc: mmap threshold 32 MiB, no trimming below 1 GiB" if ok
-                      else "glibc mallopt refused a setting; allocator partly tuned")
+            result = (f"glibc malloc: mmap threshold {mmap_threshold >> 20} MiB, no trimming below "
+                      f"{trim_threshold >> 20} MiB" if ok else "glibc mallopt refused a setting; allocator partly tuned")
     _state["result"] = result
     return result

@@ -50,6 +50,7 @@ class MotionTrendDecoder(nn.Module):
             raise ValueError(f"deformer.activation: expected one of {sorted(_ACTIVATIONS)}, got {activation!r}")
         self.activation = activation
         act = _ACTIVATIONS[activation]
+        self.in_act = act()  # after the first layer; the hidden layers have their own
         if encoding == "hash":
             self.encoding: nn.Module = HashEncoding(
                 hash_levels, hash_features_per_level, hash_log2_table_size, hash_base_resolution, hash_max_resolution
@@ -97,8 +98,7 @@ class MotionTrendDecoder(nn.Module):
         # h_t's term enters as the first layer's bias (one addmm per sample instead of a broadcast add over [B,N,H])
         # The MLP runs on [B*N,H] rows (2-D matmuls: no copies in the backward of 3-D inputs).
         z = torch.cat([F.linear(enc, self.in_x.weight, self.in_x.bias + e) for e in eh])  # [B*N,H]
-        z = F.silu(z) if self.activation == "silu" else F.relu(z)
-        o = self.out(self.hidden(z)).reshape(eh.shape[0], enc.shape[0], -1)  # [B,N,10+F]
+        o = self.out(self.hidden(self.in_act(z))).reshape(eh.shape[0], enc.shape[0], -1)  # [B,N,10+F]
         dq = o[..., 6:10] + o.new_tensor([1.0, 0.0, 0.0, 0.0])
         return {"dx": o[..., :3], "ds": o[..., 3:6], "dq": F.normalize(dq, dim=-1), "f_mt": o[..., 10:]}
 
