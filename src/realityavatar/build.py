@@ -38,6 +38,7 @@ def build_module(cfg: DictConfig, body, num_train_frames: int, scene_extent: flo
     density = instantiate(cfg.density)
     loss = instantiate(cfg.loss)
     silhouette = instantiate(cfg.silhouette) if cfg.get("silhouette") is not None else None
+    shading = instantiate(cfg.shading) if cfg.get("shading") is not None else None  # configs from before the option
     m = cfg.get("metrics", {}) or {}
     lpips, lpips_status = build_lpips("vgg", m.get("lpips_backbone_weights"), m.get("lpips_weights"))
     render = OmegaConf.to_container(cfg.render, resolve=True)
@@ -61,6 +62,7 @@ def build_module(cfg: DictConfig, body, num_train_frames: int, scene_extent: flo
         scene_extent=scene_extent,
         lpips=lpips,
         silhouette=silhouette,
+        shading=shading,
     )
     module.lpips_status = lpips_status  # "computed" or why not, recorded in metrics.json
     return module

@@ -8,8 +8,8 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 
 CONFIG_DIR = Path(__file__).resolve().parents[2] / "conf"
 AXES = (
-    "data", "body", "gaussians", "encoder", "temporal", "deformer", "skinning", "color", "density", "loss", "silhouette",
-    "render", "optim", "trainer", "variant", "ablation",
+    "data", "body", "gaussians", "encoder", "temporal", "deformer", "skinning", "color", "shading", "density", "loss",
+    "silhouette", "render", "optim", "trainer", "variant", "ablation",
 )
 
 

@@ -14,12 +14,13 @@ from torch import nn
 from realityavatar.body.base import BodyModel
 from realityavatar.geometry import camera_centres, sample_surface
 from realityavatar.model.deform import apply_deformation
+from realityavatar.model.shading import NoShading
 from realityavatar.model.skinning import lbs_gaussians
 from realityavatar.render import rasterize
 
 # Per-Gaussian parameter groups; component groups use the component's name.
 GAUSSIAN_GROUPS = ("means", "log_scales", "quats", "opacity_logits", "features")
-COMPONENTS = ("encoder", "temporal", "deformer", "skinning", "color")
+COMPONENTS = ("encoder", "temporal", "deformer", "skinning", "color", "shading")
 
 
 @dataclass
@@ -62,6 +63,7 @@ class AvatarModule(pl.LightningModule):
         skin_samples: int = 1024,
         lpips: nn.Module | None = None,
         silhouette: nn.Module | None = None,
+        shading: nn.Module | None = None,
     ):
         super().__init__()
         self.automatic_optimization = False  # density control edits parameters between optimizer steps
@@ -72,6 +74,7 @@ class AvatarModule(pl.LightningModule):
         self.deformer = deformer
         self.skinning = skinning
         self.color = color
+        self.shading = shading if shading is not None else NoShading()
         self.density = density
         self.loss_fn = loss
         self.silhouette = silhouette
@@ -136,7 +139,9 @@ class AvatarModule(pl.LightningModule):
         d = F.normalize(posed["means"] - cam_centre[:, None, :], dim=-1)  # [B,N,3] posed view dir
         # Canonicalise: undo each Gaussian's blended skinning rotation.
         d_c = (posed["rot"].transpose(-1, -2) @ d[..., None]).squeeze(-1)
-        return self.color(self.gaussians.features, F.normalize(d_c, dim=-1), posed["f_mt"], frame_idx)
+        rgb = self.color(self.gaussians.features, F.normalize(d_c, dim=-1), posed["f_mt"], frame_idx)
+        light = self.shading(posed["x_e"], posed["rot"])  # world-fixed light (shading=irradiance), or None
+        return rgb if light is None else rgb * light
 
     def splat(self, posed: dict, b: int, rgb: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor, W: int, H: int):
         """Rasterize sample b of `posed` with colours rgb [N,3] from one camera (viewmat [1,4,4], K [1,3,3])."""
@@ -170,6 +175,10 @@ class AvatarModule(pl.LightningModule):
 
     def on_fit_start(self) -> None:
         self.run_info["device"] = str(self.device)  # Lightning's teardown moves the module back to the CPU
+        if not bool(self.shading.built):  # the normal grid of shading=irradiance (a checkpoint restores it)
+            t0 = time.perf_counter()
+            record = self.shading.init_from_body(self.body.canonical_vertices().detach(), self.body.faces)
+            self.run_info["shading_grid"] = {**record, "seconds": time.perf_counter() - t0}
         # The skinning field starts from the body's weights: the MLP is pre-fitted for schedule.skin_pretrain_steps
         # cheap steps on surface samples (learnt from scratch at the paper's small LR it is still far from them after
         # a short CPU run, which blurs every frame); the grid is built from them. Once per run: a resumed run restores run_info["skin_pretrain"] from its checkpoint (on_load_checkpoint runs

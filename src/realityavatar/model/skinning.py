@@ -115,51 +115,72 @@ class SkinningGrid(nn.Module):
                        seed: int = 0) -> dict:
         """Fill the grid from the body's canonical surface: vertices [V,3], faces [F,3], weights [V,24]. Built, not
         fitted: `steps` (the MLP's pre-fit length) is not used, and the record says 0 steps."""
-        import numpy as np
-        from scipy.spatial import cKDTree
-
-        lo = vertices.min(0).values - self.padding
-        hi = vertices.max(0).values + self.padding
-        size = ((hi - lo) / self.voxel_size).ceil().long() + 1  # voxels along x, y, z
-        if int(size.prod()) > self.max_voxels:
-            raise ValueError(
-                f"skinning.voxel_size={self.voxel_size}: {size.tolist()} = {int(size.prod())} voxels over the body's box "
-                f"(+{self.padding} m), more than skinning.max_voxels={self.max_voxels}; use a larger voxel_size")
-        hi = lo + (size - 1).to(lo) * self.voxel_size
-        gen = torch.Generator().manual_seed(seed)
-        pts, w = sample_surface(vertices.detach().float().cpu(), faces.cpu(), weights.detach().float().cpu(),
-                                200_000, gen)
-        nx, ny, nz = (int(v) for v in size)
-        axes = [np.linspace(float(lo[i]), float(hi[i]), n) for i, n in enumerate((nx, ny, nz))]
-        zz, yy, xx = np.meshgrid(axes[2], axes[1], axes[0], indexing="ij")  # [D,H,W] each
-        centres = np.stack([xx, yy, zz], -1).reshape(-1, 3)
-        dist, idx = cKDTree(pts.numpy()).query(centres, k=self.k)
-        dist, idx = dist.reshape(len(centres), -1), idx.reshape(len(centres), -1)
-        inv = 1.0 / np.maximum(dist, 1e-4)
-        near = (w.numpy()[idx] * (inv / inv.sum(1, keepdims=True))[..., None]).sum(1)  # [P,24]
-        near = torch.from_numpy(near).float().T.reshape(1, self.num_bones, nz, ny, nx)
-        smooth = near
-        for _ in range(self.smooth_iters):
-            smooth = F.avg_pool3d(F.pad(smooth, (1, 1, 1, 1, 1, 1), mode="replicate"), 3, stride=1)
-        ramp = torch.from_numpy(np.clip(dist[:, 0] / self.smooth_ramp, 0.0, 1.0)).float().reshape(1, 1, nz, ny, nx)
-        blended = (1 - ramp) * near + ramp * smooth
-        blended = blended / blended.sum(1, keepdim=True).clamp_min(1e-8)
-        self.grid.data = blended.to(self.grid).contiguous()
+        grid, lo, hi, pts, w = diffuse_to_grid(vertices, faces, weights, self.voxel_size, self.padding, self.k,
+                                               self.smooth_iters, self.smooth_ramp, self.max_voxels, seed, "skinning")
+        grid = grid / grid.sum(1, keepdim=True).clamp_min(1e-8)
+        self.grid.data = grid.to(self.grid).contiguous()
         self.lo.copy_(lo.to(self.lo))
         self.hi.copy_(hi.to(self.hi))
-        return {"steps": 0, "voxels": [nx, ny, nz], "voxel_size": self.voxel_size,
+        return {"steps": 0, "voxels": list(grid.shape[:1:-1]), "voxel_size": self.voxel_size,
                 "surface_fit": float(((self(pts.to(self.lo)) - w.to(self.lo)) ** 2).sum(-1).mean())}
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """x [...,3] -> weights [...,24] (rows sum to 1); outside the grid the border voxels' weights."""
-        u = (x - self.lo) / (self.hi - self.lo) * 2 - 1
-        flat = u.reshape(1, -1, 1, 1, 3).to(self.grid.dtype)
-        w = F.grid_sample(self.grid, flat, mode="bilinear", padding_mode="border", align_corners=True)
-        w = w[0, :, :, 0, 0].transpose(0, 1).reshape(x.shape[:-1] + (self.num_bones,))
+        w = sample_grid(self.grid, self.lo, self.hi, x)
         if self.grid.requires_grad:  # trained weights may leave the simplex
             w = w.clamp_min(0)
             w = w / w.sum(-1, keepdim=True).clamp_min(1e-8)
         return w
+
+
+@torch.no_grad()
+def diffuse_to_grid(vertices: torch.Tensor, faces: torch.Tensor, values: torch.Tensor, voxel_size: float,
+                    padding: float, k: int, smooth_iters: int, smooth_ramp: float, max_voxels: int, seed: int = 0,
+                    name: str = "skinning"):
+    """Per-vertex values [V,C] of a canonical body mesh diffused into a voxel grid over its box (+padding).
+
+    Every voxel takes the inverse-distance blend of the values of its k nearest surface samples (200k, area
+    weighted); from the surface out to `smooth_ramp` metres it is blended with a copy smoothed by `smooth_iters` passes
+    of a 3x3x3 box filter, which it equals beyond. Returns grid [1,C,D,H,W] (D along z, H along y, W along x:
+    grid_sample's order), lo [3], hi [3], and the surface samples with their values (points [n,3], values [n,C]).
+    `name` is the config group named in the error when the grid would be too large.
+    """
+    import numpy as np
+    from scipy.spatial import cKDTree
+
+    lo = vertices.min(0).values - padding
+    hi = vertices.max(0).values + padding
+    size = ((hi - lo) / voxel_size).ceil().long() + 1  # voxels along x, y, z
+    if int(size.prod()) > max_voxels:
+        raise ValueError(
+            f"{name}.voxel_size={voxel_size}: {size.tolist()} = {int(size.prod())} voxels over the body's box "
+            f"(+{padding} m), more than {name}.max_voxels={max_voxels}; use a larger voxel_size")
+    hi = lo + (size - 1).to(lo) * voxel_size
+    gen = torch.Generator().manual_seed(seed)
+    pts, w = sample_surface(vertices.detach().float().cpu(), faces.cpu(), values.detach().float().cpu(), 200_000, gen)
+    nx, ny, nz = (int(v) for v in size)
+    axes = [np.linspace(float(lo[i]), float(hi[i]), n) for i, n in enumerate((nx, ny, nz))]
+    zz, yy, xx = np.meshgrid(axes[2], axes[1], axes[0], indexing="ij")  # [D,H,W] each
+    centres = np.stack([xx, yy, zz], -1).reshape(-1, 3)
+    dist, idx = cKDTree(pts.numpy()).query(centres, k=k)
+    dist, idx = dist.reshape(len(centres), -1), idx.reshape(len(centres), -1)
+    inv = 1.0 / np.maximum(dist, 1e-4)
+    near = (w.numpy()[idx] * (inv / inv.sum(1, keepdims=True))[..., None]).sum(1)  # [P,C]
+    near = torch.from_numpy(near).float().T.reshape(1, w.shape[1], nz, ny, nx)
+    smooth = near
+    for _ in range(smooth_iters):
+        smooth = F.avg_pool3d(F.pad(smooth, (1, 1, 1, 1, 1, 1), mode="replicate"), 3, stride=1)
+    ramp = torch.from_numpy(np.clip(dist[:, 0] / smooth_ramp, 0.0, 1.0)).float().reshape(1, 1, nz, ny, nx)
+    return (1 - ramp) * near + ramp * smooth, lo, hi, pts, w
+
+
+def sample_grid(grid: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """Trilinear lookup of grid [1,C,D,H,W] spanning the box lo..hi at x [...,3] -> [...,C]; outside the box the
+    border voxels' values. Gradients reach x (and the grid when it is a trained parameter)."""
+    u = (x - lo) / (hi - lo) * 2 - 1
+    flat = u.reshape(1, -1, 1, 1, 3).to(grid.dtype)
+    v = F.grid_sample(grid, flat, mode="bilinear", padding_mode="border", align_corners=True)
+    return v[0, :, :, 0, 0].transpose(0, 1).reshape(x.shape[:-1] + (grid.shape[1],))
 
 
 def skinning_loss(field: nn.Module, points: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
