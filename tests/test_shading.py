@@ -1,0 +1,153 @@
+"""World-lit shading (`shading=irradiance`): the normal grid, the irradiance map, heading dependence, wiring."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from hydra.utils import instantiate
+
+from realityavatar.config import compose
+from realityavatar.model.shading import IrradianceShading, NoShading, vertex_normals
+
+
+@pytest.fixture(scope="module")
+def body():
+    return instantiate(compose([]).body)
+
+
+@pytest.fixture(scope="module")
+def shading(body):
+    s = IrradianceShading(voxel_size=0.04)
+    s.init_from_body(body.canonical_vertices().detach(), body.faces)
+    return s
+
+
+def _rot_y(angle: float) -> torch.Tensor:
+    c, s = math.cos(angle), math.sin(angle)
+    return torch.tensor([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def test_vertex_normals_point_out_of_a_cube():
+    v = torch.tensor([[x, y, z] for x in (0.0, 1.0) for y in (0.0, 1.0) for z in (0.0, 1.0)])
+    # 12 triangles, counter-clockwise seen from outside
+    f = torch.tensor([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
+                      [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]])
+    n = vertex_normals(v, f)
+    assert ((n * (v - 0.5)).sum(-1) > 0.5).all()
+    assert torch.allclose(n.norm(dim=-1), torch.ones(8))
+
+
+def test_normal_grid_holds_the_body_normals_near_its_surface(body, shading):
+    v = body.canonical_vertices().detach()
+    n = vertex_normals(v, body.faces)
+    g = torch.Generator().manual_seed(0)
+    idx = torch.randperm(v.shape[0], generator=g)[:500]
+    looked_up = shading.normals(v[idx] + 0.01 * n[idx])
+    cos = torch.nn.functional.cosine_similarity(looked_up, n[idx], dim=-1)
+    assert float(cos.median()) > 0.95
+    assert float(looked_up.norm(dim=-1).max()) <= 1.0 + 1e-5
+
+
+def test_zero_coefficients_leave_the_colour_alone(shading):
+    x = torch.randn(2, 50, 3) * 0.3
+    rot = _rot_y(0.7).expand(2, 50, 3, 3)
+    assert torch.allclose(shading(x, rot), torch.ones(2, 50, 3))
+
+
+def test_same_canonical_gaussian_is_lit_differently_after_the_body_turns(body, shading):
+    """The point of the option: the pose features do not see the heading, the light does."""
+    s = IrradianceShading(voxel_size=0.04)
+    s.load_state_dict(shading.state_dict())
+    with torch.no_grad():
+        s.coeffs[3] = -3.0  # a degree-1 term (gsplat's band 3 is -C1 x): light from +x
+    v = body.canonical_vertices().detach()
+    n = vertex_normals(v, body.faces)
+    side = (n[:, 0] > 0.95) & (v[:, 1] > v[:, 1].median())  # upper body, facing +x
+    x = (v[side] + 0.01 * n[side])[None]
+    with torch.no_grad():
+        facing, away = (s(x, _rot_y(a).expand(1, x.shape[1], 3, 3)).mean() for a in (0.0, math.pi))
+    assert float(facing / away) > 2.0
+
+
+def test_irradiance_map_fits_a_lambertian_light():
+    """Degree-2 log-irradiance holds ambient + diffuse max(0, n.l) (the synthetic scenes' light) to a few percent."""
+    g = torch.Generator().manual_seed(0)
+    n = torch.nn.functional.normalize(torch.randn(4000, 3, generator=g), dim=-1)
+    light = torch.nn.functional.normalize(torch.tensor([0.35, 0.82, 0.45]), dim=0)
+    target = (0.4 + 0.6 * (n @ light).clamp_min(0))[:, None].expand(-1, 3)
+    s = IrradianceShading()
+    opt = torch.optim.Adam(s.parameters(), lr=0.05)
+    for _ in range(400):
+        opt.zero_grad()
+        loss = ((s.irradiance(n) - target) ** 2).mean()
+        loss.backward()
+        opt.step()
+    rel = ((s.irradiance(n) - target).abs() / target).mean()
+    assert float(rel) < 0.05
+
+
+def test_shading_sends_no_gradient_to_the_geometry(shading):
+    s = IrradianceShading(voxel_size=0.04)
+    s.load_state_dict(shading.state_dict())
+    x = (torch.randn(1, 20, 3) * 0.2).requires_grad_()
+    rot = _rot_y(0.3).expand(1, 20, 3, 3).clone().requires_grad_()
+    s(x, rot).sum().backward()
+    assert x.grad is None and rot.grad is None
+    assert s.coeffs.grad is not None and float(s.coeffs.grad.abs().sum()) > 0
+
+
+def test_checkpoint_restores_the_normal_grid(shading):
+    fresh = IrradianceShading(voxel_size=0.04)
+    assert not bool(fresh.built)
+    fresh.load_state_dict(shading.state_dict())
+    assert bool(fresh.built) and fresh.grid.shape == shading.grid.shape
+    x = torch.randn(30, 3) * 0.3
+    assert torch.equal(fresh.normals(x), shading.normals(x))
+
+
+@pytest.mark.parametrize("choice, cls", [("none", NoShading), ("irradiance", IrradianceShading)])
+def test_shading_option_composes_instantiates_and_switches_off(choice, cls):
+    cfg = compose([f"shading={choice}"])
+    s = instantiate(cfg.shading)
+    assert isinstance(s, cls)
+    if choice == "none":
+        assert s(torch.zeros(1, 3, 3), torch.eye(3).expand(1, 3, 3, 3)) is None and bool(s.built)
+    else:
+        assert "shading" in cfg.optim.lr
+
+
+def test_unknown_shading_option_is_refused():
+    with pytest.raises(Exception, match="shading"):
+        compose(["shading=phong"])
+
+
+def test_module_builds_the_grid_before_step_0_and_multiplies_the_colour(body):
+    """build_module wires the option; on_fit_start fills the grid; shade() = the colour model's rgb x E(n_w)."""
+    from realityavatar.build import build_module
+
+    cfg = compose(["gaussians.num_points=300", "shading=irradiance", "skinning=grid"])
+    module = build_module(cfg, body, num_train_frames=2, scene_extent=1.0)
+    assert isinstance(module.shading, IrradianceShading) and not bool(module.shading.built)
+    assert "shading" in {g["name"] for g in module.param_groups()}
+    module.on_fit_start()
+    assert bool(module.shading.built) and "shading_grid" in module.run_info
+    with torch.no_grad():
+        module.shading.coeffs[3] = -2.0
+    poses = torch.zeros(1, 3, 24, 3)
+    turned = poses.clone()
+    turned[..., 0, 1] = math.pi  # the root turned half a circle about the vertical axis
+    viewmat = torch.eye(4)[None]
+    viewmat[0, 2, 3] = 3.0
+    idx = torch.zeros(1, dtype=torch.long)
+    with torch.no_grad():
+        posed = module.deform(poses, torch.zeros(1, 3, 3))
+        rgb = module.shade(posed, viewmat, idx)
+        light = module.shading(posed["x_e"], posed["rot"])
+        light_turned = module.shading(*(lambda p: (p["x_e"], p["rot"]))(module.deform(turned, torch.zeros(1, 3, 3))))
+        module.shading = NoShading()
+        base = module.shade(posed, viewmat, idx)
+    assert torch.allclose(rgb, base * light)
+    assert not torch.allclose(light, torch.ones_like(light))
+    assert (light_turned - light).abs().max() > 0.5  # same canonical Gaussians and pose features, other heading
