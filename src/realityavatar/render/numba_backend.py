@@ -148,52 +148,69 @@ def _keep_pair(mx, my, A, B, Cc, lim, x0, y0, x1, y1):
     return best <= lim
 
 
+@njit(cache=True, inline="always")
+def _tile_box(mx, my, rx, ry, ts, tx_n, ty_n):
+    """Tiles [tx0, tx1) x [ty0, ty1) that the radii box of a Gaussian touches."""
+    tx0 = int(min(max(math.floor((mx - rx) / ts), 0), tx_n))
+    tx1 = int(min(max(math.ceil((mx + rx) / ts), 0), tx_n))
+    ty0 = int(min(max(math.floor((my - ry) / ts), 0), ty_n))
+    ty1 = int(min(max(math.ceil((my + ry) / ts), 0), ty_n))
+    return tx0, tx1, ty0, ty1
+
+
 @njit(cache=True)
 def _bin(means2d, radii, conics, opac, order, C, N, width, height, ts, tile_cull):
     """Tile lists in depth order. means2d [G,2], radii [G,2] int32, conics [G,3], opac [G], order [C,N].
 
     Returns starts [C*T+1] int64 (list of tile t is ids[starts[t]:starts[t+1]]) and ids [pairs] int32 (G ids).
-    Visiting Gaussians in depth order and appending makes every list depth-sorted without a sort.
+    Visiting Gaussians in depth order and appending makes every list depth-sorted without a sort: the kept pairs
+    are recorded once in that order (the culling test runs once per candidate), then scattered by tile (stable).
     """
     tx_n = (width + ts - 1) // ts
     ty_n = (height + ts - 1) // ts
     T = tx_n * ty_n
+    cap = 0  # candidate pairs: an upper bound on the kept ones
+    for g in range(C * N):
+        if radii[g, 0] <= 0 or radii[g, 1] <= 0:
+            continue
+        tx0, tx1, ty0, ty1 = _tile_box(float(means2d[g, 0]), float(means2d[g, 1]), radii[g, 0], radii[g, 1], ts,
+                                       tx_n, ty_n)
+        cap += max(tx1 - tx0, 0) * max(ty1 - ty0, 0)
+    pair_t = np.empty(cap, np.int64)
+    pair_g = np.empty(cap, np.int32)
     counts = np.zeros(C * T + 1, np.int64)
-    fill = np.zeros(C * T + 1, np.int64)
-    ids = np.empty(0, np.int32)
-    for sweep in range(2):
-        if sweep == 1:
-            for t in range(C * T):
-                counts[t + 1] += counts[t]
-            ids = np.empty(counts[C * T], np.int32)
-            fill[:] = counts
-        for cam in range(C):
-            for j in range(N):
-                g = cam * N + order[cam, j]
-                rx, ry = radii[g, 0], radii[g, 1]
-                if rx <= 0 or ry <= 0:
-                    continue
-                mx, my = float(means2d[g, 0]), float(means2d[g, 1])
-                tx0 = int(min(max(math.floor((mx - rx) / ts), 0), tx_n))
-                tx1 = int(min(max(math.ceil((mx + rx) / ts), 0), tx_n))
-                ty0 = int(min(max(math.floor((my - ry) / ts), 0), ty_n))
-                ty1 = int(min(max(math.ceil((my + ry) / ts), 0), ty_n))
-                A, B, Cc = float(conics[g, 0]), float(conics[g, 1]), float(conics[g, 2])
-                lim = math.log(max(float(opac[g]), 1e-30) / ALPHA_THRESHOLD) + 1e-3
-                for ty in range(ty0, ty1):
-                    y0 = ty * ts + 0.5
-                    y1 = min(y0 + ts - 1, height - 0.5)
-                    for tx in range(tx0, tx1):
-                        x0 = tx * ts + 0.5
-                        x1 = min(x0 + ts - 1, width - 0.5)
-                        if tile_cull and not _keep_pair(mx, my, A, B, Cc, lim, x0, y0, x1, y1):
-                            continue
-                        t = cam * T + ty * tx_n + tx
-                        if sweep == 0:
-                            counts[t + 1] += 1
-                        else:
-                            ids[fill[t]] = g
-                            fill[t] += 1
+    m = 0
+    for cam in range(C):
+        for j in range(N):
+            g = cam * N + order[cam, j]
+            rx, ry = radii[g, 0], radii[g, 1]
+            if rx <= 0 or ry <= 0:
+                continue
+            mx, my = float(means2d[g, 0]), float(means2d[g, 1])
+            tx0, tx1, ty0, ty1 = _tile_box(mx, my, rx, ry, ts, tx_n, ty_n)
+            A, B, Cc = float(conics[g, 0]), float(conics[g, 1]), float(conics[g, 2])
+            lim = math.log(max(float(opac[g]), 1e-30) / ALPHA_THRESHOLD) + 1e-3
+            for ty in range(ty0, ty1):
+                y0 = ty * ts + 0.5
+                y1 = min(y0 + ts - 1, height - 0.5)
+                for tx in range(tx0, tx1):
+                    x0 = tx * ts + 0.5
+                    x1 = min(x0 + ts - 1, width - 0.5)
+                    if tile_cull and not _keep_pair(mx, my, A, B, Cc, lim, x0, y0, x1, y1):
+                        continue
+                    t = cam * T + ty * tx_n + tx
+                    counts[t + 1] += 1
+                    pair_t[m] = t
+                    pair_g[m] = g
+                    m += 1
+    for t in range(C * T):
+        counts[t + 1] += counts[t]
+    ids = np.empty(counts[C * T], np.int32)
+    fill = counts.copy()
+    for i in range(m):
+        t = pair_t[i]
+        ids[fill[t]] = pair_g[i]
+        fill[t] += 1
     return counts, ids
 
 
