@@ -2,8 +2,9 @@
 
 Same per-pixel rules as tiles.py and gsplat's rasterize_to_pixels: pixel centres at +0.5, alpha = min(alpha_max,
 o*exp(-sigma)), skip sigma < 0 or alpha < 1/255, stop before the Gaussian that takes T to <= 1e-4. Arithmetic is
-float64 inside the kernels whatever the input dtype. The backward walks each pixel's list back to front from its
-last contributing Gaussian (gsplat's backward), so forward keeps only the final T and that index per pixel.
+float64 inside the kernels whatever the input dtype; exp is glibc's algorithm inlined (_exp_core: libm's values here).
+The backward walks each pixel's list back to front from its last contributing Gaussian (gsplat's backward), so
+forward keeps only the final T and that index per pixel.
 Gradients go to per-pair slots (one tile = one thread, no races) and are summed per Gaussian in a second pass,
 so results do not depend on the thread count. The projection follows project.py (float64 inside as well).
 """
@@ -17,7 +18,9 @@ import torch
 
 try:  # the torch backend stays the fallback where numba cannot be imported
     import numba
-    from numba import njit, prange
+    from llvmlite import ir as _ir
+    from numba import njit, prange, types as _types
+    from numba.extending import intrinsic
 
     NUMBA_ERROR: str | None = None
     # numba's OpenMP layer shares libgomp with torch: with a pool of 2 it made torch's own ops (and the kernels) 4x
@@ -32,6 +35,7 @@ except Exception as exc:  # noqa: BLE001 - ImportError or a broken llvmlite: any
         return (lambda f: f) if not args or not callable(args[0]) else args[0]
 
     prange = range
+    intrinsic = njit
 
 ALPHA_THRESHOLD = 1.0 / 255.0
 T_MIN = 1e-4
@@ -39,6 +43,89 @@ T_MIN = 1e-4
 # pixels below it still take the exact alpha test.
 _SIGMA_SLACK = 1e-6
 _PIX_EPS = 1e-3  # pixels: row/column bounds of an ellipse are widened by this much against rounding
+
+
+# ---- exp inline: glibc's algorithm, so the values are libm's while the compositing loops avoid a call per pixel ----
+# A call to libm's exp inside the pixel loops cost more than the exp itself (every live value spilled around it).
+# _exp_core is glibc's exp (ARM optimized-routines, e_exp.c with EXP_TABLE_BITS = 7): x = k*ln2/128 + r,
+# exp(x) = 2^(k/128) * (1 + tail_k + r + r^2*poly(r)), with the FMAs of the x86-64 FMA build; it matched math.exp
+# bit for bit on 5e7 random arguments in [-745, 710] here. Valid for |x| < 700 (callers check), NaN-safe in _exp_batch.
+
+
+@intrinsic
+def _fma(typingctx, a, b, c):
+    """a*b + c rounded once (llvm.fma)."""
+    sig = _types.float64(_types.float64, _types.float64, _types.float64)
+
+    def codegen(context, builder, signature, args):
+        return builder.fma(*args)
+
+    return sig, codegen
+
+
+@intrinsic
+def _as_f64(typingctx, x):
+    """The float64 whose bits are the int64 x."""
+    sig = _types.float64(_types.int64)
+
+    def codegen(context, builder, signature, args):
+        return builder.bitcast(args[0], _ir.DoubleType())
+
+    return sig, codegen
+
+
+def _exp_table() -> tuple[np.ndarray, np.ndarray]:
+    """2^(i/128) = scale_i * (1 + tail_i): tail_i and the bits of scale_i less i << 45 (so adding k << 45 puts k's
+    whole part into the exponent), from 60-digit decimal arithmetic."""
+    from decimal import Decimal, localcontext
+
+    tail, sbits = np.empty(128, np.float64), np.empty(128, np.int64)
+    with localcontext() as ctx:
+        ctx.prec = 60
+        for i in range(128):
+            v = Decimal(2) ** (Decimal(i) / 128)
+            s = float(v)
+            tail[i] = float((v - Decimal(s)) / Decimal(s))
+            sbits[i] = int(np.float64(s).view(np.int64)) - (i << 45)
+    return tail, sbits
+
+
+_EXP_TAIL, _EXP_SBITS = _exp_table()
+_EXP_INVLN2N = float.fromhex("0x1.71547652b82fep0") * 128
+_EXP_NEGLN2HIN = -float.fromhex("0x1.62e42fefa0000p-8")
+_EXP_NEGLN2LON = -float.fromhex("0x1.cf79abc9e3b3ap-47")
+_EXP_SHIFT = float.fromhex("0x1.8p52")
+_EXP_C2 = float.fromhex("0x1.ffffffffffdbdp-2")
+_EXP_C3 = float.fromhex("0x1.555555555543cp-3")
+_EXP_C4 = float.fromhex("0x1.55555cf172b91p-5")
+_EXP_C5 = float.fromhex("0x1.1111167a4d017p-7")
+_EXP_FAST_LIMIT = 700.0  # _exp_core is used for arguments in [-700, 0]; a Gaussian with thr >= this takes math.exp
+
+
+@njit(cache=True, inline="always")
+def _exp_core(x):
+    """exp(x) for finite |x| < 700, no branches (the batch loops vectorise)."""
+    kd = _fma(x, _EXP_INVLN2N, _EXP_SHIFT) - _EXP_SHIFT  # k = round(x*128/ln2), exact
+    k = np.int64(kd)
+    r = _fma(kd, _EXP_NEGLN2LON, _fma(kd, _EXP_NEGLN2HIN, x))
+    i = k & 127
+    r2 = r * r
+    tmp = _fma(r2 * r2, _fma(r, _EXP_C5, _EXP_C4), _fma(_fma(r, _EXP_C3, _EXP_C2), r2, _EXP_TAIL[i] + r))
+    scale = _as_f64(_EXP_SBITS[i] + (k << 45))
+    return _fma(scale, tmp, scale)
+
+
+@njit(cache=True, inline="always")
+def _exp_batch(v, n, fast):
+    """v[:n] = exp(v[:n]); fast: every finite argument lies in [-700, 0] (NaN passes through as math.exp's does)."""
+    if fast:
+        for i in range(n):
+            x = v[i]
+            e = _exp_core(x if x == x else 0.0)
+            v[i] = e if x == x else x
+    else:
+        for i in range(n):
+            v[i] = math.exp(v[i])
 
 
 @njit(cache=True, inline="always")
@@ -61,52 +148,69 @@ def _keep_pair(mx, my, A, B, Cc, lim, x0, y0, x1, y1):
     return best <= lim
 
 
+@njit(cache=True, inline="always")
+def _tile_box(mx, my, rx, ry, ts, tx_n, ty_n):
+    """Tiles [tx0, tx1) x [ty0, ty1) that the radii box of a Gaussian touches."""
+    tx0 = int(min(max(math.floor((mx - rx) / ts), 0), tx_n))
+    tx1 = int(min(max(math.ceil((mx + rx) / ts), 0), tx_n))
+    ty0 = int(min(max(math.floor((my - ry) / ts), 0), ty_n))
+    ty1 = int(min(max(math.ceil((my + ry) / ts), 0), ty_n))
+    return tx0, tx1, ty0, ty1
+
+
 @njit(cache=True)
 def _bin(means2d, radii, conics, opac, order, C, N, width, height, ts, tile_cull):
     """Tile lists in depth order. means2d [G,2], radii [G,2] int32, conics [G,3], opac [G], order [C,N].
 
     Returns starts [C*T+1] int64 (list of tile t is ids[starts[t]:starts[t+1]]) and ids [pairs] int32 (G ids).
-    Visiting Gaussians in depth order and appending makes every list depth-sorted without a sort.
+    Visiting Gaussians in depth order and appending makes every list depth-sorted without a sort: the kept pairs
+    are recorded once in that order (the culling test runs once per candidate), then scattered by tile (stable).
     """
     tx_n = (width + ts - 1) // ts
     ty_n = (height + ts - 1) // ts
     T = tx_n * ty_n
+    cap = 0  # candidate pairs: an upper bound on the kept ones
+    for g in range(C * N):
+        if radii[g, 0] <= 0 or radii[g, 1] <= 0:
+            continue
+        tx0, tx1, ty0, ty1 = _tile_box(float(means2d[g, 0]), float(means2d[g, 1]), radii[g, 0], radii[g, 1], ts,
+                                       tx_n, ty_n)
+        cap += max(tx1 - tx0, 0) * max(ty1 - ty0, 0)
+    pair_t = np.empty(cap, np.int64)
+    pair_g = np.empty(cap, np.int32)
     counts = np.zeros(C * T + 1, np.int64)
-    fill = np.zeros(C * T + 1, np.int64)
-    ids = np.empty(0, np.int32)
-    for sweep in range(2):
-        if sweep == 1:
-            for t in range(C * T):
-                counts[t + 1] += counts[t]
-            ids = np.empty(counts[C * T], np.int32)
-            fill[:] = counts
-        for cam in range(C):
-            for j in range(N):
-                g = cam * N + order[cam, j]
-                rx, ry = radii[g, 0], radii[g, 1]
-                if rx <= 0 or ry <= 0:
-                    continue
-                mx, my = float(means2d[g, 0]), float(means2d[g, 1])
-                tx0 = int(min(max(math.floor((mx - rx) / ts), 0), tx_n))
-                tx1 = int(min(max(math.ceil((mx + rx) / ts), 0), tx_n))
-                ty0 = int(min(max(math.floor((my - ry) / ts), 0), ty_n))
-                ty1 = int(min(max(math.ceil((my + ry) / ts), 0), ty_n))
-                A, B, Cc = float(conics[g, 0]), float(conics[g, 1]), float(conics[g, 2])
-                lim = math.log(max(float(opac[g]), 1e-30) / ALPHA_THRESHOLD) + 1e-3
-                for ty in range(ty0, ty1):
-                    y0 = ty * ts + 0.5
-                    y1 = min(y0 + ts - 1, height - 0.5)
-                    for tx in range(tx0, tx1):
-                        x0 = tx * ts + 0.5
-                        x1 = min(x0 + ts - 1, width - 0.5)
-                        if tile_cull and not _keep_pair(mx, my, A, B, Cc, lim, x0, y0, x1, y1):
-                            continue
-                        t = cam * T + ty * tx_n + tx
-                        if sweep == 0:
-                            counts[t + 1] += 1
-                        else:
-                            ids[fill[t]] = g
-                            fill[t] += 1
+    m = 0
+    for cam in range(C):
+        for j in range(N):
+            g = cam * N + order[cam, j]
+            rx, ry = radii[g, 0], radii[g, 1]
+            if rx <= 0 or ry <= 0:
+                continue
+            mx, my = float(means2d[g, 0]), float(means2d[g, 1])
+            tx0, tx1, ty0, ty1 = _tile_box(mx, my, rx, ry, ts, tx_n, ty_n)
+            A, B, Cc = float(conics[g, 0]), float(conics[g, 1]), float(conics[g, 2])
+            lim = math.log(max(float(opac[g]), 1e-30) / ALPHA_THRESHOLD) + 1e-3
+            for ty in range(ty0, ty1):
+                y0 = ty * ts + 0.5
+                y1 = min(y0 + ts - 1, height - 0.5)
+                for tx in range(tx0, tx1):
+                    x0 = tx * ts + 0.5
+                    x1 = min(x0 + ts - 1, width - 0.5)
+                    if tile_cull and not _keep_pair(mx, my, A, B, Cc, lim, x0, y0, x1, y1):
+                        continue
+                    t = cam * T + ty * tx_n + tx
+                    counts[t + 1] += 1
+                    pair_t[m] = t
+                    pair_g[m] = g
+                    m += 1
+    for t in range(C * T):
+        counts[t + 1] += counts[t]
+    ids = np.empty(counts[C * T], np.int32)
+    fill = counts.copy()
+    for i in range(m):
+        t = pair_t[i]
+        ids[fill[t]] = pair_g[i]
+        fill[t] += 1
     return counts, ids
 
 
@@ -179,23 +283,29 @@ def _forward(means2d, conics, opac, colors, prep, starts, ids, C, width, height,
         nx = min(ts, width - ox)  # edge tiles: only pixels inside the image
         ny = min(ts, height - oy)
         Tp = np.ones(P)
-        acc = np.zeros((P, D))
+        acc = np.zeros(P * D)
         lastp = np.full(P, -1, np.int64)
         done = np.zeros(P, np.bool_)
-        col = np.empty(D)
         n_left = nx * ny
         row_left = np.full(ts, nx, np.int64)  # pixels of each row still compositing
+        pix = np.empty(P, np.int64)  # one Gaussian's pixels that pass the sigma test, in row-major order
+        ev = np.empty(P)  # their -sigma, then exp(-sigma)
         for k in range(starts[t], starts[t + 1]):
             if n_left == 0:
                 break
             g = ids[k]
-            mx, my = float(means2d[g, 0]), float(means2d[g, 1])
-            A, B, Cc, o = float(conics[g, 0]), float(conics[g, 1]), float(conics[g, 2]), float(opac[g])
             thr, inv_a, q, ry = prep[g, 0], prep[g, 1], prep[g, 2], prep[g, 3]
             if ry < 0.0:
                 continue
-            for d in range(D):
-                col[d] = colors[g, d]
+            mx, my = float(means2d[g, 0]), float(means2d[g, 1])
+            A, B, Cc, o = float(conics[g, 0]), float(conics[g, 1]), float(conics[g, 2]), float(opac[g])
+            if D == 3:
+                c0, c1, c2 = float(colors[g, 0]), float(colors[g, 1]), float(colors[g, 2])
+            else:
+                c0 = c1 = c2 = 0.0
+            # Three passes per Gaussian: gather the pixels, exp of all of them in one loop, composite. Pixels of one
+            # Gaussian are independent, so this is the per-pixel order of the single loop, value for value.
+            n = 0
             y_lo, y_hi = _rows(my, ry, oy, ny)
             for y in range(y_lo, y_hi):
                 if row_left[y] == 0:
@@ -210,25 +320,37 @@ def _forward(means2d, conics, opac, colors, prep, starts, ids, C, width, height,
                     sigma = 0.5 * (A * dx * dx + Cc * dy * dy) + B * dx * dy
                     if sigma < 0.0 or sigma > thr:
                         continue
-                    alpha = min(alpha_max, o * math.exp(-sigma))
-                    if alpha < ALPHA_THRESHOLD:
-                        continue
-                    next_T = Tp[p] * (1.0 - alpha)
-                    if next_T <= T_MIN:
-                        done[p] = True
-                        n_left -= 1
-                        row_left[y] -= 1
-                        continue
-                    w = alpha * Tp[p]
+                    pix[n] = p
+                    ev[n] = -sigma
+                    n += 1
+            _exp_batch(ev, n, thr < _EXP_FAST_LIMIT)
+            for i in range(n):
+                p = pix[i]
+                alpha = min(alpha_max, o * ev[i])
+                if alpha < ALPHA_THRESHOLD:
+                    continue
+                tp = Tp[p]
+                next_T = tp * (1.0 - alpha)
+                if next_T <= T_MIN:
+                    done[p] = True
+                    n_left -= 1
+                    row_left[p // ts] -= 1
+                    continue
+                w = alpha * tp
+                if D == 3:
+                    acc[3 * p] += w * c0
+                    acc[3 * p + 1] += w * c1
+                    acc[3 * p + 2] += w * c2
+                else:
                     for d in range(D):
-                        acc[p, d] += w * col[d]
-                    Tp[p] = next_T
-                    lastp[p] = k
+                        acc[p * D + d] += w * float(colors[g, d])
+                Tp[p] = next_T
+                lastp[p] = k
         for y in range(ny):
             for x in range(nx):
                 p = y * ts + x
                 for d in range(D):
-                    img[cam, oy + y, ox + x, d] = acc[p, d]
+                    img[cam, oy + y, ox + x, d] = acc[p * D + d]
                 alpha_out[cam, oy + y, ox + x] = 1.0 - Tp[p]
                 t_final[cam, oy + y, ox + x] = Tp[p]
                 last[cam, oy + y, ox + x] = lastp[p]
@@ -260,6 +382,12 @@ def _backward(means2d, conics, opac, colors, prep, starts, ids, C, width, height
         gcol = np.empty(D)
         kmax = -1
         row_last = np.full(ts, -1, np.int64)  # last contributing slot of any pixel in the row
+        pix = np.empty(P, np.int64)  # as in _forward: one Gaussian's pixels, their offsets, exp(-sigma), alpha and
+        ev = np.empty(P)  # 1/(1 - alpha), each pass a loop of its own
+        bdx = np.empty(P)
+        bdy = np.empty(P)
+        bal = np.empty(P)
+        bra = np.empty(P)
         for y in range(ny):
             for x in range(nx):
                 p = y * ts + x
@@ -282,6 +410,9 @@ def _backward(means2d, conics, opac, colors, prep, starts, ids, C, width, height
                 col[d] = colors[g, d]
                 gcol[d] = 0.0
             g_mx = g_my = g_a = g_b = g_c = g_o = 0.0
+            gc0 = gc1 = gc2 = 0.0
+            c0, c1, c2 = col[0], col[min(1, D - 1)], col[min(2, D - 1)]
+            n = 0
             y_lo, y_hi = _rows(my, ry, oy, ny)
             for y in range(y_lo, y_hi):
                 if row_last[y] < k:
@@ -296,33 +427,62 @@ def _backward(means2d, conics, opac, colors, prep, starts, ids, C, width, height
                     sigma = 0.5 * (A * dx * dx + Cc * dy * dy) + B * dx * dy
                     if sigma < 0.0 or sigma > thr:
                         continue
-                    vis = math.exp(-sigma)
-                    alpha_raw = o * vis
-                    alpha = min(alpha_max, alpha_raw)
-                    if alpha < ALPHA_THRESHOLD:
-                        continue
-                    ra = 1.0 / (1.0 - alpha)
-                    Tp[p] *= ra  # transmittance in front of this Gaussian
-                    fac = alpha * Tp[p]
-                    v_alpha = tfin[p] * ra * ga[p]
+                    pix[n] = p
+                    bdx[n] = dx
+                    bdy[n] = dy
+                    ev[n] = -sigma
+                    n += 1
+            _exp_batch(ev, n, thr < _EXP_FAST_LIMIT)
+            for i in range(n):
+                alpha = min(alpha_max, o * ev[i])
+                bal[i] = alpha
+                bra[i] = 1.0 / (1.0 - alpha)
+            for i in range(n):
+                alpha = bal[i]
+                if alpha < ALPHA_THRESHOLD:
+                    continue
+                p = pix[i]
+                vis = ev[i]
+                ra = bra[i]
+                Tp[p] *= ra  # transmittance in front of this Gaussian
+                fac = alpha * Tp[p]
+                v_alpha = tfin[p] * ra * ga[p]
+                tp = Tp[p]
+                if D == 3:
+                    go0, go1, go2 = go[p, 0], go[p, 1], go[p, 2]
+                    gc0 += fac * go0
+                    gc1 += fac * go1
+                    gc2 += fac * go2
+                    b0, b1, b2 = buf[p, 0], buf[p, 1], buf[p, 2]
+                    v_alpha += (c0 * tp - b0 * ra) * go0
+                    v_alpha += (c1 * tp - b1 * ra) * go1
+                    v_alpha += (c2 * tp - b2 * ra) * go2
+                    buf[p, 0] = b0 + c0 * fac
+                    buf[p, 1] = b1 + c1 * fac
+                    buf[p, 2] = b2 + c2 * fac
+                else:
                     for d in range(D):
                         gcol[d] += fac * go[p, d]
-                        v_alpha += (col[d] * Tp[p] - buf[p, d] * ra) * go[p, d]
+                        v_alpha += (col[d] * tp - buf[p, d] * ra) * go[p, d]
                         buf[p, d] += col[d] * fac
-                    if alpha_raw < alpha_max:  # no gradient through the clamp
-                        v_sigma = -alpha * v_alpha
-                        g_mx += v_sigma * (A * dx + B * dy)
-                        g_my += v_sigma * (B * dx + Cc * dy)
-                        g_a += 0.5 * v_sigma * dx * dx
-                        g_b += v_sigma * dx * dy
-                        g_c += 0.5 * v_sigma * dy * dy
-                        g_o += vis * v_alpha
+                if o * vis < alpha_max:  # no gradient through the clamp
+                    dx = bdx[i]
+                    dy = bdy[i]
+                    v_sigma = -alpha * v_alpha
+                    g_mx += v_sigma * (A * dx + B * dy)
+                    g_my += v_sigma * (B * dx + Cc * dy)
+                    g_a += 0.5 * v_sigma * dx * dx
+                    g_b += v_sigma * dx * dy
+                    g_c += 0.5 * v_sigma * dy * dy
+                    g_o += vis * v_alpha
             pair_grad[k, 0] = g_mx
             pair_grad[k, 1] = g_my
             pair_grad[k, 2] = g_a
             pair_grad[k, 3] = g_b
             pair_grad[k, 4] = g_c
             pair_grad[k, 5] = g_o
+            if D == 3:
+                gcol[0], gcol[1], gcol[2] = gc0, gc1, gc2
             for d in range(D):
                 pair_grad[k, 6 + d] = gcol[d]
 
