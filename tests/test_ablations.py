@@ -39,17 +39,19 @@ EXPECTED = {
     "scenes": (8, {"+variant": {"full", "no_lstm"}, "seed": {"0"},
                    "data": {"synthetic_sweep", "synthetic_sweep_dress_spin", "synthetic_sweep_skirt_flap",
                             "synthetic_sweep_dress_walk"}}),
-    "dynamics": (15, {"+garment": {"default", "no_silhouette", "no_grid", "plus_hull", "plus_graph"}, "seed": SEEDS,
+    "dynamics": (18, {"+garment": {"default", "no_silhouette", "no_grid", "no_shading", "plus_hull", "plus_graph"},
+                      "seed": SEEDS,
                       "data": {"synthetic_sweep"}}),
 }
-# conf/garment option -> (silhouette, skinning, gaussians, deformer) it selects
-GARMENT_CHOICES = {"default": ("chamfer", "grid", "default", "motion_trend"),
-                   "no_silhouette": ("none", "grid", "default", "motion_trend"),
-                   "no_grid": ("chamfer", "mlp", "default", "motion_trend"),
-                   "plus_hull": ("chamfer", "grid", "hull", "motion_trend"),
-                   "plus_graph": ("chamfer", "grid", "default", "motion_trend_nodes"),
-                   "all": ("chamfer", "grid", "hull", "motion_trend_nodes"),
-                   "none": ("none", "mlp", "default", "motion_trend")}
+# conf/garment option -> (silhouette, skinning, gaussians, deformer, shading) it selects
+GARMENT_CHOICES = {"default": ("chamfer", "grid", "default", "motion_trend", "irradiance"),
+                   "no_silhouette": ("none", "grid", "default", "motion_trend", "irradiance"),
+                   "no_grid": ("chamfer", "mlp", "default", "motion_trend", "irradiance"),
+                   "no_shading": ("chamfer", "grid", "default", "motion_trend", "none"),
+                   "plus_hull": ("chamfer", "grid", "hull", "motion_trend", "irradiance"),
+                   "plus_graph": ("chamfer", "grid", "default", "motion_trend_nodes", "irradiance"),
+                   "all": ("chamfer", "grid", "hull", "motion_trend_nodes", "irradiance"),
+                   "none": ("none", "mlp", "default", "motion_trend", "none")}
 VARIANT_CHOICES = {"full": ("latentbone", "lstm"), "no_zc": ("no_zc", "lstm"),
                    "no_lstm": ("latentbone", "none"), "no_split": ("no_split", "lstm")}
 # Option names fixed by the project; a stand-in tree with exactly these lets the sweep files be checked on
@@ -58,7 +60,8 @@ GROUPS = {
     "data": ["synthetic_ci", "synthetic_demo", "synthetic_sweep", "synthetic_sweep_dress_spin",
              "synthetic_sweep_skirt_flap", "synthetic_sweep_dress_walk"], "sampler": ["uniform", "hard_frames"], "body": ["mannequin", "smpl"],
     "gaussians": ["default", "hull"], "encoder": ["latentbone", "no_split", "no_zc"], "temporal": ["lstm", "gru", "none"],
-    "deformer": ["motion_trend", "motion_trend_nodes"], "silhouette": ["chamfer", "none"], "skinning": ["mlp", "grid"], "color": ["mlp", "sh"], "density": ["default", "off"],
+    "deformer": ["motion_trend", "motion_trend_nodes"], "silhouette": ["chamfer", "none"], "skinning": ["mlp", "grid"], "color": ["mlp", "sh"],
+    "shading": ["irradiance", "none"], "density": ["default", "off"],
     "loss": ["default"], "render": ["torch", "gsplat", "auto"], "optim": ["default"], "trainer": ["cpu", "gpu", "ci"],
 }
 
@@ -129,7 +132,8 @@ def test_sweep_expands_to_expected_jobs(standin_conf, name):
         if "+variant" in ov:
             assert (choices["encoder"], choices["temporal"]) == VARIANT_CHOICES[ov["+variant"]]
         if "+garment" in ov:
-            assert (choices["silhouette"], choices["skinning"], choices["gaussians"], choices["deformer"]) == GARMENT_CHOICES[ov["+garment"]]
+            assert (choices["silhouette"], choices["skinning"], choices["gaussians"], choices["deformer"],
+                    choices["shading"]) == GARMENT_CHOICES[ov["+garment"]]
         for key in ("temporal", "color", "density", "render", "trainer", "data"):
             if key in ov:
                 assert choices[key] == ov[key]
@@ -164,7 +168,8 @@ def test_sweep_jobs_compose_in_the_real_tree(name):
         if "+variant" in ov:
             assert (choices["encoder"], choices["temporal"]) == VARIANT_CHOICES[ov["+variant"]]
         if "+garment" in ov:
-            assert (choices["silhouette"], choices["skinning"], choices["gaussians"], choices["deformer"]) == GARMENT_CHOICES[ov["+garment"]]
+            assert (choices["silhouette"], choices["skinning"], choices["gaussians"], choices["deformer"],
+                    choices["shading"]) == GARMENT_CHOICES[ov["+garment"]]
         for key in ("temporal", "color", "density", "render", "trainer", "data"):
             if key in ov:
                 assert choices[key] == ov[key]

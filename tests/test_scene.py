@@ -156,12 +156,33 @@ def test_determinism_cache_and_other_seed(ci_scene, tmp_path):
     ({"novel_view_cameras": 4}, "novel_view_cameras"),
     ({"fps": 0}, "fps"),
     ({"colour": 1}, "unknown keys"),
+    ({"ambient": -0.1}, "ambient"),
+    ({"ambient": 0.0, "diffuse": 0.0}, "ambient"),
 ])
 def test_bad_parameters_raise_before_writing(tmp_path, overrides, match):
     root = tmp_path / "never"
     with pytest.raises(ValueError, match=match):
         build_scene("ci", root, seed=0, overrides=overrides, progress=False)
     assert not root.exists()
+
+
+def test_light_parameters_shade_the_images(tmp_path):
+    """ambient=1, diffuse=0 renders the albedo alone: every lit pixel at least as bright as under the default light,
+    the masks the same."""
+    from realityavatar.data.synthetic.render import render_views
+
+    V = np.array([[-0.5, -0.5, 0.0], [0.5, -0.5, 0.0], [0.0, 0.5, 0.0]])
+    F = np.array([[0, 1, 2]])
+    K = np.array([[[32.0, 0, 16], [0, 32.0, 16], [0, 0, 1]]])
+    E = np.eye(4)[None].copy()
+    E[0, 2, 3] = 2.0
+    tex = lambda f, bary: np.full((len(f), 3), 0.5)  # noqa: E731 - a flat grey albedo
+    lit, m1 = render_views([(V, F, tex)], K, E, 32, 32, ambient=0.4, diffuse=0.6)
+    flat, m2 = render_views([(V, F, tex)], K, E, 32, 32, ambient=1.0, diffuse=0.0)
+    assert (m1 == m2).all() and m1.any()
+    inside = m1 > 0
+    assert (flat[inside] == 128).all()  # 0.5 albedo x 1.0
+    assert lit[inside].max() < 128  # the light (0.35, 0.82, 0.45) meets this triangle's normal obliquely
 
 
 def test_unknown_preset_and_short_spin(tmp_path):

@@ -244,6 +244,8 @@ class AvatarDataModule(pl.LightningDataModule):
     with neither, canonical_joints.pkl's pelvis is used). build_preset/build_sequence/build_seed: prepare_data() calls
     realityavatar.data.synthetic.build_scene(build_preset, root, build_seed, sequence=build_sequence), which reuses an
     identical existing build; `sequence` must be the scene name it produces (<garment>_<motion>_<preset>).
+    build_overrides: scene parameters over the preset's (as `realityavatar-make-scene --set KEY=VALUE`), e.g.
+    {ambient: 1.0, diffuse: 0.0} for the scene without its directional light; give such a build its own `root`.
     """
 
     def __init__(
@@ -270,6 +272,7 @@ class AvatarDataModule(pl.LightningDataModule):
         build_preset: str | None = None,
         build_sequence: str | None = None,
         build_seed: int = 0,
+        build_overrides: dict | None = None,
         zju_train_frames: Sequence[int] = (0, 0, 1),
         zju_novel_view_frames: Sequence[int] | None = None,
         zju_novel_pose_frames: Sequence[int] | None = None,
@@ -304,6 +307,7 @@ class AvatarDataModule(pl.LightningDataModule):
         self.body = body
         self.pelvis = pelvis
         self.build_preset, self.build_sequence, self.build_seed = build_preset, build_sequence, int(build_seed)
+        self.build_overrides = dict(build_overrides or {})
         self.zju_frames = {
             "train": list(zju_train_frames),
             "novel_view": None if zju_novel_view_frames is None else list(zju_novel_view_frames),
@@ -348,7 +352,8 @@ class AvatarDataModule(pl.LightningDataModule):
 
         log.info("scene preset %r, sequence %r under %s (seed %d)", self.build_preset, self.build_sequence, self.root,
                  self.build_seed)
-        prefix = build_scene(self.build_preset, self.root, self.build_seed, sequence=self.build_sequence)
+        prefix = build_scene(self.build_preset, self.root, self.build_seed, sequence=self.build_sequence,
+                             overrides=self.build_overrides)
         if Path(prefix).name != self.sequence or self._scene_missing():
             raise FileNotFoundError(
                 f"build_scene({self.build_preset!r}, sequence={self.build_sequence!r}) wrote {prefix}, not "

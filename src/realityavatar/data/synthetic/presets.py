@@ -21,6 +21,8 @@ COMMON = {
     "camera_phase_deg": 0.0,
     "motion_params": {},  # per-motion knobs (spin_seconds, turns, sway_hz, flap_hz, walk_speed, ...)
     "cloth_params": {},  # passed to cloth.simulate_garment
+    "ambient": 0.4,  # Lambert shading under one directional light fixed in the world (render.LIGHT_DIR):
+    "diffuse": 0.6,  # albedo x (ambient + diffuse * max(0, n.l)); ambient=1, diffuse=0 renders the albedo alone
 }
 
 PRESETS = {

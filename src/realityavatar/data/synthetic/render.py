@@ -100,10 +100,12 @@ def all_camera_rays(Ks: np.ndarray, viewmats: np.ndarray, width: int, height: in
 
 
 def render_views(parts: list[tuple[np.ndarray, np.ndarray, object]], Ks: np.ndarray, viewmats: np.ndarray,
-                 width: int, height: int, rays: tuple[np.ndarray, np.ndarray] | None = None):
+                 width: int, height: int, rays: tuple[np.ndarray, np.ndarray] | None = None,
+                 ambient: float = AMBIENT, diffuse: float = DIFFUSE):
     """Ray cast the union of mesh parts [(vertices [V,3], faces [F,3], texture)] into every camera.
 
-    rays: optional precomputed `all_camera_rays(Ks, viewmats, width, height)`.
+    rays: optional precomputed `all_camera_rays(Ks, viewmats, width, height)`. Shading: albedo x (ambient + diffuse x
+    max(0, n.LIGHT_DIR)), the light fixed in the world.
     Returns rgb [C,H,W,3] uint8 (black background) and mask [C,H,W] uint8 (0/255, 255 where any part is hit).
     """
     verts, faces, owner, offsets = [], [], [], [0]
@@ -133,7 +135,7 @@ def render_views(parts: list[tuple[np.ndarray, np.ndarray, object]], Ks: np.ndar
         normal = np.einsum("pk,pkc->pc", bary, vn[Fc[tri]])
         normal /= np.linalg.norm(normal, axis=1, keepdims=True).clip(1e-12)
         normal = np.where((np.einsum("pc,pc->p", normal, d) > 0)[:, None], -normal, normal)  # two-sided cloth
-        shade = AMBIENT + DIFFUSE * np.clip(normal @ LIGHT_DIR, 0, None)
+        shade = ambient + diffuse * np.clip(normal @ LIGHT_DIR, 0, None)
         albedo = np.zeros((len(ray), 3))
         for i, (_, f, tex) in enumerate(parts):
             sel = owner[tri] == i

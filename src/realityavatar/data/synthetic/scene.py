@@ -94,13 +94,16 @@ def resolve_params(preset_or_params: str | dict, sequence: str | None = None, ov
                          f"got {p['novel_view_cameras']}")
     if not 8 <= p["width"] <= 4096 or not 8 <= p["height"] <= 4096:
         raise ValueError(f"width/height: expected 8..4096 px, got {p['width']}x{p['height']}")
-    for k in ("fps", "camera_radius", "camera_height", "target_height", "subject_height", "fill", "camera_phase_deg"):
+    for k in ("fps", "camera_radius", "camera_height", "target_height", "subject_height", "fill", "camera_phase_deg",
+              "ambient", "diffuse"):
         if isinstance(p[k], bool) or not isinstance(p[k], (int, float)) or not np.isfinite(p[k]):
             raise ValueError(f"{k}: expected a finite number, got {p[k]!r}")
         p[k] = float(p[k])
     if p["fps"] <= 0 or p["camera_radius"] <= 1.0 or not 0 < p["fill"] <= 1.5:
         raise ValueError(f"fps > 0, camera_radius > 1 m and 0 < fill <= 1.5 expected, got fps={p['fps']}, "
                          f"camera_radius={p['camera_radius']}, fill={p['fill']}")
+    if p["ambient"] < 0 or p["diffuse"] < 0 or p["ambient"] + p["diffuse"] <= 0:
+        raise ValueError(f"ambient/diffuse: expected >= 0 with a positive sum, got {p['ambient']}, {p['diffuse']}")
     if p["body"] != "mannequin":
         raise ValueError(f"body: synthetic scenes use the mannequin body, got {p['body']!r}")
     p["motion_params"] = dict(p["motion_params"] or {})
@@ -256,7 +259,8 @@ def _write(tmp: Path, p: dict, seed: int, phash: str, body, motion: Motion, Ks, 
     rays = all_camera_rays(Ks, viewmats, p["width"], p["height"])
     for f in tqdm(range(F), desc=f"scene {name}", disable=not progress, unit="frame"):
         rgb, mask = render_views([(verts_w[f], body_faces, body_tex), (garment.vertices[f], garment.faces, garm_tex)],
-                                 Ks, viewmats, p["width"], p["height"], rays)
+                                 Ks, viewmats, p["width"], p["height"], rays, ambient=p["ambient"],
+                                 diffuse=p["diffuse"])
         poses = motion.pose[f].reshape(72).astype(np.float32)
         info = {"poses": poses, "Rh": motion.Rh[f].astype(np.float32), "Th": motion.Th[f].astype(np.float32),
                 "joints": joints_body[f].astype(np.float32), "tpose_joints": tpose}
