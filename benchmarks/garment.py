@@ -1,5 +1,5 @@
 """Cost of the garment-motion mechanisms per training step: silhouette chamfer, deformation graph vs per-Gaussian
-decoder, skinning grid vs skinning MLP.
+decoder, skinning grid vs skinning MLP, world-lit shading (irradiance map on the posed body normal).
 
 Usage: python benchmarks/garment.py [--threads 1] [--out benchmarks/results/garment_cpu.json]
 Prints seconds and GEMM units (8 float32 matmuls of 1024³ timed in the same process) for forward+backward.
@@ -91,6 +91,19 @@ def main(argv=None) -> int:
                 (w * torch.arange(24.0)).sum().backward()
 
             rows.append({"part": name, "resolution": None, "gaussians": n, "seconds": timeit(step)})
+    from realityavatar.model.shading import IrradianceShading
+
+    shading = IrradianceShading()
+    shading.init_from_body(verts, body.faces)
+    for n in (5000, 10000):
+        x = verts[torch.randint(0, verts.shape[0], (n,))][None] + 0.05 * torch.randn(1, n, 3)
+        rot = torch.linalg.qr(torch.randn(1, n, 3, 3))[0]
+        rgb = torch.rand(1, n, 3, requires_grad=True)
+
+        def step():
+            (rgb * shading(x, rot)).sum().backward()
+
+        rows.append({"part": "shading irradiance", "resolution": None, "gaussians": n, "seconds": timeit(step)})
     for r in rows:
         r["gemm_units"] = r["seconds"] / unit
     print(f"GEMM unit (8 x 1024³ float32 matmuls): {unit * 1000:.1f} ms, {a.threads} thread(s)")
