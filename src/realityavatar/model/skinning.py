@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import hashlib
+
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -133,6 +135,9 @@ class SkinningGrid(nn.Module):
         return w
 
 
+_KNN_CACHE: dict = {}  # the last grid's nearest-sample query (see diffuse_to_grid)
+
+
 @torch.no_grad()
 def diffuse_to_grid(vertices: torch.Tensor, faces: torch.Tensor, values: torch.Tensor, voxel_size: float,
                     padding: float, k: int, smooth_iters: int, smooth_ramp: float, max_voxels: int, seed: int = 0,
@@ -159,11 +164,16 @@ def diffuse_to_grid(vertices: torch.Tensor, faces: torch.Tensor, values: torch.T
     gen = torch.Generator().manual_seed(seed)
     pts, w = sample_surface(vertices.detach().float().cpu(), faces.cpu(), values.detach().float().cpu(), 200_000, gen)
     nx, ny, nz = (int(v) for v in size)
-    axes = [np.linspace(float(lo[i]), float(hi[i]), n) for i, n in enumerate((nx, ny, nz))]
-    zz, yy, xx = np.meshgrid(axes[2], axes[1], axes[0], indexing="ij")  # [D,H,W] each
-    centres = np.stack([xx, yy, zz], -1).reshape(-1, 3)
-    dist, idx = cKDTree(pts.numpy()).query(centres, k=k)
-    dist, idx = dist.reshape(len(centres), -1), idx.reshape(len(centres), -1)
+    # The nearest-sample query is most of the cost (~2-5 s); grids of the same body, box and k (the skin weights and
+    # the shading normals) share it: the samples depend on the mesh and the seed only, not on the values.
+    key = (hashlib.sha1(pts.numpy().tobytes()).hexdigest(), nx, ny, nz, float(voxel_size), k)
+    if _KNN_CACHE.get("key") != key:
+        axes = [np.linspace(float(lo[i]), float(hi[i]), n) for i, n in enumerate((nx, ny, nz))]
+        zz, yy, xx = np.meshgrid(axes[2], axes[1], axes[0], indexing="ij")  # [D,H,W] each
+        centres = np.stack([xx, yy, zz], -1).reshape(-1, 3)
+        dist, idx = cKDTree(pts.numpy()).query(centres, k=k)
+        _KNN_CACHE.update(key=key, dist=dist.reshape(len(centres), -1), idx=idx.reshape(len(centres), -1))
+    dist, idx = _KNN_CACHE["dist"], _KNN_CACHE["idx"]
     inv = 1.0 / np.maximum(dist, 1e-4)
     near = (w.numpy()[idx] * (inv / inv.sum(1, keepdims=True))[..., None]).sum(1)  # [P,C]
     near = torch.from_numpy(near).float().T.reshape(1, w.shape[1], nz, ny, nx)
