@@ -140,7 +140,7 @@ class AvatarModule(pl.LightningModule):
         # Canonicalise: undo each Gaussian's blended skinning rotation.
         d_c = (posed["rot"].transpose(-1, -2) @ d[..., None]).squeeze(-1)
         rgb = self.color(self.gaussians.features, F.normalize(d_c, dim=-1), posed["f_mt"], frame_idx)
-        light = self.shading(posed["x_e"], posed["rot"], self.gaussians.means, posed["means"])  # or None (shading=none)
+        light = self.shading(posed["x_e"], posed["rot"])  # world-fixed light (shading=irradiance), or None
         return rgb if light is None else rgb * light
 
     def splat(self, posed: dict, b: int, rgb: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor, W: int, H: int):

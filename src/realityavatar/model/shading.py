@@ -19,7 +19,7 @@ from realityavatar.render import sh_basis
 class NoShading(nn.Module):
     """The paper's colour as it is: no shading factor (`shading=none`)."""
 
-    def forward(self, x_e: torch.Tensor, rot: torch.Tensor, canonical=None, posed=None) -> None:
+    def forward(self, x_e: torch.Tensor, rot: torch.Tensor) -> None:
         return None
 
     def init_from_body(self, vertices: torch.Tensor, faces: torch.Tensor, seed: int = 0) -> None:
@@ -40,12 +40,6 @@ class IrradianceShading(nn.Module):
       undefined (|n_c| -> 0) E falls back to the average light.
     - c starts at 0 (E = 1: the paper's colour) and trains with optim.lr.shading. Geometry gets no gradient from
       the shading (x_e and R are detached): it may not move Gaussians to where their light is better.
-    - `normals: deformed` instead takes the normal from how the Gaussians around each one moved: the body normal at its
-      canonical position n_c gives two tangents t1, t2; the local deformation gradient F (least squares over its
-      `neighbours` nearest canonical Gaussians, from canonical to posed positions) maps them, n_w = F t1 x F t2
-      (oriented like R n_c). A flared skirt's Gaussians then get the cone's tilted normal, where `body` gives the
-      thighs' horizontal one. The neighbour lists are rebuilt when the Gaussian count changes and every
-      `refresh_every` calls.
     """
 
     def __init__(
@@ -57,18 +51,8 @@ class IrradianceShading(nn.Module):
         smooth_iters: int = 8,
         smooth_ramp: float = 0.1,
         max_voxels: int = 400_000,
-        normals: str = "body",
-        neighbours: int = 8,
-        refresh_every: int = 100,
     ) -> None:
         super().__init__()
-        if normals not in ("body", "deformed"):
-            raise ValueError(f"shading.normals: expected 'body' or 'deformed', got {normals!r}")
-        if neighbours < 3 or refresh_every < 1:
-            raise ValueError(f"shading: expected neighbours >= 3 and refresh_every >= 1, got {neighbours}, {refresh_every}")
-        self.normal_source, self.neighbours, self.refresh_every = normals, int(neighbours), int(refresh_every)
-        self._knn: torch.Tensor | None = None
-        self._knn_age = 0
         if not 1 <= int(sh_degree) <= 3:
             raise ValueError(f"shading.sh_degree: expected 1, 2 or 3 (0 would be a constant gain), got {sh_degree}")
         if voxel_size <= 0 or padding < 0 or k < 1 or smooth_iters < 0 or smooth_ramp <= 0:
@@ -114,50 +98,11 @@ class IrradianceShading(nn.Module):
         log_e = Y[..., :1] * self.coeffs[0] + length * (Y[..., 1:] @ self.coeffs[1:])
         return torch.exp(log_e)
 
-    def forward(self, x_e: torch.Tensor, rot: torch.Tensor, canonical: torch.Tensor | None = None,
-                posed: torch.Tensor | None = None) -> torch.Tensor:
-        """x_e [B,N,3] deformed canonical positions, rot [B,N,3,3] canonical-to-posed -> factor [B,N,3].
-        `normals: deformed` also needs canonical [N,3] (the Gaussians' canonical means) and posed [B,N,3] means."""
-        if self.normal_source == "body":
-            n_c = self.normals(x_e.detach())
-            n_w = (rot.detach() @ n_c[..., None]).squeeze(-1)
-        else:
-            if canonical is None or posed is None:
-                raise ValueError("shading (normals: deformed): needs the canonical and posed means")
-            n_w = self.deformed_normals(canonical.detach(), posed.detach(), rot.detach())
+    def forward(self, x_e: torch.Tensor, rot: torch.Tensor) -> torch.Tensor:
+        """x_e [B,N,3] deformed canonical positions, rot [B,N,3,3] canonical-to-posed -> factor [B,N,3]."""
+        n_c = self.normals(x_e.detach())
+        n_w = (rot.detach() @ n_c[..., None]).squeeze(-1)
         return self.irradiance(n_w)
-
-    @torch.no_grad()
-    def deformed_normals(self, canonical: torch.Tensor, posed: torch.Tensor, rot: torch.Tensor) -> torch.Tensor:
-        """canonical [N,3], posed [B,N,3], rot [B,N,3,3] -> world normals [B,N,3] from the local deformation gradient,
-        length |n_c| (short where the body grid's normal is undefined)."""
-        N = canonical.shape[0]
-        if self._knn is None or self._knn.shape[0] != N or self._knn_age >= self.refresh_every:
-            from scipy.spatial import cKDTree
-
-            pts = canonical.cpu().double().numpy()
-            _, idx = cKDTree(pts).query(pts, k=min(self.neighbours + 1, N))
-            self._knn = torch.from_numpy(idx[:, 1:]).to(canonical.device)  # [N,k] without the point itself
-            self._knn_age = 0
-        self._knn_age += 1
-        n_c = self.normals(canonical)  # [N,3]
-        length = n_c.norm(dim=-1, keepdim=True)
-        n_hat = n_c / length.clamp_min(1e-8)
-        helper = torch.where((n_hat[:, :1].abs() < 0.9), torch.tensor([1.0, 0.0, 0.0], dtype=n_c.dtype, device=n_c.device),
-                             torch.tensor([0.0, 1.0, 0.0], dtype=n_c.dtype, device=n_c.device))
-        t1 = torch.nn.functional.normalize(torch.linalg.cross(n_hat, helper), dim=-1)
-        t2 = torch.linalg.cross(n_hat, t1)
-        dc = canonical[self._knn] - canonical[:, None]  # [N,k,3]
-        dp = posed[:, self._knn] - posed[:, :, None]  # [B,N,k,3]
-        Bm = dc.transpose(-1, -2) @ dc  # [N,3,3]
-        Bm = Bm + (1e-2 * Bm.diagonal(dim1=-2, dim2=-1).sum(-1) / 3 + 1e-12)[:, None, None] * torch.eye(3, dtype=dc.dtype, device=dc.device)
-        A = dp.transpose(-1, -2) @ dc  # [B,N,3,3]
-        F = A @ torch.linalg.inv(Bm)  # [B,N,3,3]
-        n = torch.linalg.cross((F @ t1[..., None]).squeeze(-1), (F @ t2[..., None]).squeeze(-1))
-        n = torch.nn.functional.normalize(n, dim=-1)
-        skinned = (rot @ n_hat[..., None]).squeeze(-1)
-        n = torch.where(((n * skinned).sum(-1, keepdim=True) < 0), -n, n)
-        return n * length
 
     def param_groups(self) -> dict[str, list[nn.Parameter]]:
         return {"shading": [self.coeffs]}
