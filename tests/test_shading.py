@@ -151,3 +151,21 @@ def test_module_builds_the_grid_before_step_0_and_multiplies_the_colour(body):
     assert torch.allclose(rgb, base * light)
     assert not torch.allclose(light, torch.ones_like(light))
     assert (light_turned - light).abs().max() > 0.5  # same canonical Gaussians and pose features, other heading
+
+
+def test_export_bakes_the_light_of_the_pose(body):
+    """What export writes and the viewer streams carries the shading factor of that pose (and none with shading off)."""
+    from realityavatar.build import build_module
+    from realityavatar.export import gaussians_for_export
+
+    module = build_module(compose(["gaussians.num_points=200", "shading=irradiance"]), body, num_train_frames=2,
+                          scene_extent=1.0)
+    module.on_fit_start()
+    poses, transl = torch.zeros(3, 24, 3), torch.zeros(3, 3)
+    plain = gaussians_for_export(module, poses, transl)["rgb"]  # coefficients 0: E = 1
+    with torch.no_grad():
+        module.shading.coeffs[0] = -1.0  # everything darker by exp(-Y_0)
+    lit = gaussians_for_export(module, poses, transl)["rgb"]
+    factor = math.exp(-0.28209479177387814)
+    assert abs(float((lit / plain.clip(1e-6)).mean()) - factor) < 1e-3
+    assert "sh" not in gaussians_for_export(module) and "rgb" in gaussians_for_export(module)

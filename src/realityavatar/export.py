@@ -94,7 +94,8 @@ def gaussians_for_export(module, poses: torch.Tensor | None = None, transl: torc
     [N,K,3]. What `export_gaussians` writes and what `realityavatar-view` streams.
 
     View-dependent colour is baked to its average over six axis-aligned view directions (degree-0 SH),
-    except for the SH colour model in canonical space, whose coefficients are kept as they are.
+    except for the SH colour model in canonical space without shading, whose coefficients are kept as they are.
+    With `shading=irradiance` the colour is multiplied by the light of that pose (canonical: the rest orientation).
     """
     g = module.gaussians
     dev, dt = g.means.device, g.means.dtype
@@ -103,12 +104,16 @@ def gaussians_for_export(module, poses: torch.Tensor | None = None, transl: torc
         means, quats, scales = g.means, g.quats, torch.exp(g.log_scales)
         rot = torch.eye(3, device=dev, dtype=dt).expand(g.num_points, 3, 3)[None]
         f_mt = g.means.new_zeros(1, g.num_points, module.deformer.feature_dim)  # canonical: no motion-trend feature
+        x_e = g.means[None]
     else:
         posed = module.deform(poses[None].to(dev, dt), transl[None].to(dev, dt))
         means, quats, scales, rot, f_mt = posed["means"][0], posed["quats"][0], posed["scales"][0], posed["rot"], posed["f_mt"]
+        x_e = posed["x_e"]
+    shading = getattr(module, "shading", None)
+    light = shading(x_e, rot) if shading is not None else None  # world-fixed light ([1,N,3]), or None
     out = {"means": means, "quats": quats, "scales": scales, "opacities": g.opacities()}
     sh_coeffs = getattr(module.color, "sh_coefficients", None)
-    if callable(sh_coeffs) and poses is None:
+    if callable(sh_coeffs) and poses is None and light is None:
         out["sh"] = sh_coeffs(g.features)
     else:
         # One direction at a time: a [6,N,hidden] batch is slower on the CPU at 35k Gaussians (cache), not faster.
@@ -118,7 +123,8 @@ def gaussians_for_export(module, poses: torch.Tensor | None = None, transl: torc
             d_c = (rot.transpose(-1, -2) @ d[:, None]).squeeze(-1)  # canonical view dir per Gaussian [1,N,3]
             d_c = torch.nn.functional.normalize(d_c.expand(1, g.num_points, 3), dim=-1)
             rgb = rgb + module.color(g.features, d_c, f_mt, frame_idx)[0]
-        out["rgb"] = (rgb / len(dirs)).clamp(0, 1)
+        rgb = rgb / len(dirs)
+        out["rgb"] = (rgb if light is None else rgb * light[0]).clamp(0, 1)
     return {k: v.detach().cpu().float().numpy() for k, v in out.items()}
 
 
