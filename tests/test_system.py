@@ -357,8 +357,9 @@ def test_module_wiring_optimizer_groups_decoder_box_and_sh_export(body, tmp_path
     from realityavatar.export import export_gaussians, read_ply
     from realityavatar.render import eval_sh
 
+    # shading=none: the plain 3DGS colour exports its SH coefficients (with the world-lit shading it exports rgb)
     cfg = compose(["gaussians.num_points=500", "deformer=motion_trend_hash", "color=sh", "deformer.hash_levels=4",
-                   "deformer.hash_log2_table_size=10", "skinning=mlp"])
+                   "deformer.hash_log2_table_size=10", "skinning=mlp", "shading=none"])
     module = build_module(cfg, body, num_train_frames=2, scene_extent=2.0)
     groups = {g["name"]: g for g in module.param_groups()}
     assert set(groups) == {"means", "log_scales", "quats", "opacity_logits", "features", "encoder", "temporal",
