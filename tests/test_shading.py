@@ -145,7 +145,8 @@ def test_module_builds_the_grid_before_step_0_and_multiplies_the_colour(body):
         posed = module.deform(poses, torch.zeros(1, 3, 3))
         rgb = module.shade(posed, viewmat, idx)
         light = module.shading(posed["x_e"], posed["rot"])
-        light_turned = module.shading(*(lambda p: (p["x_e"], p["rot"]))(module.deform(turned, torch.zeros(1, 3, 3))))
+        posed_turned = module.deform(turned, torch.zeros(1, 3, 3))
+        light_turned = module.shading(posed_turned["x_e"], posed_turned["rot"])
         module.shading = NoShading()
         base = module.shade(posed, viewmat, idx)
     assert torch.allclose(rgb, base * light)
@@ -169,3 +170,22 @@ def test_export_bakes_the_light_of_the_pose(body):
     factor = math.exp(-0.28209479177387814)
     assert abs(float((lit / plain.clip(1e-6)).mean()) - factor) < 1e-3
     assert "sh" not in gaussians_for_export(module) and "rgb" in gaussians_for_export(module)
+
+
+def test_grids_share_the_nearest_sample_query_only_for_the_same_voxel_centres(body):
+    """diffuse_to_grid reuses the last k-d tree query when the samples and voxels match: a box shifted by less than
+    a voxel (same voxel counts, other centres) must not take the cached query."""
+    from realityavatar.model import skinning
+    from realityavatar.model.skinning import diffuse_to_grid
+
+    v = body.canonical_vertices().detach()
+    n = vertex_normals(v.float(), body.faces)
+    args = (0.08, 2, 0, 0.1, 400_000)  # voxel 8 cm, k, smooth_iters, smooth_ramp, max_voxels
+    a = diffuse_to_grid(v, body.faces, n, args[0], 0.30, *args[1:])[0]
+    shifted = diffuse_to_grid(v, body.faces, n, args[0], 0.301, *args[1:])[0]  # same counts, centres 1 mm apart
+    assert shifted.shape == a.shape
+    skinning._KNN_CACHE.clear()
+    fresh = diffuse_to_grid(v, body.faces, n, args[0], 0.301, *args[1:])[0]
+    assert torch.equal(shifted, fresh)
+    skinning._KNN_CACHE.clear()
+    assert torch.equal(diffuse_to_grid(v, body.faces, n, args[0], 0.30, *args[1:])[0], a)

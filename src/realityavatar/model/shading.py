@@ -12,7 +12,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from realityavatar.model.skinning import diffuse_to_grid, sample_grid
+from realityavatar.model.skinning import check_grid_settings, diffuse_to_grid, sample_grid
 from realityavatar.render import sh_basis
 
 
@@ -55,10 +55,7 @@ class IrradianceShading(nn.Module):
         super().__init__()
         if not 1 <= int(sh_degree) <= 3:
             raise ValueError(f"shading.sh_degree: expected 1, 2 or 3 (0 would be a constant gain), got {sh_degree}")
-        if voxel_size <= 0 or padding < 0 or k < 1 or smooth_iters < 0 or smooth_ramp <= 0:
-            raise ValueError(
-                f"shading (irradiance): expected voxel_size > 0, padding >= 0, k >= 1, smooth_iters >= 0, "
-                f"smooth_ramp > 0; got {voxel_size}, {padding}, {k}, {smooth_iters}, {smooth_ramp}")
+        check_grid_settings("shading (irradiance)", voxel_size, padding, k, smooth_iters, smooth_ramp)
         self.sh_degree = int(sh_degree)
         self.voxel_size, self.padding, self.k = float(voxel_size), float(padding), int(k)
         self.smooth_iters, self.smooth_ramp, self.max_voxels = int(smooth_iters), float(smooth_ramp), int(max_voxels)

@@ -93,10 +93,7 @@ class SkinningGrid(nn.Module):
         num_bones: int = NUM_BONES,
     ) -> None:
         super().__init__()
-        if voxel_size <= 0 or padding < 0 or k < 1 or smooth_iters < 0 or smooth_ramp <= 0:
-            raise ValueError(
-                f"skinning (grid): expected voxel_size > 0, padding >= 0, k >= 1, smooth_iters >= 0, smooth_ramp > 0; "
-                f"got {voxel_size}, {padding}, {k}, {smooth_iters}, {smooth_ramp}")
+        check_grid_settings("skinning (grid)", voxel_size, padding, k, smooth_iters, smooth_ramp)
         self.voxel_size, self.padding, self.k = float(voxel_size), float(padding), int(k)
         self.smooth_iters, self.smooth_ramp, self.max_voxels = int(smooth_iters), float(smooth_ramp), int(max_voxels)
         self.num_bones = num_bones
@@ -138,6 +135,15 @@ class SkinningGrid(nn.Module):
 _KNN_CACHE: dict = {}  # the last grid's nearest-sample query (see diffuse_to_grid)
 
 
+def check_grid_settings(name: str, voxel_size: float, padding: float, k: int, smooth_iters: int,
+                        smooth_ramp: float) -> None:
+    """The settings of a body grid built by `diffuse_to_grid`; `name` is the config the error names."""
+    if voxel_size <= 0 or padding < 0 or k < 1 or smooth_iters < 0 or smooth_ramp <= 0:
+        raise ValueError(
+            f"{name}: expected voxel_size > 0, padding >= 0, k >= 1, smooth_iters >= 0, smooth_ramp > 0; "
+            f"got {voxel_size}, {padding}, {k}, {smooth_iters}, {smooth_ramp}")
+
+
 @torch.no_grad()
 def diffuse_to_grid(vertices: torch.Tensor, faces: torch.Tensor, values: torch.Tensor, voxel_size: float,
                     padding: float, k: int, smooth_iters: int, smooth_ramp: float, max_voxels: int, seed: int = 0,
@@ -164,9 +170,10 @@ def diffuse_to_grid(vertices: torch.Tensor, faces: torch.Tensor, values: torch.T
     gen = torch.Generator().manual_seed(seed)
     pts, w = sample_surface(vertices.detach().float().cpu(), faces.cpu(), values.detach().float().cpu(), 200_000, gen)
     nx, ny, nz = (int(v) for v in size)
-    # The nearest-sample query is most of the cost (~2-5 s); grids of the same body, box and k (the skin weights and
-    # the shading normals) share it: the samples depend on the mesh and the seed only, not on the values.
-    key = (hashlib.sha1(pts.numpy().tobytes()).hexdigest(), nx, ny, nz, float(voxel_size), k)
+    # The nearest-sample query is most of the cost (~2-5 s); grids of the same samples, voxel centres and k (the skin
+    # weights and the shading normals) share it: the samples depend on the mesh and the seed only, not on the values.
+    key = (hashlib.sha1(pts.numpy().tobytes()).hexdigest(), tuple(float(v) for v in lo), nx, ny, nz,
+           float(voxel_size), k)
     if _KNN_CACHE.get("key") != key:
         axes = [np.linspace(float(lo[i]), float(hi[i]), n) for i, n in enumerate((nx, ny, nz))]
         zz, yy, xx = np.meshgrid(axes[2], axes[1], axes[0], indexing="ij")  # [D,H,W] each
