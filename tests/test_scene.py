@@ -176,7 +176,7 @@ def test_light_parameters_shade_the_images(tmp_path):
     K = np.array([[[32.0, 0, 16], [0, 32.0, 16], [0, 0, 1]]])
     E = np.eye(4)[None].copy()
     E[0, 2, 3] = 2.0
-    tex = lambda f, bary: np.full((len(f), 3), 0.5)  # noqa: E731 - a flat grey albedo
+    tex = lambda f, bary: np.full((len(f), 3), 0.5)  # a flat grey albedo
     lit, m1 = render_views([(V, F, tex)], K, E, 32, 32, ambient=0.4, diffuse=0.6)
     flat, m2 = render_views([(V, F, tex)], K, E, 32, 32, ambient=1.0, diffuse=0.0)
     assert (m1 == m2).all() and m1.any()

@@ -109,8 +109,7 @@ def gaussians_for_export(module, poses: torch.Tensor | None = None, transl: torc
         posed = module.deform(poses[None].to(dev, dt), transl[None].to(dev, dt))
         means, quats, scales, rot, f_mt = posed["means"][0], posed["quats"][0], posed["scales"][0], posed["rot"], posed["f_mt"]
         x_e = posed["x_e"]
-    shading = getattr(module, "shading", None)
-    light = shading(x_e, rot) if shading is not None else None  # world-fixed light ([1,N,3]), or None
+    light = module.shading(x_e, rot)  # world-fixed light [1,N,3] (shading=irradiance), or None
     out = {"means": means, "quats": quats, "scales": scales, "opacities": g.opacities()}
     sh_coeffs = getattr(module.color, "sh_coefficients", None)
     if callable(sh_coeffs) and poses is None and light is None:

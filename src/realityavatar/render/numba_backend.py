@@ -19,7 +19,8 @@ import torch
 try:  # the torch backend stays the fallback where numba cannot be imported
     import numba
     from llvmlite import ir as _ir
-    from numba import njit, prange, types as _types
+    from numba import njit, prange
+    from numba import types as _types
     from numba.extending import intrinsic
 
     NUMBA_ERROR: str | None = None
