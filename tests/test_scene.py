@@ -78,7 +78,13 @@ def test_masks_match_silhouettes(ci_scene):
             rgb = imageio.imread(img_path)
             mask = imageio.imread(d / "masks" / img_path.name)
             assert set(np.unique(mask)) <= {0, 255}
-            assert np.array_equal(rgb.max(-1) > 0, mask > 0), img_path.name
+            # Masks are the pixels at least half covered (supersample > 1): every one is lit, and a lit pixel
+            # outside the mask is an edge pixel or a part thinner than half a pixel, within 2 px of the mask.
+            lit, inside = rgb.max(-1) > 0, mask > 0
+            assert lit[inside].all(), img_path.name
+            near = np.pad(inside, 2)
+            near = np.max([near[dy:dy + inside.shape[0], dx:dx + inside.shape[1]] for dy in range(5) for dx in range(5)], 0)
+            assert not (lit & ~near).any(), img_path.name
             assert 0.03 < (mask > 0).mean() < 0.6  # the subject is in view and not clipped to a sliver
 
 
@@ -158,6 +164,9 @@ def test_determinism_cache_and_other_seed(ci_scene, tmp_path):
     ({"colour": 1}, "unknown keys"),
     ({"ambient": -0.1}, "ambient"),
     ({"ambient": 0.0, "diffuse": 0.0}, "ambient"),
+    ({"supersample": 0}, "supersample"),
+    ({"supersample": 9}, "supersample"),
+    ({"supersample": 2.5}, "supersample"),
 ])
 def test_bad_parameters_raise_before_writing(tmp_path, overrides, match):
     root = tmp_path / "never"
@@ -183,6 +192,55 @@ def test_light_parameters_shade_the_images(tmp_path):
     inside = m1 > 0
     assert (flat[inside] == 128).all()  # 0.5 albedo x 1.0
     assert lit[inside].max() < 128  # the light (0.35, 0.82, 0.45) meets this triangle's normal obliquely
+
+
+def _striped_quad(period_px: float):
+    """A quad filling a 16x16 view 2 m away, its albedo stripes of `period_px` pixels along x (white | black)."""
+    V = np.array([[-1.0, -1.0, 0.0], [1.0, -1.0, 0.0], [1.0, 1.0, 0.0], [-1.0, 1.0, 0.0]])
+    F = np.array([[0, 1, 2], [0, 2, 3]])
+    K = np.array([[[16.0, 0, 8], [0, 16.0, 8], [0, 0, 1]]])  # 2 m away: a pixel is 1/8 m on the quad
+    E = np.eye(4)[None].copy()
+    E[0, 2, 3] = 2.0
+    px = 2.0 / 16.0  # metres per pixel on the quad
+
+    def tex(f, bary):
+        x = np.einsum("pk,pkc->pc", bary, V[f])[:, 0] + 8 * px
+        on = np.floor(x / (period_px * px) * 2) % 2 == 0
+        return np.where(on[:, None], 1.0, 0.1) * np.ones((len(f), 3))
+
+    return [(V, F, tex)], K, E
+
+
+def test_supersample_integrates_each_pixel():
+    """Stripes of half a pixel: one ray per pixel centre always lands on the same stripe (aliasing: a flat, wrong
+    colour), s x s rays average both stripes like a camera's pixel; supersample=1 is the centre ray exactly."""
+    from realityavatar.data.synthetic.render import render_views
+
+    parts, K, E = _striped_quad(period_px=0.5)
+    one, m1 = render_views(parts, K, E, 16, 16, ambient=1.0, diffuse=0.0, supersample=1)
+    four, m4 = render_views(parts, K, E, 16, 16, ambient=1.0, diffuse=0.0, supersample=4)
+    assert m1.all() and m4.all()
+    assert np.unique(one).size == 1 and one.max() in (26, 255)  # every centre hits the same stripe
+    assert np.abs(four.astype(float) - 0.55 * 255).max() <= 1.0  # (1.0 + 0.1) / 2 per pixel
+    with pytest.raises(ValueError, match="supersample"):
+        render_views(parts, K, E, 16, 16, supersample=0)
+
+
+def test_supersample_masks_half_covered_pixels():
+    """A triangle edge through the view: the s x s mask keeps the pixels at least half covered, and the edge pixels'
+    colour is the covered fraction of the albedo."""
+    from realityavatar.data.synthetic.render import render_views
+
+    V = np.array([[-1.0, -1.0, 0.0], [0.0 + 0.3 / 16, -1.0, 0.0], [0.0 + 0.3 / 16, 1.0, 0.0], [-1.0, 1.0, 0.0]])
+    F = np.array([[0, 1, 2], [0, 2, 3]])  # x < 0.01875 m: pixel column 8 is 0.15 covered (1/8 m per pixel, 2 m away)
+    K = np.array([[[16.0, 0, 8], [0, 16.0, 8], [0, 0, 1]]])
+    E = np.eye(4)[None].copy()
+    E[0, 2, 3] = 2.0
+    tex = lambda f, bary: np.full((len(f), 3), 1.0)
+    rgb, mask = render_views([(V, F, tex)], K, E, 16, 16, ambient=1.0, diffuse=0.0, supersample=4)
+    assert (mask[0, :, :8] == 255).all() and (mask[0, :, 8:] == 0).all()
+    assert (rgb[0, :, :8] == 255).all() and (rgb[0, :, 9:] == 0).all()
+    assert np.abs(rgb[0, :, 8].astype(float) - 0.25 * 255).max() <= 1.0  # 4 x 4 grid: 1 of 4 columns inside
 
 
 def test_unknown_preset_and_short_spin(tmp_path):

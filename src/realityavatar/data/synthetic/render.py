@@ -19,7 +19,13 @@ MIN_ALBEDO = 0.1  # keeps every lit pixel > 0 so the black background alone is z
 def camera_rays(K: np.ndarray, viewmat: np.ndarray, width: int, height: int):
     """Origins [H*W,3], unit directions [H*W,3] (world) through pixel centres, row-major."""
     v, u = np.meshgrid(np.arange(height) + 0.5, np.arange(width) + 0.5, indexing="ij")
-    pix = np.stack([u.ravel(), v.ravel(), np.ones(u.size)], -1)  # [P,3]
+    return pixel_rays(K, viewmat, u.ravel(), v.ravel())
+
+
+def pixel_rays(K: np.ndarray, viewmat: np.ndarray, u: np.ndarray, v: np.ndarray):
+    """Origins [P,3], unit directions [P,3] (world) through image points (u, v) [P] in pixels (OpenCV: the first
+    pixel's centre is (0.5, 0.5))."""
+    pix = np.stack([u, v, np.ones(u.size)], -1)  # [P,3]
     d_cam = pix @ np.linalg.inv(K).T
     R, t = viewmat[:3, :3], viewmat[:3, 3]
     d = d_cam @ R  # R^T d_cam, row-wise
@@ -101,13 +107,20 @@ def all_camera_rays(Ks: np.ndarray, viewmats: np.ndarray, width: int, height: in
 
 def render_views(parts: list[tuple[np.ndarray, np.ndarray, object]], Ks: np.ndarray, viewmats: np.ndarray,
                  width: int, height: int, rays: tuple[np.ndarray, np.ndarray] | None = None,
-                 ambient: float = AMBIENT, diffuse: float = DIFFUSE):
+                 ambient: float = AMBIENT, diffuse: float = DIFFUSE, supersample: int = 1):
     """Ray cast the union of mesh parts [(vertices [V,3], faces [F,3], texture)] into every camera.
 
     rays: optional precomputed `all_camera_rays(Ks, viewmats, width, height)`. Shading: albedo x (ambient + diffuse x
     max(0, n.LIGHT_DIR)), the light fixed in the world.
-    Returns rgb [C,H,W,3] uint8 (black background) and mask [C,H,W] uint8 (0/255, 255 where any part is hit).
+    supersample: s > 1 integrates each pixel as a camera does: s x s rays on a regular grid inside the pixel, averaged
+    (misses count as the black background). Only pixels within one pixel of a centre-ray hit take them (the rest is
+    background); s = 1 is one ray through each pixel centre, whose sub-pixel texture detail aliases.
+    Returns rgb [C,H,W,3] uint8 (black background) and mask [C,H,W] uint8 (0/255): 255 where at least half of the
+    pixel is covered (s > 1), or where the centre ray hits (s = 1).
     """
+    if isinstance(supersample, bool) or int(supersample) != supersample or not 1 <= supersample <= 8:
+        raise ValueError(f"supersample: expected an integer 1..8 (rays per pixel side), got {supersample!r}")
+    s = int(supersample)
     verts, faces, owner, offsets = [], [], [], [0]
     for i, (v, f, _) in enumerate(parts):
         faces.append(np.asarray(f) + offsets[-1])
@@ -120,14 +133,16 @@ def render_views(parts: list[tuple[np.ndarray, np.ndarray, object]], Ks: np.ndar
     vn = _vertex_normals(V, Fc)
     C = len(Ks)
     origins, dirs = rays if rays is not None else all_camera_rays(Ks, viewmats, width, height)
-    tri, ray = caster.intersects_id(origins, dirs, multiple_hits=False, return_locations=False)
-    rgb = np.zeros((C * width * height, 3))
-    mask = np.zeros(C * width * height, dtype=np.uint8)
-    if len(ray):
+
+    def shade(o: np.ndarray, d: np.ndarray):
+        """Colour of every ray's first hit: (ray index [P], albedo x light [P,3])."""
+        tri, ray = caster.intersects_id(o, d, multiple_hits=False, return_locations=False)
+        if not len(ray):
+            return ray, np.zeros((0, 3))
         # Barycentrics of the hit from the ray/plane intersection (Embree's own are not exposed by trimesh).
         tris = V[Fc[tri]]  # [P,3,3]
         n = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
-        o, d = origins[ray], dirs[ray]
+        o, d = o[ray], d[ray]
         tt = np.einsum("pc,pc->p", tris[:, 0] - o, n) / np.einsum("pc,pc->p", d, n)
         loc = o + tt[:, None] * d
         bary = trimesh.triangles.points_to_barycentric(tris, loc).clip(0, 1)
@@ -135,14 +150,42 @@ def render_views(parts: list[tuple[np.ndarray, np.ndarray, object]], Ks: np.ndar
         normal = np.einsum("pk,pkc->pc", bary, vn[Fc[tri]])
         normal /= np.linalg.norm(normal, axis=1, keepdims=True).clip(1e-12)
         normal = np.where((np.einsum("pc,pc->p", normal, d) > 0)[:, None], -normal, normal)  # two-sided cloth
-        shade = ambient + diffuse * np.clip(normal @ LIGHT_DIR, 0, None)
+        light = ambient + diffuse * np.clip(normal @ LIGHT_DIR, 0, None)
         albedo = np.zeros((len(ray), 3))
         for i, (_, f, tex) in enumerate(parts):
             sel = owner[tri] == i
             if sel.any():
                 albedo[sel] = tex(np.asarray(f)[tri[sel] - _face_offset(parts, i)], bary[sel])
-        rgb[ray] = albedo * shade[:, None]
-        mask[ray] = 255
+        return ray, albedo * light[:, None]
+
+    rgb = np.zeros((C * width * height, 3))
+    mask = np.zeros(C * width * height, dtype=np.uint8)
+    ray, col = shade(origins, dirs)
+    rgb[ray] = col
+    mask[ray] = 255
+    if s > 1:
+        # Pixels within one pixel of a centre hit (a 3x3 dilation of the centre mask), each camera on its own.
+        hit = mask.reshape(C, height, width) > 0
+        pad = np.pad(hit, ((0, 0), (1, 1), (1, 1)))
+        near = np.zeros_like(hit)
+        for dy in range(3):
+            for dx in range(3):
+                near |= pad[:, dy:dy + height, dx:dx + width]
+        sub = (np.arange(s) + 0.5) / s  # sub-pixel offsets from the pixel's corner
+        sv, su = (a.ravel() for a in np.meshgrid(sub, sub, indexing="ij"))
+        for c in range(C):
+            ys, xs = np.nonzero(near[c])
+            if not len(ys):
+                continue
+            o, d = pixel_rays(Ks[c], viewmats[c], (xs[:, None] + su[None]).ravel(), (ys[:, None] + sv[None]).ravel())
+            r, col = shade(o, d)
+            acc = np.zeros((len(ys) * s * s, 3))
+            acc[r] = col
+            covered = np.zeros(len(ys) * s * s)
+            covered[r] = 1.0
+            idx = c * width * height + ys * width + xs
+            rgb[idx] = acc.reshape(len(ys), s * s, 3).mean(1)
+            mask[idx] = np.where(covered.reshape(len(ys), s * s).mean(1) >= 0.5, 255, 0)
     rgb8 = np.clip(np.round(rgb * 255), 0, 255).astype(np.uint8)
     rgb8[mask > 0] = np.maximum(rgb8[mask > 0], 1)
     return rgb8.reshape(C, height, width, 3), mask.reshape(C, height, width)

@@ -79,7 +79,7 @@ def resolve_params(preset_or_params: str | dict, sequence: str | None = None, ov
         raise ValueError(f"garment: unknown garment {p['garment']!r}; expected one of {tuple(GARMENTS)}")
     if p["motion"] not in MOTIONS:
         raise ValueError(f"motion: unknown motion {p['motion']!r}; expected one of {MOTIONS}")
-    for k in ("train_frames", "novel_frames", "cameras", "novel_view_cameras", "width", "height"):
+    for k in ("train_frames", "novel_frames", "cameras", "novel_view_cameras", "width", "height", "supersample"):
         if isinstance(p[k], bool) or not isinstance(p[k], (int, np.integer)):
             raise ValueError(f"{k}: expected an integer, got {p[k]!r}")  # noqa: TRY004 -- one error type
         p[k] = int(p[k])
@@ -92,6 +92,9 @@ def resolve_params(preset_or_params: str | dict, sequence: str | None = None, ov
     if not 1 <= p["novel_view_cameras"] < p["cameras"]:
         raise ValueError(f"novel_view_cameras: expected 1 <= count < cameras ({p['cameras']}), "
                          f"got {p['novel_view_cameras']}")
+    if not 1 <= p["supersample"] <= 8:
+        raise ValueError(f"supersample: expected 1..8 rays per pixel side (1: one ray through each pixel centre), "
+                         f"got {p['supersample']}")
     if not 8 <= p["width"] <= 4096 or not 8 <= p["height"] <= 4096:
         raise ValueError(f"width/height: expected 8..4096 px, got {p['width']}x{p['height']}")
     for k in ("fps", "camera_radius", "camera_height", "target_height", "subject_height", "fill", "camera_phase_deg",
@@ -260,7 +263,7 @@ def _write(tmp: Path, p: dict, seed: int, phash: str, body, motion: Motion, Ks, 
     for f in tqdm(range(F), desc=f"scene {name}", disable=not progress, unit="frame"):
         rgb, mask = render_views([(verts_w[f], body_faces, body_tex), (garment.vertices[f], garment.faces, garm_tex)],
                                  Ks, viewmats, p["width"], p["height"], rays, ambient=p["ambient"],
-                                 diffuse=p["diffuse"])
+                                 diffuse=p["diffuse"], supersample=p["supersample"])
         poses = motion.pose[f].reshape(72).astype(np.float32)
         info = {"poses": poses, "Rh": motion.Rh[f].astype(np.float32), "Th": motion.Th[f].astype(np.float32),
                 "joints": joints_body[f].astype(np.float32), "tpose_joints": tpose}
