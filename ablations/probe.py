@@ -7,6 +7,12 @@ motion events: rest (before the spin), spin, after (the second after the stop), 
 0.3 s of "after" again, on its own. Writes probe.csv (per frame and camera kind), probe.json (phase means per run) and
 probe.png (per-frame curves; its last panel is the ground-truth garment's hem radius and height from the scene's
 <scene>-garment.npz, so the model's offsets can be read against how far and how long the simulated skirt moves).
+
+Cloth tracking (synthetic scenes, from <scene>-garment.npz): the Gaussians within 2 cm of the simulated cloth in every
+rest frame are the garment's. Per frame, `cloth_p50` is their median distance to that frame's cloth and `drift_p50` /
+`drift_p90` how far their material position (the closest cloth point, carried back to the first frame's cloth by its
+triangle and barycentrics) has moved from its mean over the rest frames, in metres. A Gaussian that follows the cloth
+keeps its material position; one that slides over the cloth mixes the colours of the texture it crosses.
 """
 
 from __future__ import annotations
@@ -25,6 +31,8 @@ from realityavatar.build import build_data, load_run
 from realityavatar.metrics import psnr, silhouette_iou
 
 PHASES = ("rest", "spin", "after", "settled")
+CLOTH_NEAR = 0.02  # a garment Gaussian: within 2 cm of the cloth in every rest frame
+CLOTH_SAMPLES = 40000  # material points sampled on the cloth (about 5 mm apart on the demo skirt)
 STOP_SECONDS = 0.3  # the "stop" summary: the first 0.3 s after the abrupt stop
 
 
@@ -57,6 +65,47 @@ def garment_curves(npz: Path) -> dict[int, tuple[float, float]] | None:
     return out
 
 
+class ClothTracker:
+    """Material positions of posed Gaussians on a simulated garment (vertices [F,V,3] per frame, faces [Fc,3])."""
+
+    def __init__(self, npz: Path, seed: int = 0):
+        g = np.load(npz)
+        self.V, self.F, self.frames = g["vertices"], g["faces"], [int(f) for f in g["frames"]]
+        rng = np.random.default_rng(seed)
+        self.tri = rng.integers(0, len(self.F), CLOTH_SAMPLES)
+        r = rng.random((CLOTH_SAMPLES, 2))
+        r = np.where(r.sum(1, keepdims=True) > 1, 1 - r, r)  # uniform on each triangle
+        self.bary = np.stack([1 - r.sum(1), r[:, 0], r[:, 1]], 1)
+        self.material = self._points(0)  # the sample's position on the first frame's cloth
+
+    def _points(self, k: int) -> np.ndarray:
+        return np.einsum("pk,pkc->pc", self.bary, self.V[k][self.F[self.tri]])
+
+    def locate(self, frame: int, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """x [N,3] posed means -> (distance to the frame's cloth [N], material position [N,3])."""
+        from scipy.spatial import cKDTree
+
+        d, j = cKDTree(self._points(self.frames.index(frame))).query(x.astype(np.float64))
+        return d, self.material[j]
+
+
+def cloth_tracking(per_frame: dict[int, tuple[np.ndarray, np.ndarray]], phase: dict[int, str]) -> dict[int, tuple]:
+    """{frame: (distance [N], material [N,3])} -> {frame: (cloth_p50, drift_p50, drift_p90)} over the garment's
+    Gaussians (reference: the rest frames, or the first frame where a sequence has none)."""
+    frames = sorted(per_frame)
+    ref = [f for f in frames if phase[f] == "rest"] or frames[:1]
+    on = np.all([per_frame[f][0] < CLOTH_NEAR for f in ref], 0)
+    if not on.any():
+        return {}
+    home = np.mean([per_frame[f][1][on] for f in ref], 0)
+    out = {}
+    for f in frames:
+        d, m = per_frame[f]
+        drift = np.linalg.norm(m[on] - home, axis=1)
+        out[f] = (float(np.median(d[on])), float(np.median(drift)), float(np.percentile(drift, 90)))
+    return out
+
+
 @torch.no_grad()
 def probe_run(run_dir: Path, threads: int = 1, kinds: tuple[str, ...] = ("train", "heldout")) -> tuple[list[dict], dict]:
     torch.set_num_threads(threads)
@@ -67,6 +116,9 @@ def probe_run(run_dir: Path, threads: int = 1, kinds: tuple[str, ...] = ("train"
     fps = float(meta.get("fps", meta.get("preset", {}).get("fps", 25.0)))
     rows: list[dict] = []
     offsets: dict[int, tuple[float, float, float]] = {}
+    npz = Path(str(cfg.data.root)) / f"{cfg.data.sequence}-garment.npz"
+    tracker = ClothTracker(npz) if npz.is_file() else None
+    located: dict[int, tuple[np.ndarray, np.ndarray]] = {}
     for kind, split in (("train", "train"), ("heldout", "novel_view")):
         ds = dm.datasets.get(split)
         if ds is None or kind not in kinds:
@@ -78,6 +130,8 @@ def probe_run(run_dir: Path, threads: int = 1, kinds: tuple[str, ...] = ("train"
                 dx = (posed["x_e"][0] - module.gaussians.means).norm(dim=-1)
                 q = torch.quantile(dx, torch.tensor([0.5, 0.99], dtype=dx.dtype))
                 offsets[rec.frame] = (float(q[0]), float(q[1]), float(dx.max()))
+                if tracker is not None and int(rec.frame) in tracker.frames:
+                    located[int(rec.frame)] = tracker.locate(int(rec.frame), posed["means"][0].numpy())
             rows.append({
                 "frame": int(rec.frame), "view": int(rec.view), "kind": kind,
                 "phase": phase_of(int(rec.frame), events, fps),
@@ -86,7 +140,11 @@ def probe_run(run_dir: Path, threads: int = 1, kinds: tuple[str, ...] = ("train"
             })
     for r in rows:
         r["dx_p50"], r["dx_p99"], r["dx_max"] = offsets[r["frame"]]
-    garment = garment_curves(Path(str(cfg.data.root)) / f"{cfg.data.sequence}-garment.npz")
+    tracking = cloth_tracking(located, {f: phase_of(f, events, fps) for f in located}) if located else {}
+    for r in rows:
+        if r["frame"] in tracking:
+            r["cloth_p50"], r["drift_p50"], r["drift_p90"] = tracking[r["frame"]]
+    garment = garment_curves(npz)
     if garment:
         for r in rows:
             r["hem_radius"], r["hem_depth"] = garment.get(r["frame"], (float("nan"), float("nan")))
@@ -103,6 +161,9 @@ def probe_run(run_dir: Path, threads: int = 1, kinds: tuple[str, ...] = ("train"
                 summary[f"{kind}/{ph}/iou"] = float(np.mean([r["iou"] for r in sel]))
                 summary[f"{kind}/{ph}/psnr"] = float(np.mean([r["psnr"] for r in sel]))
                 summary[f"{kind}/{ph}/dx_p99"] = float(np.mean([r["dx_p99"] for r in sel]))
+                for m in ("cloth_p50", "drift_p50", "drift_p90"):
+                    if all(m in r for r in sel):
+                        summary[f"{kind}/{ph}/{m}"] = float(np.mean([r[m] for r in sel]))
     return rows, summary
 
 
@@ -171,19 +232,21 @@ def main(argv: list[str] | None = None) -> int:
     plot(results, events, out / "probe.png")
     hdr = f"{'run':<22}" + "".join(f"{k:>14}" for k in ("IoU rest", "IoU spin", "IoU after", "PSNR rest",
                                                            "PSNR spin", "PSNR after", "PSNR stop", "p99dx rest",
-                                                           "p99dx spin"))
+                                                           "p99dx spin", "drift spin", "drift settl"))
     print("held-out cameras, training frames")
     print(hdr)
     for label, s in summaries.items():
         vals = [s.get(f"heldout/{p}/iou") for p in ("rest", "spin", "after")]
         vals += [s.get(f"heldout/{p}/psnr") for p in ("rest", "spin", "after", "stop")]
         vals += [100 * s[f"heldout/{p}/dx_p99"] if f"heldout/{p}/dx_p99" in s else None for p in ("rest", "spin")]
+        vals += [100 * s[f"heldout/{p}/drift_p50"] if f"heldout/{p}/drift_p50" in s else None for p in ("spin", "settled")]
         print(f"{label:<22}" + "".join(f"{v:14.3f}" if v is not None else f"{'-':>14}" for v in vals))
     groups: dict[str, list[dict]] = {}
     for label, sm in summaries.items():  # labels "<name>@<seed>" are averaged per name
         groups.setdefault(label.split("@")[0], []).append(sm)
     if any(len(v) > 1 for v in groups.values()):
         keys = [f"heldout/{p}/{m}" for m in ("psnr", "iou") for p in ("rest", "spin", "after", "stop", "settled")]
+        keys += [f"heldout/{p}/drift_p50" for p in ("spin", "after", "settled")]
         lines = ["| run | n | " + " | ".join(k.replace("heldout/", "").replace("/", " ") for k in keys) + " |",
                  "|---|---:|" + "---:|" * len(keys)]
         for name, sms in groups.items():

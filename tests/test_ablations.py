@@ -400,3 +400,28 @@ def test_tiny_sweep_end_to_end(tmp_path):
     md = (tmp_path / "table" / "table.md").read_text()
     assert "realityavatar-train -m +ablation=tiny hydra.sweep.dir=" in md and "One seed (0)" in md
     assert len(pareto(sweep, tmp_path / "chart")) == 2
+
+
+def test_probe_cloth_tracking_measures_sliding(tmp_path):
+    """ablations/probe.py's cloth tracking: points glued to the cloth keep their material position (drift 0) while
+    the cloth moves 20 cm; points left in place while the cloth slides 5 cm under them drift 5 cm; points far from
+    the cloth at rest are not the garment's."""
+    import numpy as np
+
+    from ablations.probe import ClothTracker, cloth_tracking
+
+    u, v = np.meshgrid(np.linspace(0, 1, 11), np.linspace(0, 1, 11), indexing="ij")
+    flat = np.stack([u.ravel(), v.ravel(), np.zeros(u.size)], 1)  # a 1 m square in z = 0
+    faces = [(i * 11 + j, (i + 1) * 11 + j, i * 11 + j + 1) for i in range(10) for j in range(10)]
+    faces += [((i + 1) * 11 + j, (i + 1) * 11 + j + 1, i * 11 + j + 1) for i in range(10) for j in range(10)]
+    shift = [np.array([0.0, 0.0, 0.0]), np.array([0.0, 0.0, 0.0]), np.array([0.05, 0.0, 0.0]), np.array([0.2, 0.0, 0.1])]
+    np.savez(tmp_path / "g.npz", vertices=np.stack([flat + s for s in shift]), faces=np.array(faces),
+             frames=np.arange(4))
+    tr = ClothTracker(tmp_path / "g.npz")
+    pts = np.array([[0.3, 0.3, 0.0], [0.5, 0.6, 0.0], [0.5, 0.5, 0.5]])  # two on the cloth, one 50 cm above it
+    phase = {0: "rest", 1: "rest", 2: "spin", 3: "settled"}
+    glued = {f: tr.locate(f, pts + shift[f]) for f in range(4)}
+    still = {f: tr.locate(f, pts + (shift[f] if f != 2 else 0.0)) for f in range(4)}
+    g, s = cloth_tracking(glued, phase), cloth_tracking(still, phase)
+    assert g[2][1] < 0.01 and g[3][1] < 0.01 and g[3][0] < 0.01  # cloth_p50, drift_p50 in metres
+    assert abs(s[2][1] - 0.05) < 0.01 and s[3][1] < 0.01

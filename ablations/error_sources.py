@@ -1,0 +1,128 @@
+"""Where a trained run's held-out error comes from, per phase of a synthetic scene: light, texture or silhouette.
+
+Usage: python ablations/error_sources.py <run_dir> --out <folder> [--unlit-root <dir>]
+
+For every held-out (novel-view) image of the run's training frames it renders the model and measures:
+- psnr: the model as it is;
+- psnr_true_light: the model's albedo (colour / E) times the scene's true shading (lit image / albedo-only image of
+  the same camera and frame, scaled by the global ratio of the two E's), inside the mask where the model is opaque;
+- psnr_true_albedo: the scene's true albedo times the model's E (same pixels, same scale);
+- the squared error's share by region (x1e4 of the image's mean): interior (mask, alpha > 0.9), edge (mask, alpha
+  0.1-0.9), missed (mask, alpha <= 0.1), extra (outside the mask, alpha > 0.1), background (the rest); they sum to
+  mse_total;
+- blur_<s>: the ground truth against itself blurred by a Gaussian of s px, a model-free measure of how much detail
+  each phase's images hold (a renderer of fixed sharpness loses more where there is more).
+The albedo-only scene is built once under --unlit-root with the run's scene parameters and ambient=1, diffuse=0.
+Needs a run with shading=irradiance (the light and albedo columns), a synthetic scene and its motion events.
+Writes error_sources.json (phase means) and prints a table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch.utils.data import default_collate
+
+from realityavatar.build import build_data, load_run
+from realityavatar.metrics import psnr
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+from ablations.probe import phase_of  # noqa: E402
+
+BLUR_PX = (0.75, 1.0, 1.5, 2.0)
+
+
+def blur(img: torch.Tensor, s: float) -> torch.Tensor:
+    """Separable Gaussian blur of an [H,W,C] image (replicated borders)."""
+    r = int(3 * s) + 1
+    x = torch.arange(-r, r + 1, dtype=img.dtype)
+    k = torch.exp(-x**2 / (2 * s * s))
+    k = k / k.sum()
+    im = img.permute(2, 0, 1)[:, None]
+    im = F.conv2d(F.pad(im, (r, r, 0, 0), mode="replicate"), k.view(1, 1, 1, -1))
+    im = F.conv2d(F.pad(im, (0, 0, r, r), mode="replicate"), k.view(1, 1, -1, 1))
+    return im[:, 0].permute(1, 2, 0)
+
+
+@torch.no_grad()
+def error_sources(run: Path, unlit_root: Path, threads: int = 1) -> dict:
+    torch.set_num_threads(threads)
+    cfg, module, _ = load_run(run)
+    if type(module.shading).__name__ != "IrradianceShading":
+        raise ValueError(f"{run}: needs a run trained with shading=irradiance, got {type(module.shading).__name__}")
+    dm = build_data(cfg, module.body)
+    cfg_u, _, _ = load_run(run, overrides=[f"data.root={unlit_root}", "data.build_overrides={ambient: 1.0, diffuse: 0.0}"])
+    dm_u = build_data(cfg_u, module.body)
+    meta = dm.scene.meta or {}
+    events = meta.get("motion", {}).get("events", {})
+    fps = float(meta.get("fps", 25.0))
+    ds, ds_u = dm.datasets["novel_view"], dm_u.datasets["novel_view"]
+    raw = []
+    for i, rec in enumerate(ds.records):
+        b, bu = default_collate([ds[i]]), default_collate([ds_u[i]])
+        posed = module.deform(b["poses"], b["transl"])
+        W, H = int(b["width"][0]), int(b["height"][0])
+        rgb = module.shade(posed, b["viewmat"], b["frame_idx"])[0]
+        light = module.shading(posed["x_e"], posed["rot"])[0]
+        img, a, _ = module.splat(posed, 0, rgb, b["viewmat"], b["K"], W, H)
+        e_img, _, _ = module.splat(posed, 0, light, b["viewmat"], b["K"], W, H)
+        base, _, _ = module.splat(posed, 0, rgb / light, b["viewmat"], b["K"], W, H)
+        a = a[0, ..., 0]
+        gt, albedo, m = b["image"][0], bu["image"][0], b["mask"][0, ..., 0] > 0.5
+        sel = m & (a > 0.9) & (albedo.mean(-1) > 0.08)
+        raw.append(dict(phase=phase_of(int(rec.frame), events, fps), img=img[0], a=a, m=m, base=base[0], gt=gt,
+                        albedo=albedo, sel=sel, e_model=e_img[0] / a[..., None].clamp_min(1e-3),
+                        e_true=gt / albedo.clamp_min(1e-3)))
+    # E and albedo share a global scale: match the model's E to the true one over all selected pixels.
+    scale = sum(float(r["e_true"][r["sel"]].sum()) for r in raw) / sum(float(r["e_model"][r["sel"]].sum()) for r in raw)
+    per: dict[str, list[dict]] = {}
+    for r in raw:
+        img, gt, sel, a, m = r["img"].clamp(0, 1), r["gt"], r["sel"], r["a"], r["m"]
+        light_fix, albedo_fix = img.clone(), img.clone()
+        light_fix[sel] = r["base"][sel] * r["e_true"][sel] / scale
+        albedo_fix[sel] = r["albedo"][sel] * r["e_model"][sel] * scale
+        se = ((img - gt) ** 2).mean(-1)
+        regions = dict(interior=m & (a > 0.9), edge=m & (a > 0.1) & (a <= 0.9), missed=m & (a <= 0.1),
+                       extra=~m & (a > 0.1), background=~m & (a <= 0.1))
+        row = dict(psnr=float(psnr(img, gt)), psnr_true_light=float(psnr(light_fix.clamp(0, 1), gt)),
+                   psnr_true_albedo=float(psnr(albedo_fix.clamp(0, 1), gt)),
+                   mse_total=float(se.mean() * 1e4),
+                   **{f"mse_{k}": float(se[v].sum() / se.numel() * 1e4) for k, v in regions.items()},
+                   **{f"blur_{s}": float(psnr(blur(gt, s), gt)) for s in BLUR_PX})
+        per.setdefault(r["phase"], []).append(row)
+    out = {"run": str(run), "e_scale": scale, "phases": {}}
+    for ph, rows in per.items():
+        out["phases"][ph] = {"images": len(rows), **{k: float(np.mean([x[k] for x in rows])) for k in rows[0]}}
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("run")
+    ap.add_argument("--out", required=True)
+    ap.add_argument("--unlit-root", default="scenes_unlit", help="where the albedo-only scene is built (once)")
+    ap.add_argument("--threads", type=int, default=1)
+    a = ap.parse_args(argv)
+    res = error_sources(Path(a.run), Path(a.unlit_root), a.threads)
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "error_sources.json").write_text(json.dumps(res, indent=2))
+    cols = ["psnr", "psnr_true_light", "psnr_true_albedo", "mse_interior", "mse_edge", "mse_missed", "mse_extra",
+            *[f"blur_{s}" for s in BLUR_PX]]
+    print(f"{'phase':<9}{'n':>4}" + "".join(f"{c:>17}" for c in cols))
+    for ph in ("rest", "spin", "after", "settled", "all"):
+        if ph in res["phases"]:
+            v = res["phases"][ph]
+            print(f"{ph:<9}{v['images']:>4}" + "".join(f"{v[c]:17.3f}" for c in cols))
+    print(f"wrote {out}/error_sources.json")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
