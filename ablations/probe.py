@@ -8,6 +8,9 @@ motion events: rest (before the spin), spin, after (the second after the stop), 
 probe.png (per-frame curves; its last panel is the ground-truth garment's hem radius and height from the scene's
 <scene>-garment.npz, so the model's offsets can be read against how far and how long the simulated skirt moves).
 
+Held-out sequence: the novel-pose split's own spin and abrupt stop, its phases (np_rest / np_spin / np_after) read from
+the root's turning in its mesh_infos.pkl, its PSNR / IoU from the run's per_frame.csv (all cameras), in probe.json.
+
 Cloth tracking (synthetic scenes, from <scene>-garment.npz): the Gaussians within 2 cm of the simulated cloth in every
 rest frame are the garment's. Per frame, `cloth_p50` is their median distance to that frame's cloth and `drift_p50` /
 `drift_p90` how far their material position (the closest cloth point, carried back to the first frame's cloth by its
@@ -164,7 +167,51 @@ def probe_run(run_dir: Path, threads: int = 1, kinds: tuple[str, ...] = ("train"
                 for m in ("cloth_p50", "drift_p50", "drift_p90"):
                     if all(m in r for r in sel):
                         summary[f"{kind}/{ph}/{m}"] = float(np.mean([r[m] for r in sel]))
+    summary.update(novel_pose_phases(run_dir, Path(str(cfg.data.root)) / f"{cfg.data.sequence}-novelpose"))
     return rows, summary
+
+
+def heading_stops(mesh_infos: Path, still_deg: float = 0.5) -> dict[int, str]:
+    """Phases of a held-out (novel-pose) sequence from its root orientations (mesh_infos.pkl, Rh per image):
+    "np_rest" before the root first turns, "np_spin" while it turns by more than `still_deg` per frame, "np_after"
+    from the first still frame after the turning on."""
+    import pickle
+
+    from scipy.spatial.transform import Rotation
+
+    with open(mesh_infos, "rb") as f:
+        infos = pickle.load(f)
+    rh = {int(k[6:12]): np.asarray(v["Rh"], dtype=np.float64).ravel() for k, v in infos.items()}
+    frames = sorted(rh)
+    turn = [0.0] + [float(np.degrees((Rotation.from_rotvec(rh[b]) * Rotation.from_rotvec(rh[a]).inv()).magnitude()))
+                    for a, b in zip(frames, frames[1:])]
+    phases, state = {}, "np_rest"
+    for f, t in zip(frames, turn):
+        if t > still_deg:
+            state = "np_spin"
+        elif state == "np_spin":
+            state = "np_after"
+        phases[f] = state
+    return phases
+
+
+def novel_pose_phases(run_dir: Path, mesh_dir: Path) -> dict:
+    """Novel-pose PSNR / IoU per phase of the held-out sequence (its own spin and abrupt stop), from the run's
+    per_frame.csv (every camera of the novel-pose split); {} when either file is missing."""
+    table, infos = run_dir / "per_frame.csv", mesh_dir / "mesh_infos.pkl"
+    if not table.is_file() or not infos.is_file():
+        return {}
+    phases = heading_stops(infos)
+    with open(table) as f:
+        rows = [r for r in csv.DictReader(f) if r["split"] == "novel_pose" and int(r["frame"]) in phases]
+    out = {}
+    for ph in ("np_rest", "np_spin", "np_after"):
+        sel = [r for r in rows if phases[int(r["frame"])] == ph]
+        if sel:
+            out[f"novel_pose/{ph}/psnr"] = float(np.mean([float(r["psnr"]) for r in sel]))
+            out[f"novel_pose/{ph}/iou"] = float(np.mean([float(r["iou"]) for r in sel]))
+            out[f"novel_pose/{ph}/images"] = len(sel)
+    return out
 
 
 def plot(results: dict[str, list[dict]], events: dict, path: Path) -> None:
@@ -247,6 +294,7 @@ def main(argv: list[str] | None = None) -> int:
     if any(len(v) > 1 for v in groups.values()):
         keys = [f"heldout/{p}/{m}" for m in ("psnr", "iou") for p in ("rest", "spin", "after", "stop", "settled")]
         keys += [f"heldout/{p}/drift_p50" for p in ("spin", "after", "settled")]
+        keys += [f"novel_pose/{p}/psnr" for p in ("np_rest", "np_spin", "np_after")]
         lines = ["| run | n | " + " | ".join(k.replace("heldout/", "").replace("/", " ") for k in keys) + " |",
                  "|---|---:|" + "---:|" * len(keys)]
         for name, sms in groups.items():

@@ -425,3 +425,34 @@ def test_probe_cloth_tracking_measures_sliding(tmp_path):
     g, s = cloth_tracking(glued, phase), cloth_tracking(still, phase)
     assert g[2][1] < 0.01 and g[3][1] < 0.01 and g[3][0] < 0.01  # cloth_p50, drift_p50 in metres
     assert abs(s[2][1] - 0.05) < 0.01 and s[3][1] < 0.01
+
+
+def test_probe_novel_pose_phases_follow_the_root(tmp_path):
+    """ablations/probe.py's held-out-sequence phases: rest until the root turns, spin while it turns by more than
+    0.5 degrees a frame, after from the first still frame; PSNR per phase from per_frame.csv's novel-pose rows."""
+    import pickle
+
+    import numpy as np
+
+    from ablations.probe import heading_stops, novel_pose_phases
+
+    turn = [0, 0, 0, 5, 10, 10, 10, 3, 0, 0]  # degrees per frame about y
+    angle, infos = 0.0, {}
+    for i, t in enumerate(turn):
+        angle += np.radians(t)
+        for view in (0, 1):
+            infos[f"frame_{100 + i:06d}_view_{view:02d}"] = {"Rh": np.array([0.0, angle, 0.0], np.float32)}
+    mesh = tmp_path / "seq-novelpose"
+    mesh.mkdir()
+    with open(mesh / "mesh_infos.pkl", "wb") as f:
+        pickle.dump(infos, f)
+    phases = heading_stops(mesh / "mesh_infos.pkl")
+    assert [phases[100 + i] for i in range(10)] == ["np_rest"] * 3 + ["np_spin"] * 5 + ["np_after"] * 2
+    run = tmp_path / "run"
+    run.mkdir()
+    lines = ["split,frame,view,psnr,iou"] + [f"novel_pose,{100 + i},0,{20 + i},0.9" for i in range(10)]
+    lines += ["novel_view,109,1,99,1.0"]
+    (run / "per_frame.csv").write_text("\n".join(lines) + "\n")
+    out = novel_pose_phases(run, mesh)
+    assert out["novel_pose/np_after/psnr"] == 28.5 and out["novel_pose/np_rest/psnr"] == 21.0
+    assert out["novel_pose/np_spin/images"] == 5
