@@ -424,6 +424,11 @@ def test_rebuild_overrides_move_interpolated_keys(trained_run):
     assert cfg.gaussians.seed == 5 and cfg.density.seed == 5  # ${seed}
     assert cfg.schedule.skin_switch == 100 and cfg.density.refine_start == 100  # ${int_mul:${iterations},0.1}
     assert cfg.data.root == load_run(out)[0].data.root  # environment values stay those of the run
+    # Hydra's "+key=value" adds a key, as on the train command line (it used to land under a key named "+data").
+    cfg, _, _ = load_run(out, ["+data.build_overrides={ambient: 1.0, diffuse: 0.0}"])
+    assert cfg.data.build_overrides.ambient == 1.0 and "+data" not in cfg
+    with pytest.raises(ValueError, match="key=value"):
+        load_run(out, ["~data.root"])
 
 
 def test_checkpoint_with_refined_gaussians_restores_model_and_optimizer(trained_run, body):

@@ -75,6 +75,18 @@ def build_data(cfg: DictConfig, body):
     return dm
 
 
+def _dotlist(overrides: list[str] | None) -> list[str]:
+    """Command-line overrides for a saved run's config. Hydra's `+key=value` / `++key=value` (add a key) mean the same
+    as `key=value` here; without this OmegaConf would store the key under the literal name "+data" and drop it.
+    Hydra's `~key` (delete) has no meaning for a trained run and is refused, as is an override without `=`."""
+    out = []
+    for o in overrides or []:
+        if o.startswith("~") or "=" not in o:
+            raise ValueError(f"override {o!r}: expected key=value (or +key=value) for a saved run's config")
+        out.append(o.lstrip("+"))
+    return out
+
+
 def load_run(run_dir: str | Path, overrides: list[str] | None = None, ckpt: str | Path | None = None):
     """Rebuild (cfg, module, run_info) from a run folder written by `realityavatar-train`."""
     run_dir = Path(run_dir)
@@ -82,6 +94,7 @@ def load_run(run_dir: str | Path, overrides: list[str] | None = None, ckpt: str 
     if not cfg_path.is_file():
         raise FileNotFoundError(f"{cfg_path} not found: expected a run folder written by realityavatar-train")
     raw_path = run_dir / RAW_CONFIG_NAME
+    overrides = _dotlist(overrides)
     if overrides and raw_path.is_file():
         # Overrides go into the run's unresolved config, so keys interpolated from them follow (as in train).
         cfg = OmegaConf.load(raw_path)
