@@ -43,7 +43,7 @@ def _assert_same(a, b, tol_val, tol_grad):
         err = (g_t[name] - g_n[name]).abs().max().item()
         assert err <= tol_grad * scale, f"{name}: {err:.3g} (scale {scale:.3g})"
     assert torch.equal(meta_t["radii"], meta_n["radii"])
-    if meta_t["tile_size"] == meta_n["tile_size"]:  # defaults differ: 8 (torch), 16 (numba)
+    if meta_t["tile_size"] == meta_n["tile_size"]:  # defaults differ: 8 (torch), 32 (numba)
         assert meta_t["tile_pairs"] == meta_n["tile_pairs"]  # same exact tile-ellipse culling
     assert torch.equal(meta_t["visible"], meta_n["visible"])
     for k in ("means2d", "depths", "conics", "opacities"):  # projection: compiled, float64 inside

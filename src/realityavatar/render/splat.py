@@ -206,7 +206,7 @@ def rasterize(
     antialiasing compensation), visible [C,N] bool, backend ("torch" | "numba" | "gsplat"), plus tile statistics.
     backend="auto": gsplat for float32 CUDA tensors when its kernels load, numba for CPU tensors where numba
     imports, else torch.
-    `tile_size` defaults to 8 for torch, 16 for numba and gsplat; `alpha_max`, `chunk_elements` and `tile_cull` tune the torch backend; gsplat's own extra options
+    `tile_size` defaults to 8 for torch, 32 for numba, 16 for gsplat; `alpha_max`, `chunk_elements` and `tile_cull` tune the torch backend; gsplat's own extra options
     go through `gsplat_kwargs` (ignored by the torch backend).
     """
     if backgrounds is None and background is not None:
@@ -306,7 +306,9 @@ def _rasterize_torch(means, quats, scales, opacities, colors, viewmats, Ks, widt
         if bg is not None:
             bg = bg.new_zeros(C, 1)
 
-    ts = (16 if composite == "numba" else 8) if tile_size is None else int(tile_size)  # measured fastest each
+    # Measured fastest each (10k Gaussians, 256², forward + backward, 1 thread): torch 8; numba 32, which was
+    # 24.4 / 23.7 / 22.5 ms at 16 / 24 / 32 px tiles in one interleaved run (64: faster with 1 thread, not with 2).
+    ts = (32 if composite == "numba" else 8) if tile_size is None else int(tile_size)
     if composite == "numba":
         from .numba_backend import composite_numba
 
