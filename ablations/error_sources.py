@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.nn.functional as F
+from omegaconf import OmegaConf
 from torch.utils.data import default_collate
 
 from realityavatar.build import build_data, load_run
@@ -57,7 +58,8 @@ def error_sources(run: Path, unlit_root: Path, threads: int = 1) -> dict:
     if type(module.shading).__name__ != "IrradianceShading":
         raise ValueError(f"{run}: needs a run trained with shading=irradiance, got {type(module.shading).__name__}")
     dm = build_data(cfg, module.body)
-    cfg_u, _, _ = load_run(run, overrides=[f"data.root={unlit_root}", "data.build_overrides={ambient: 1.0, diffuse: 0.0}"])
+    # The same scene without its light, under its own root (the run's config with two data keys changed).
+    cfg_u = OmegaConf.merge(cfg, {"data": {"root": str(unlit_root), "build_overrides": {"ambient": 1.0, "diffuse": 0.0}}})
     dm_u = build_data(cfg_u, module.body)
     meta = dm.scene.meta or {}
     events = meta.get("motion", {}).get("events", {})

@@ -31,6 +31,7 @@ import torch
 from torch.utils.data import default_collate
 
 from realityavatar.build import build_data, load_run
+from realityavatar.data.i3d import read_mesh_infos, split_folder
 from realityavatar.metrics import psnr, silhouette_iou
 
 PHASES = ("rest", "spin", "after", "settled")
@@ -167,31 +168,27 @@ def probe_run(run_dir: Path, threads: int = 1, kinds: tuple[str, ...] = ("train"
                 for m in ("cloth_p50", "drift_p50", "drift_p90"):
                     if all(m in r for r in sel):
                         summary[f"{kind}/{ph}/{m}"] = float(np.mean([r[m] for r in sel]))
-    summary.update(novel_pose_phases(run_dir, Path(str(cfg.data.root)) / f"{cfg.data.sequence}-novelpose"))
+    summary.update(novel_pose_phases(run_dir, split_folder(Path(str(cfg.data.root)), cfg.data.sequence, "novel_pose")))
     return rows, summary
 
 
-def heading_stops(mesh_infos: Path, still_deg: float = 0.5) -> dict[int, str]:
-    """Phases of a held-out (novel-pose) sequence from its root orientations (mesh_infos.pkl, Rh per image):
-    "np_rest" before the root first turns, "np_spin" while it turns by more than `still_deg` per frame, "np_after"
-    from the first still frame after the turning on."""
-    import pickle
+def heading_stops(split_dir: Path, still_deg: float = 0.5) -> dict[int, str]:
+    """Phases of a held-out (novel-pose) sequence from its global orientations (the split's mesh_infos.pkl, read by
+    the I3D reader): "np_rest" before the body first turns, "np_spin" while it turns by more than `still_deg` per
+    frame, "np_after" from the first still frame after the turning on."""
+    from realityavatar.geometry import axis_angle_to_matrix, matrix_to_axis_angle
 
-    from scipy.spatial.transform import Rotation
-
-    with open(mesh_infos, "rb") as f:
-        infos = pickle.load(f)
-    rh = {int(k[6:12]): np.asarray(v["Rh"], dtype=np.float64).ravel() for k, v in infos.items()}
-    frames = sorted(rh)
-    turn = [0.0] + [float(np.degrees((Rotation.from_rotvec(rh[b]) * Rotation.from_rotvec(rh[a]).inv()).magnitude()))
-                    for a, b in zip(frames, frames[1:])]
+    # The pelvis only moves the translation, which the turning does not read.
+    table = read_mesh_infos(split_dir, torch.zeros(3))
+    R = axis_angle_to_matrix(table.poses[:, 0].double())  # [F,3,3] global orientation, frames sorted
+    turn = torch.rad2deg(matrix_to_axis_angle(R[1:] @ R[:-1].transpose(-1, -2)).norm(dim=-1))
     phases, state = {}, "np_rest"
-    for f, t in zip(frames, turn):
+    for f, t in zip(table.frames.tolist(), [0.0, *turn.tolist()]):
         if t > still_deg:
             state = "np_spin"
         elif state == "np_spin":
             state = "np_after"
-        phases[f] = state
+        phases[int(f)] = state
     return phases
 
 
@@ -201,7 +198,7 @@ def novel_pose_phases(run_dir: Path, mesh_dir: Path) -> dict:
     table, infos = run_dir / "per_frame.csv", mesh_dir / "mesh_infos.pkl"
     if not table.is_file() or not infos.is_file():
         return {}
-    phases = heading_stops(infos)
+    phases = heading_stops(mesh_dir)
     with open(table) as f:
         rows = [r for r in csv.DictReader(f) if r["split"] == "novel_pose" and int(r["frame"]) in phases]
     out = {}

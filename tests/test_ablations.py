@@ -441,12 +441,14 @@ def test_probe_novel_pose_phases_follow_the_root(tmp_path):
     for i, t in enumerate(turn):
         angle += np.radians(t)
         for view in (0, 1):
-            infos[f"frame_{100 + i:06d}_view_{view:02d}"] = {"Rh": np.array([0.0, angle, 0.0], np.float32)}
+            infos[f"frame_{100 + i:06d}_view_{view:02d}"] = {
+                "poses": np.zeros(72, np.float32), "Rh": np.array([0.0, angle, 0.0], np.float32),
+                "Th": np.zeros(3, np.float32)}
     mesh = tmp_path / "seq-novelpose"
     mesh.mkdir()
     with open(mesh / "mesh_infos.pkl", "wb") as f:
         pickle.dump(infos, f)
-    phases = heading_stops(mesh / "mesh_infos.pkl")
+    phases = heading_stops(mesh)
     assert [phases[100 + i] for i in range(10)] == ["np_rest"] * 3 + ["np_spin"] * 5 + ["np_after"] * 2
     run = tmp_path / "run"
     run.mkdir()

@@ -307,7 +307,7 @@ def _rasterize_torch(means, quats, scales, opacities, colors, viewmats, Ks, widt
             bg = bg.new_zeros(C, 1)
 
     # Measured fastest each (10k Gaussians, 256², forward + backward, 1 thread): torch 8; numba 32, which was
-    # 24.4 / 23.7 / 22.5 ms at 16 / 24 / 32 px tiles in one interleaved run (64: faster with 1 thread, not with 2).
+    # 24.4 / 23.5 / 22.5 ms at 16 / 24 / 32 px tiles in one interleaved run (64: faster with 1 thread, not with 2).
     ts = (32 if composite == "numba" else 8) if tile_size is None else int(tile_size)
     if composite == "numba":
         from .numba_backend import composite_numba
