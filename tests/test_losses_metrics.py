@@ -71,6 +71,9 @@ def test_ssim_identity_and_loop_reference():
     assert both.shape == (2,) and float(both[1]) == pytest.approx(1.0, abs=1e-6)
     # smaller than the window: padded, still 1 for identical images
     assert float(ssim(x[:5, :7], x[:5, :7])) == pytest.approx(1.0, abs=1e-6)
+    # the separable torch convolutions (GPU tensors, or inputs that need a gradient) equal scipy's CPU path
+    assert float(ssim(x.clone().requires_grad_(), y)) == pytest.approx(ref, abs=1e-5)
+    assert float(ssim(x.clone().requires_grad_(), y)) == pytest.approx(float(ssim(x, y)), abs=1e-12)
 
 
 def test_masked_bbox_variants():

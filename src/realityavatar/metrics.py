@@ -43,10 +43,14 @@ def psnr(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
     return out[0] if single else out
 
 
-def _gaussian_window(size: int = 11, sigma: float = 1.5, device=None) -> torch.Tensor:
+def _gaussian_1d(size: int = 11, sigma: float = 1.5, device=None) -> torch.Tensor:
     x = torch.arange(size, dtype=torch.float64, device=device) - (size - 1) / 2
     g = torch.exp(-(x**2) / (2 * sigma**2))
-    g = g / g.sum()
+    return g / g.sum()  # [size] float64
+
+
+def _gaussian_window(size: int = 11, sigma: float = 1.5, device=None) -> torch.Tensor:
+    g = _gaussian_1d(size, sigma, device)
     return g[:, None] * g[None, :]  # [size,size] float64
 
 
@@ -71,8 +75,20 @@ def ssim(pred: torch.Tensor, gt: torch.Tensor, window: int = 11, sigma: float = 
         pad = (pw // 2, pw - pw // 2, ph // 2, ph - ph // 2)
         x, y = F.pad(x, pad, mode="replicate"), F.pad(y, pad, mode="replicate")
     C = x.shape[1]
-    w = _gaussian_window(window, sigma, x.device)[None, None].expand(C, 1, window, window)
-    filt = lambda t: F.conv2d(t, w, groups=C)  # noqa: E731  'valid' positions only
+    # The Gaussian window is separable: two 1-D passes ('valid' positions only). On the CPU scipy's correlate1d in
+    # float64 (a 256^2 RGB image in ~20 ms; the dense 11x11 float64 conv2d took ~1.3 s and was most of evaluation).
+    g1 = _gaussian_1d(window, sigma, x.device)
+    if x.device.type == "cpu" and not (x.requires_grad or y.requires_grad):
+        from scipy.ndimage import correlate1d
+
+        r, gn = window // 2, g1.numpy()
+
+        def filt(t: torch.Tensor) -> torch.Tensor:
+            a = correlate1d(correlate1d(t.numpy(), gn, axis=-2, mode="constant"), gn, axis=-1, mode="constant")
+            return torch.from_numpy(a[..., r : a.shape[-2] - r, r : a.shape[-1] - r])
+    else:
+        wv, wh = g1.view(1, 1, window, 1).expand(C, 1, window, 1), g1.view(1, 1, 1, window).expand(C, 1, 1, window)
+        filt = lambda t: F.conv2d(F.conv2d(t, wv, groups=C), wh, groups=C)  # noqa: E731
     mx, my = filt(x), filt(y)
     sxx = filt(x * x) - mx * mx
     syy = filt(y * y) - my * my
