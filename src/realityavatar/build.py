@@ -39,6 +39,7 @@ def build_module(cfg: DictConfig, body, num_train_frames: int, scene_extent: flo
     loss = instantiate(cfg.loss)
     silhouette = instantiate(cfg.silhouette) if cfg.get("silhouette") is not None else None
     shading = instantiate(cfg.shading) if cfg.get("shading") is not None else None  # configs from before the option
+    flow = instantiate(cfg.flow) if cfg.get("flow") is not None else None  # configs from before the option: none
     m = cfg.get("metrics", {}) or {}
     lpips, lpips_status = build_lpips("vgg", m.get("lpips_backbone_weights"), m.get("lpips_weights"))
     render = OmegaConf.to_container(cfg.render, resolve=True)
@@ -63,6 +64,7 @@ def build_module(cfg: DictConfig, body, num_train_frames: int, scene_extent: flo
         lpips=lpips,
         silhouette=silhouette,
         shading=shading,
+        flow=flow,
     )
     module.lpips_status = lpips_status  # "computed" or why not, recorded in metrics.json
     return module
@@ -70,6 +72,8 @@ def build_module(cfg: DictConfig, body, num_train_frames: int, scene_extent: flo
 
 def build_data(cfg: DictConfig, body):
     dm = instantiate(cfg.data, body=body)
+    if cfg.get("flow") is not None and float(cfg.flow.get("weight", 0.0)) > 0:
+        dm.flow = instantiate(cfg.flow).spec  # training samples carry the flow to the earlier image (flow=dis)
     dm.prepare_data()
     dm.setup("fit")
     return dm

@@ -217,3 +217,40 @@ class NoSilhouette(nn.Module):
 
     def total(self, terms: dict[str, torch.Tensor]) -> torch.Tensor:
         return torch.zeros(())  # never added by the module: forward returns no terms
+
+
+class FlowLoss(nn.Module):
+    """Image-flow supervision of the Gaussians' motion (`flow=dis`): against sliding over the garment.
+
+    Each training image (frame t, camera c) comes with the optical flow to camera c's image at t - frame_gap
+    (`data.flow.flow_pair`: DIS both ways, forward-backward checked, inside the eroded mask). The module deforms the
+    Gaussians for that earlier frame too (no gradient), projects both positions into camera c and renders each
+    Gaussian's image displacement (u_{t-gap} - u_t, in image heights) as two extra colour channels through the same
+    alpha compositing as the image. The term is the L1 between that rendered flow and alpha x the image flow over the
+    valid pixels (mean over them), so a Gaussian is pulled to move with the material under it, also along the cloth,
+    where the photometric loss is blind once the texture is blurred.
+    """
+
+    def __init__(self, weight: float = 1.0, frame_gap: int = 1, preset: str = "medium", fb_tol: float = 1.0,
+                 erode: int = 1) -> None:
+        super().__init__()
+        from realityavatar.data.flow import FlowSpec
+
+        if not (weight >= 0):
+            raise ValueError(f"flow.weight: expected a number >= 0, got {weight!r}")
+        self.weight = float(weight)
+        self.spec = FlowSpec(frame_gap=int(frame_gap), preset=str(preset), fb_tol=float(fb_tol), erode=int(erode))
+
+    def forward(self, pred: torch.Tensor, alpha: torch.Tensor, flow: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+        """pred [B,H,W,2] rendered displacement (image heights), alpha [B,H,W,1], flow [B,H,W,2] (pixels),
+        valid [B,H,W,1] -> mean L1 over valid pixels (0 when none)."""
+        H = flow.shape[1]
+        err = (pred - alpha * (flow / H)).abs().sum(-1, keepdim=True) * valid
+        return err.sum() / valid.sum().clamp_min(1.0)
+
+
+class NoFlow(nn.Module):
+    """No flow term (the default): the training samples carry no flow and the module renders no displacement."""
+
+    weight = 0.0
+    spec = None

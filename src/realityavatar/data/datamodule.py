@@ -9,6 +9,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pytorch_lightning as pl
@@ -25,6 +26,9 @@ from realityavatar.data.records import (
     load_record,
 )
 from realityavatar.geometry import camera_centres
+
+if TYPE_CHECKING:
+    from realityavatar.data.flow import FlowSpec
 
 log = logging.getLogger(__name__)
 READERS = ("i3d", "zju")
@@ -45,6 +49,7 @@ class AvatarDataset(Dataset):
         image_scale: float = 1.0,
         undistort: bool = True,
         cache_images: bool = False,
+        flow: FlowSpec | None = None,
     ) -> None:
         self.records = list(records)
         self.poses = poses
@@ -56,6 +61,11 @@ class AvatarDataset(Dataset):
         self.undistort = undistort
         self.cache_images = cache_images
         self._cache: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        # flow=dis: each sample also carries the flow to the same camera's image frame_gap frames earlier (computed
+        # once per image and kept: float16 flow + valid mask, ~6 bytes a pixel) and that frame's pose window.
+        self.flow = flow
+        self._by_frame_view = {(r.frame, r.view): j for j, r in enumerate(self.records)}
+        self._flow_cache: dict[int, tuple[np.ndarray, np.ndarray]] = {}
 
     def __len__(self) -> int:
         return len(self.records)
@@ -75,7 +85,7 @@ class AvatarDataset(Dataset):
         image = torch.from_numpy(img_u8).float() / 255.0  # [H,W,3]
         image = image * mask + self.background * (1.0 - mask)
         poses, transl = self.poses.window(rec.frame, self.window_len, self.window_step)  # [T,24,3], [T,3]
-        return {
+        out = {
             "image": image,
             "mask": mask,
             "K": torch.as_tensor(K, dtype=torch.float32),
@@ -90,6 +100,35 @@ class AvatarDataset(Dataset):
             "view": int(rec.view),
             "split": self.split,
         }
+        if self.flow is not None:
+            out.update(self._flow_item(i, rec, poses, transl))
+        return out
+
+    def _flow_item(self, i: int, rec, poses: torch.Tensor, transl: torch.Tensor) -> dict:
+        """flow [H,W,2] (pixels, to the earlier image), flow_valid [H,W,1], prev_poses / prev_transl (the pose window
+        ending frame_gap frames earlier). A first frame (no earlier image of its camera) has no valid flow pixel."""
+        from realityavatar.data.flow import flow_pair
+
+        j = self._by_frame_view.get((rec.frame - self.flow.frame_gap, rec.view))
+        hit = self._flow_cache.get(i)
+        if hit is None:
+            img_t, m_t, _ = self._decoded(i)
+            H, W = m_t.shape[:2]
+            if j is None:
+                hit = (np.zeros((H, W, 2), np.float16), np.zeros((H, W), bool))
+            else:
+                img_p, m_p, _ = self._decoded(j)
+                bg = (self.background.numpy() * 255.0).astype(np.float32)
+                comp = lambda im, m: (im * m[..., None] + bg * (1 - m[..., None])).astype(np.uint8)  # noqa: E731
+                f, v = flow_pair(comp(img_t, m_t.astype(np.float32)), m_t, comp(img_p, m_p.astype(np.float32)), m_p,
+                                 self.flow)
+                hit = (f.astype(np.float16), v)
+            self._flow_cache[i] = hit
+        f, v = hit
+        prev = rec.frame - self.flow.frame_gap if j is not None else rec.frame
+        prev_poses, prev_transl = self.poses.window(prev, self.window_len, self.window_step)
+        return {"flow": torch.from_numpy(f.astype(np.float32)), "flow_valid": torch.from_numpy(v).float()[..., None],
+                "prev_poses": prev_poses, "prev_transl": prev_transl}
 
 
 class EpochShuffle(torch.utils.data.Sampler):
@@ -315,6 +354,7 @@ class AvatarDataModule(pl.LightningDataModule):
         }
         self.check_images = bool(check_images)
         self.sampler = dict(sampler or {"kind": "uniform"})
+        self.flow: FlowSpec | None = None  # set from the run's `flow` group (build_data) before setup
         kind = self.sampler.pop("kind", "uniform")
         if kind not in SAMPLERS:
             raise ValueError(f"data.sampler.kind: unknown sampler {kind!r}; expected one of {SAMPLERS}")
@@ -416,8 +456,18 @@ class AvatarDataModule(pl.LightningDataModule):
         kw = {"train_frame_index": frame_index, "window_len": self.window_len, "window_step": self.window_step,
               "background": self.background, "image_scale": self.image_scale, "undistort": self.undistort,
               "cache_images": self.cache_images}
-        self.datasets = {s: AvatarDataset(recs, scene.poses, s, **kw) for s, recs in selected.items() if recs}
+        self.datasets = {s: AvatarDataset(recs, scene.poses, s, **kw, flow=self.flow if s == "train" else None)
+                         for s, recs in selected.items() if recs}
         self.test_split_names = [s for s in ("novel_view", "novel_pose") if s in self.datasets]
+        if self.flow is not None and "train" in self.datasets:
+            ds = self.datasets["train"]
+            paired = sum((r.frame - self.flow.frame_gap, r.view) in ds._by_frame_view for r in ds.records)
+            log.info("flow: %d of %d training images have the same camera's image %d frame(s) earlier",
+                     paired, len(ds), self.flow.frame_gap)
+            if paired == 0:
+                raise ValueError(f"flow.frame_gap={self.flow.frame_gap}: no training image has its camera's image "
+                                 f"{self.flow.frame_gap} frame(s) earlier (training frames {self.train_frame_ids[:5]}"
+                                 "...); set flow.frame_gap to the training frames' spacing or flow=none")
         if self.shuffle_seed is None:
             self.shuffle_seed = int(torch.initial_seed()) % (2**31)
         if self.check_images:

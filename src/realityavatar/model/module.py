@@ -64,6 +64,7 @@ class AvatarModule(pl.LightningModule):
         lpips: nn.Module | None = None,
         silhouette: nn.Module | None = None,
         shading: nn.Module | None = None,
+        flow: nn.Module | None = None,
     ):
         super().__init__()
         self.automatic_optimization = False  # density control edits parameters between optimizer steps
@@ -78,6 +79,7 @@ class AvatarModule(pl.LightningModule):
         self.density = density
         self.loss_fn = loss
         self.silhouette = silhouette
+        self.flow = flow if flow is not None and float(getattr(flow, "weight", 0.0)) > 0 else None
         self.optimizer_factory = optimizer
         self.lr = dict(lr)
         self.final_factor = dict(final_factor)
@@ -144,26 +146,57 @@ class AvatarModule(pl.LightningModule):
         return rgb if light is None else rgb * light
 
     def splat(self, posed: dict, b: int, rgb: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor, W: int, H: int):
-        """Rasterize sample b of `posed` with colours rgb [N,3] from one camera (viewmat [1,4,4], K [1,3,3])."""
-        bg = torch.tensor(self.background, dtype=rgb.dtype, device=rgb.device)[None]
+        """Rasterize sample b of `posed` with colours rgb [N,D] from one camera (viewmat [1,4,4], K [1,3,3]);
+        channels beyond the first 3 composite over a background of 0."""
+        bg = torch.tensor(self.background, dtype=rgb.dtype, device=rgb.device)
+        bg = torch.cat([bg, bg.new_zeros(rgb.shape[-1] - bg.shape[0])])[None]
         return rasterize(posed["means"][b], posed["quats"][b], posed["scales"][b], posed["opacities"], rgb,
                          viewmat, K, W, H, backgrounds=bg, **self.render_cfg)
 
-    def render_batch(self, batch: dict, deform: bool = True):
-        """Render every sample of a batch from its own camera. Returns rgb [B,H,W,3], alpha [B,H,W,1], metas, posed."""
+    def render_batch(self, batch: dict, deform: bool = True, extra: Callable[[dict], torch.Tensor] | None = None):
+        """Render every sample of a batch from its own camera. Returns rgb [B,H,W,3], alpha [B,H,W,1], metas, posed.
+
+        extra(posed) -> [B,N,E]: per-Gaussian values composited in the same pass as E more channels (background 0),
+        returned as posed["extra_image"] [B,H,W,E] (the flow loss renders the Gaussians' image motion this way).
+        """
         poses, transl = batch["poses"], batch["transl"]
         frame_idx = batch["frame_idx"]
         viewmats, Ks = batch["viewmat"], batch["K"]
         W, H = int(batch["width"][0]), int(batch["height"][0])
         posed = self.deform(poses, transl, deform=deform)
         rgb = self.shade(posed, viewmats, frame_idx)  # [B,N,3]
+        if extra is not None:
+            rgb = torch.cat([rgb, extra(posed).to(rgb)], -1)
         images, alphas, metas = [], [], []
         for b in range(posed["B"]):
             img, alpha, meta = self.splat(posed, b, rgb[b], viewmats[b : b + 1], Ks[b : b + 1], W, H)
             images.append(img[0])
             alphas.append(alpha[0])
             metas.append(meta)
-        return torch.stack(images), torch.stack(alphas), metas, posed
+        images = torch.stack(images)
+        if extra is not None:
+            posed["extra_image"] = images[..., 3:]
+            images = images[..., :3]
+        return images, torch.stack(alphas), metas, posed
+
+    def image_motion(self, batch: dict, deform: bool) -> Callable[[dict], torch.Tensor]:
+        """For the flow loss: a function posed -> [B,N,2], each Gaussian's displacement in its sample's image from
+        frame t to the earlier frame of batch["prev_poses"] (deformed without gradient), in image heights."""
+        from realityavatar.losses import project_points
+
+        with torch.no_grad():
+            prev = self.deform(batch["prev_poses"], batch["prev_transl"], deform=deform)["means"]  # [B,N,3]
+        H = float(batch["height"][0])
+
+        def motion(posed: dict) -> torch.Tensor:
+            out = []
+            for b in range(posed["B"]):
+                uv_t, _ = project_points(posed["means"][b], batch["viewmat"][b], batch["K"][b])
+                uv_p, _ = project_points(prev[b], batch["viewmat"][b], batch["K"][b])
+                out.append((uv_p - uv_t) / H)
+            return torch.stack(out)
+
+        return motion
 
     # ------------------------------------------------------------------ training
     def setup(self, stage: str) -> None:
@@ -205,7 +238,10 @@ class AvatarModule(pl.LightningModule):
         opt = self.optimizers()
         sched = self.lr_schedulers()
         opt.zero_grad(set_to_none=True)
-        rgb, alpha, metas, posed = self.render_batch(batch, deform=self.schedule.deform_on(step))
+        deform = self.schedule.deform_on(step)
+        use_flow = self.flow is not None and "flow" in batch
+        extra = self.image_motion(batch, deform) if use_flow else None
+        rgb, alpha, metas, posed = self.render_batch(batch, deform=deform, extra=extra)
         skin_pts, skin_w = self._skin_targets()
         total, terms = self.loss_fn(
             rgb, alpha, batch["image"], batch["mask"], skinning=self.skinning, skin_points=skin_pts,
@@ -220,6 +256,10 @@ class AvatarModule(pl.LightningModule):
             if sil:
                 total = total + self.silhouette.total(sil)
                 terms.update({k: v.detach() for k, v in sil.items()})
+        if use_flow:
+            term = self.flow(posed["extra_image"], alpha, batch["flow"], batch["flow_valid"])
+            total = total + self.flow.weight * term
+            terms["flow"] = term.detach()
         if not torch.isfinite(total):
             raise FloatingPointError(f"training loss became non-finite at step {step}: {terms}")
         self.manual_backward(total)
