@@ -232,14 +232,15 @@ class FlowLoss(nn.Module):
     """
 
     def __init__(self, weight: float = 1.0, frame_gap: int = 1, preset: str = "medium", fb_tol: float = 1.0,
-                 erode: int = 1) -> None:
+                 erode: int = 1, source: str = "dis", dir: str | None = None) -> None:
         super().__init__()
         from realityavatar.data.flow import FlowSpec
 
         if not (weight >= 0):
             raise ValueError(f"flow.weight: expected a number >= 0, got {weight!r}")
         self.weight = float(weight)
-        self.spec = FlowSpec(frame_gap=int(frame_gap), preset=str(preset), fb_tol=float(fb_tol), erode=int(erode))
+        self.spec = FlowSpec(frame_gap=int(frame_gap), source=str(source), dir=dir, preset=str(preset),
+                             fb_tol=float(fb_tol), erode=int(erode))
 
     def forward(self, pred: torch.Tensor, alpha: torch.Tensor, flow: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
         """pred [B,H,W,2] rendered displacement (image heights), alpha [B,H,W,1], flow [B,H,W,2] (pixels),

@@ -107,7 +107,7 @@ class AvatarDataset(Dataset):
     def _flow_item(self, i: int, rec, poses: torch.Tensor, transl: torch.Tensor) -> dict:
         """flow [H,W,2] (pixels, to the earlier image), flow_valid [H,W,1], prev_poses / prev_transl (the pose window
         ending frame_gap frames earlier). A first frame (no earlier image of its camera) has no valid flow pixel."""
-        from realityavatar.data.flow import flow_pair
+        from realityavatar.data.flow import flow_pair, read_flow_file
 
         j = self._by_frame_view.get((rec.frame - self.flow.frame_gap, rec.view))
         hit = self._flow_cache.get(i)
@@ -116,6 +116,9 @@ class AvatarDataset(Dataset):
             H, W = m_t.shape[:2]
             if j is None:
                 hit = (np.zeros((H, W, 2), np.float16), np.zeros((H, W), bool))
+            elif self.flow.source == "files":
+                f, v = read_flow_file(self.flow.dir, rec.view, rec.frame, (H, W))
+                hit = (f, v & m_t)
             else:
                 img_p, m_p, _ = self._decoded(j)
                 bg = (self.background.numpy() * 255.0).astype(np.float32)

@@ -12,10 +12,12 @@ check), inside the eroded mask of the later frame and where the earlier frame's 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
 PRESETS = ("ultrafast", "fast", "medium")
+SOURCES = ("dis", "files")
 
 
 @dataclass(frozen=True)
@@ -23,6 +25,8 @@ class FlowSpec:
     """How flow pairs are formed and checked (the data side of `flow=dis`)."""
 
     frame_gap: int = 1  # flow from frame t to frame t - frame_gap of the same camera
+    source: str = "dis"  # "dis": computed here; "files": read from `dir` (<dir>/<view:02d>/<frame:06d>.npz)
+    dir: str | None = None  # source "files": flow [H,W,2] (pixels, to the earlier frame) and valid [H,W] per image
     preset: str = "medium"  # DIS preset
     fb_tol: float = 1.0  # forward-backward disagreement (pixels, at the training resolution) above which flow is dropped
     erode: int = 1  # pixels of the later frame's mask border left out (flow across the silhouette edge is unreliable)
@@ -30,6 +34,11 @@ class FlowSpec:
     def __post_init__(self) -> None:
         if int(self.frame_gap) < 1:
             raise ValueError(f"flow.frame_gap: expected an int >= 1, got {self.frame_gap!r}")
+        if self.source not in SOURCES:
+            raise ValueError(f"flow.source: expected one of {SOURCES}, got {self.source!r}")
+        if self.source == "files" and not (self.dir and Path(self.dir).is_dir()):
+            raise ValueError(f"flow.dir: source 'files' needs a folder of <view:02d>/<frame:06d>.npz flow files, "
+                             f"got {self.dir!r}")
         if self.preset not in PRESETS:
             raise ValueError(f"flow.preset: expected one of {PRESETS}, got {self.preset!r}")
         if not (np.isfinite(self.fb_tol) and self.fb_tol > 0):
@@ -90,3 +99,22 @@ def flow_pair(img_t: np.ndarray, mask_t: np.ndarray, img_p: np.ndarray, mask_p: 
     landed = cv2.remap(m_p, mx, my, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0) > 0.99
     valid = m_t & (fb < spec.fb_tol) & landed
     return fwd, valid
+
+
+def read_flow_file(folder: str | Path, view: int, frame: int, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Flow source "files": <folder>/<view:02d>/<frame:06d>.npz with `flow` [H,W,2] (pixels, from this image to the
+    earlier one) and `valid` [H,W]. A missing file means no valid pixel; a wrong size is an error naming the file."""
+    path = Path(folder) / f"{int(view):02d}" / f"{int(frame):06d}.npz"
+    H, W = shape
+    if not path.is_file():
+        return np.zeros((H, W, 2), np.float16), np.zeros((H, W), bool)
+    with np.load(path) as z:
+        if "flow" not in z or "valid" not in z:
+            raise ValueError(f"{path}: expected arrays 'flow' [H,W,2] and 'valid' [H,W], found {sorted(z.files)}")
+        flow, valid = z["flow"], z["valid"]
+    if flow.shape != (H, W, 2) or valid.shape != (H, W):
+        raise ValueError(f"{path}: flow {flow.shape} / valid {valid.shape}, but the training image is {W}x{H} "
+                         "(flow files must be at the training resolution, data.image_scale included)")
+    if not np.isfinite(flow[valid.astype(bool)]).all():
+        raise ValueError(f"{path}: non-finite flow at valid pixels")
+    return flow.astype(np.float16), valid.astype(bool)
