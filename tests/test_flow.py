@@ -148,3 +148,42 @@ def test_flow_term_trains_and_is_logged(scenes_root, tmp_path):
         rows = list(csv.DictReader(f))
     vals = [float(r["train/flow"]) for r in rows if r.get("train/flow")]
     assert vals and all(np.isfinite(vals)), rows[:2]
+
+
+def test_flow_files_are_read_and_checked(tmp_path):
+    from realityavatar.data.flow import read_flow_file
+
+    (tmp_path / "03").mkdir()
+    flow = np.full((8, 10, 2), 1.5, np.float32)
+    valid = np.zeros((8, 10), bool)
+    valid[2:5, 3:7] = True
+    np.savez(tmp_path / "03" / "000012.npz", flow=flow, valid=valid)
+    f, v = read_flow_file(tmp_path, 3, 12, (8, 10))
+    assert f.shape == (8, 10, 2) and float(f[0, 0, 0]) == 1.5 and v.sum() == 12
+    f, v = read_flow_file(tmp_path, 3, 13, (8, 10))  # no file: no valid pixel
+    assert not v.any()
+    with pytest.raises(ValueError, match="000012.npz"):
+        read_flow_file(tmp_path, 3, 12, (16, 20))  # another resolution
+    np.savez(tmp_path / "03" / "000014.npz", flow=flow)
+    with pytest.raises(ValueError, match="valid"):
+        read_flow_file(tmp_path, 3, 14, (8, 10))
+    with pytest.raises(ValueError, match="flow.dir"):
+        FlowSpec(source="files", dir=str(tmp_path / "nowhere"))
+
+
+def test_oracle_flow_is_the_projected_motion_of_the_visible_surface():
+    """A square 2 m in front of the camera moved by (-2 cm, +1 cm) since the earlier frame: every pixel that sees it
+    has the flow fx * (-dx, -dy) / 2 m (to the earlier frame), the rest no hit."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "ablations"))
+    from oracle_flow import oracle_flow
+
+    V = np.array([[-0.3, -0.3, 2.0], [0.3, -0.3, 2.0], [0.3, 0.3, 2.0], [-0.3, 0.3, 2.0]])
+    faces = np.array([[0, 1, 2], [0, 2, 3]])
+    shift = np.array([-0.02, 0.01, 0.0])
+    K = np.array([[40.0, 0, 16], [0, 40.0, 16], [0, 0, 1]])
+    flow, hit = oracle_flow((V, faces), V - shift, K, np.eye(4), 32, 32)
+    assert hit[16, 16] and not hit[0, 0] and hit.sum() > 100
+    np.testing.assert_allclose(flow[hit], np.broadcast_to(-40.0 * shift[:2] / 2.0, (int(hit.sum()), 2)), atol=1e-4)
