@@ -225,20 +225,23 @@ class FlowLoss(nn.Module):
     Each training image (frame t, camera c) comes with the optical flow to camera c's image at t - frame_gap
     (`data.flow.flow_pair`: DIS both ways, forward-backward checked, inside the eroded mask). The module deforms the
     Gaussians for that earlier frame too (no gradient), projects both positions into camera c and renders each
-    Gaussian's image displacement (u_{t-gap} - u_t, in image heights) as two extra colour channels through the same
-    alpha compositing as the image. The term is the L1 between that rendered flow and alpha x the image flow over the
-    valid pixels (mean over them), so a Gaussian is pulled to move with the material under it, also along the cloth,
-    where the photometric loss is blind once the texture is blurred.
+    Gaussian's image displacement (u_{t-gap} - u_t, in image heights, clamped to +-max_motion) with the image's blend
+    weights, detached (a second raster pass), so the term moves Gaussians and never fades or shrinks them. The term
+    is the L1 between that rendered flow and alpha x the image flow over the valid pixels (mean over them): a
+    Gaussian is pulled to move with the material under it, also along the cloth, where the photometric loss is blind
+    once the texture is blurred.
     """
 
     def __init__(self, weight: float = 1.0, frame_gap: int = 1, preset: str = "medium", fb_tol: float = 1.0,
-                 erode: int = 1, source: str = "dis", dir: str | None = None) -> None:
+                 erode: int = 1, source: str = "dis", dir: str | None = None, max_motion: float = 0.1) -> None:
         super().__init__()
         from realityavatar.data.flow import FlowSpec
 
         if not (weight >= 0):
             raise ValueError(f"flow.weight: expected a number >= 0, got {weight!r}")
-        self.weight = float(weight)
+        if not (max_motion > 0):
+            raise ValueError(f"flow.max_motion: expected a number > 0 (image heights), got {max_motion!r}")
+        self.weight, self.max_motion = float(weight), float(max_motion)
         self.spec = FlowSpec(frame_gap=int(frame_gap), source=str(source), dir=dir, preset=str(preset),
                              fb_tol=float(fb_tol), erode=int(erode))
 
@@ -246,7 +249,7 @@ class FlowLoss(nn.Module):
         """pred [B,H,W,2] rendered displacement (image heights), alpha [B,H,W,1], flow [B,H,W,2] (pixels),
         valid [B,H,W,1] -> mean L1 over valid pixels (0 when none)."""
         H = flow.shape[1]
-        err = (pred - alpha * (flow / H)).abs().sum(-1, keepdim=True) * valid
+        err = (pred - alpha.detach() * (flow / H)).abs().sum(-1, keepdim=True) * valid
         return err.sum() / valid.sum().clamp_min(1.0)
 
 

@@ -147,9 +147,9 @@ class AvatarModule(pl.LightningModule):
 
     def splat(self, posed: dict, b: int, rgb: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor, W: int, H: int):
         """Rasterize sample b of `posed` with colours rgb [N,D] from one camera (viewmat [1,4,4], K [1,3,3]);
-        channels beyond the first 3 composite over a background of 0."""
+        D = 3 composites over the run's background, other values (render_batch's extra channels) over 0."""
         bg = torch.tensor(self.background, dtype=rgb.dtype, device=rgb.device)
-        bg = torch.cat([bg, bg.new_zeros(rgb.shape[-1] - bg.shape[0])])[None]
+        bg = (bg if rgb.shape[-1] == bg.shape[0] else bg.new_zeros(rgb.shape[-1]))[None]
         return rasterize(posed["means"][b], posed["quats"][b], posed["scales"][b], posed["opacities"], rgb,
                          viewmat, K, W, H, backgrounds=bg, **self.render_cfg)
 
@@ -165,19 +165,22 @@ class AvatarModule(pl.LightningModule):
         W, H = int(batch["width"][0]), int(batch["height"][0])
         posed = self.deform(poses, transl, deform=deform)
         rgb = self.shade(posed, viewmats, frame_idx)  # [B,N,3]
-        if extra is not None:
-            rgb = torch.cat([rgb, extra(posed).to(rgb)], -1)
         images, alphas, metas = [], [], []
         for b in range(posed["B"]):
             img, alpha, meta = self.splat(posed, b, rgb[b], viewmats[b : b + 1], Ks[b : b + 1], W, H)
             images.append(img[0])
             alphas.append(alpha[0])
             metas.append(meta)
-        images = torch.stack(images)
         if extra is not None:
-            posed["extra_image"] = images[..., 3:]
-            images = images[..., :3]
-        return images, torch.stack(alphas), metas, posed
+            # A second pass over detached geometry: the extra channels' loss reaches the per-Gaussian values only
+            # (for the flow term: the Gaussians' motion), never opacity, scale or position through the blend
+            # weights, which would let it fade or shrink a Gaussian instead of moving it.
+            values = extra(posed).to(rgb)  # [B,N,E]
+            fixed = {k: (v.detach() if torch.is_tensor(v) else v) for k, v in posed.items()}
+            posed["extra_image"] = torch.stack([
+                self.splat(fixed, b, values[b], viewmats[b : b + 1], Ks[b : b + 1], W, H)[0][0]
+                for b in range(posed["B"])])
+        return torch.stack(images), torch.stack(alphas), metas, posed
 
     def image_motion(self, batch: dict, deform: bool) -> Callable[[dict], torch.Tensor]:
         """For the flow loss: a function posed -> [B,N,2], each Gaussian's displacement in its sample's image from
@@ -188,12 +191,17 @@ class AvatarModule(pl.LightningModule):
             prev = self.deform(batch["prev_poses"], batch["prev_transl"], deform=deform)["means"]  # [B,N,3]
         H = float(batch["height"][0])
 
+        near = float(self.render_cfg.get("near", 0.01))
+
         def motion(posed: dict) -> torch.Tensor:
             out = []
             for b in range(posed["B"]):
-                uv_t, _ = project_points(posed["means"][b], batch["viewmat"][b], batch["K"][b])
-                uv_p, _ = project_points(prev[b], batch["viewmat"][b], batch["K"][b])
-                out.append((uv_p - uv_t) / H)
+                uv_t, z_t = project_points(posed["means"][b], batch["viewmat"][b], batch["K"][b])
+                uv_p, z_p = project_points(prev[b], batch["viewmat"][b], batch["K"][b])
+                # A Gaussian at or behind the near plane in either frame has no image motion (its projection
+                # divides by ~0); a displacement beyond max_motion (image heights) is clamped, not followed.
+                d = ((uv_p - uv_t) / H).clamp(-self.flow.max_motion, self.flow.max_motion)
+                out.append(torch.where(((z_t > near) & (z_p > near))[:, None], d, torch.zeros_like(d)))
             return torch.stack(out)
 
         return motion
