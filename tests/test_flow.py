@@ -187,3 +187,20 @@ def test_oracle_flow_is_the_projected_motion_of_the_visible_surface():
     flow, hit = oracle_flow((V, faces), V - shift, K, np.eye(4), 32, 32)
     assert hit[16, 16] and not hit[0, 0] and hit.sum() > 100
     np.testing.assert_allclose(flow[hit], np.broadcast_to(-40.0 * shift[:2] / 2.0, (int(hit.sum()), 2)), atol=1e-4)
+
+
+def test_flow_term_moves_gaussians_and_never_fades_them(scenes_root):
+    """The flow term alone: its gradient reaches the Gaussians' positions (through their image motion) and the
+    networks, but not their opacities or scales (the blend weights of its render pass are detached)."""
+    dm, module = _ci_module(["flow=dis"])
+    batch = module.on_after_batch_transfer(next(iter(dm.train_dataloader())), 0)
+    batch["flow"] = torch.full_like(batch["flow"], 2.0)  # every valid pixel moved 2 px since the earlier frame
+    batch["flow_valid"] = batch["mask"].clone()
+    motion = module.image_motion(batch, deform=True)
+    _, alpha, _, posed = module.render_batch(batch, extra=motion)
+    module.flow(posed["extra_image"], alpha, batch["flow"], batch["flow_valid"]).backward()
+    g = module.gaussians
+    assert g.means.grad is not None and float(g.means.grad.abs().sum()) > 0
+    for name in ("opacity_logits", "log_scales", "features"):
+        grad = getattr(g, name).grad
+        assert grad is None or float(grad.abs().sum()) == 0.0, name
