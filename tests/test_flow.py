@@ -64,6 +64,13 @@ def test_flow_loss_is_zero_at_the_flow_and_ignores_invalid_pixels():
     assert float(loss(wrong, alpha, flow, valid)) == pytest.approx(0.0, abs=1e-7)
     wrong[:, 4:12, 4:12] += 0.1
     assert float(loss(wrong, alpha, flow, valid)) > 0.1
+    # The push fades with the error (Charbonnier): 0.01 px off gets ~1/50 of the gradient of 5 px off.
+    grads = []
+    for off_px in (0.01, 5.0):
+        pred = (alpha * flow / H + off_px / H).requires_grad_()
+        loss(pred, alpha, flow, valid).backward()
+        grads.append(float(pred.grad.abs().sum()))
+    assert grads[0] < 0.05 * grads[1], grads
 
 
 def test_flow_group_composes_and_switches_off():

@@ -233,7 +233,8 @@ class FlowLoss(nn.Module):
     """
 
     def __init__(self, weight: float = 1.0, frame_gap: int = 1, preset: str = "medium", fb_tol: float = 1.0,
-                 erode: int = 1, source: str = "dis", dir: str | None = None, max_motion: float = 0.1) -> None:
+                 erode: int = 1, source: str = "dis", dir: str | None = None, max_motion: float = 0.1,
+                 eps_px: float = 0.5) -> None:
         super().__init__()
         from realityavatar.data.flow import FlowSpec
 
@@ -241,16 +242,24 @@ class FlowLoss(nn.Module):
             raise ValueError(f"flow.weight: expected a number >= 0, got {weight!r}")
         if not (max_motion > 0):
             raise ValueError(f"flow.max_motion: expected a number > 0 (image heights), got {max_motion!r}")
-        self.weight, self.max_motion = float(weight), float(max_motion)
+        if not (eps_px > 0):
+            raise ValueError(f"flow.eps_px: expected a number > 0 (pixels), got {eps_px!r}")
+        self.weight, self.max_motion, self.eps_px = float(weight), float(max_motion), float(eps_px)
         self.spec = FlowSpec(frame_gap=int(frame_gap), source=str(source), dir=dir, preset=str(preset),
                              fb_tol=float(fb_tol), erode=int(erode))
 
     def forward(self, pred: torch.Tensor, alpha: torch.Tensor, flow: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
         """pred [B,H,W,2] rendered displacement (image heights), alpha [B,H,W,1], flow [B,H,W,2] (pixels),
-        valid [B,H,W,1] -> mean L1 over valid pixels (0 when none)."""
+        valid [B,H,W,1] -> mean Charbonnier penalty over valid pixels, in image heights (0 when none).
+
+        Per pixel sqrt(|e|^2 + eps^2) - eps with e the end-point error in pixels: like L1 for errors well above
+        eps_px, quadratic below, so a Gaussian that already moves with the flow gets no push. (With plain L1 the
+        sign of a vanishing error drove every Gaussian at full strength, and Adam made that noise a random walk:
+        with the exact flow, seed 0, held-out IoU at rest fell from 0.94 to 0.67.)"""
         H = flow.shape[1]
-        err = (pred - alpha.detach() * (flow / H)).abs().sum(-1, keepdim=True) * valid
-        return err.sum() / valid.sum().clamp_min(1.0)
+        e = (pred * H - alpha.detach() * flow) * valid  # pixels
+        pen = (e.square().sum(-1, keepdim=True) + self.eps_px**2).sqrt() - self.eps_px
+        return (pen * valid).sum() / valid.sum().clamp_min(1.0) / H
 
 
 class NoFlow(nn.Module):
