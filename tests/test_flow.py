@@ -196,13 +196,16 @@ def test_oracle_flow_is_the_projected_motion_of_the_visible_surface():
     np.testing.assert_allclose(flow[hit], np.broadcast_to(-40.0 * shift[:2] / 2.0, (int(hit.sum()), 2)), atol=1e-4)
 
 
-def test_flow_term_moves_gaussians_and_never_fades_them(scenes_root):
+@pytest.mark.parametrize("prev_grad", [False, True])
+def test_flow_term_moves_gaussians_and_never_fades_them(scenes_root, prev_grad):
     """The flow term alone: its gradient reaches the Gaussians' positions (through their image motion) and the
-    networks, but not their opacities or scales (the blend weights of its render pass are detached)."""
-    dm, module = _ci_module(["flow=dis"])
+    networks, but not their opacities or scales (the blend weights of its render pass are detached). With
+    flow.prev_grad the earlier frame's positions take part: the same batch gives another position gradient."""
+    dm, module = _ci_module(["flow=dis", f"flow.prev_grad={str(prev_grad).lower()}"])
     batch = module.on_after_batch_transfer(next(iter(dm.train_dataloader())), 0)
     batch["flow"] = torch.full_like(batch["flow"], 2.0)  # every valid pixel moved 2 px since the earlier frame
     batch["flow_valid"] = batch["mask"].clone()
+    batch["prev_transl"] = batch["transl"] + 0.03  # the earlier frame elsewhere, so the two frames differ
     motion = module.image_motion(batch, deform=True)
     _, alpha, _, posed = module.render_batch(batch, extra=motion)
     module.flow(posed["extra_image"], alpha, batch["flow"], batch["flow_valid"]).backward()
@@ -211,3 +214,9 @@ def test_flow_term_moves_gaussians_and_never_fades_them(scenes_root):
     for name in ("opacity_logits", "log_scales", "features"):
         grad = getattr(g, name).grad
         assert grad is None or float(grad.abs().sum()) == 0.0, name
+    _MEANS_GRAD[prev_grad] = g.means.grad.clone()
+    if len(_MEANS_GRAD) == 2:
+        assert not torch.allclose(_MEANS_GRAD[False], _MEANS_GRAD[True])
+
+
+_MEANS_GRAD: dict = {}

@@ -234,7 +234,7 @@ class FlowLoss(nn.Module):
 
     def __init__(self, weight: float = 1.0, frame_gap: int = 1, preset: str = "medium", fb_tol: float = 1.0,
                  erode: int = 1, source: str = "dis", dir: str | None = None, max_motion: float = 0.1,
-                 eps_px: float = 0.5) -> None:
+                 eps_px: float = 0.5, prev_grad: bool = False) -> None:
         super().__init__()
         from realityavatar.data.flow import FlowSpec
 
@@ -245,6 +245,7 @@ class FlowLoss(nn.Module):
         if not (eps_px > 0):
             raise ValueError(f"flow.eps_px: expected a number > 0 (pixels), got {eps_px!r}")
         self.weight, self.max_motion, self.eps_px = float(weight), float(max_motion), float(eps_px)
+        self.prev_grad = bool(prev_grad)
         self.spec = FlowSpec(frame_gap=int(frame_gap), source=str(source), dir=dir, preset=str(preset),
                              fb_tol=float(fb_tol), erode=int(erode))
 

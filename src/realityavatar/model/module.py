@@ -184,10 +184,11 @@ class AvatarModule(pl.LightningModule):
 
     def image_motion(self, batch: dict, deform: bool) -> Callable[[dict], torch.Tensor]:
         """For the flow loss: a function posed -> [B,N,2], each Gaussian's displacement in its sample's image from
-        frame t to the earlier frame of batch["prev_poses"] (deformed without gradient), in image heights."""
+        frame t to the earlier frame of batch["prev_poses"], in image heights. The earlier frame is deformed without
+        gradient unless flow.prev_grad (then the term moves both frames' Gaussians, at a second network backward)."""
         from realityavatar.losses import project_points
 
-        with torch.no_grad():
+        with torch.set_grad_enabled(torch.is_grad_enabled() and self.flow.prev_grad):
             prev = self.deform(batch["prev_poses"], batch["prev_transl"], deform=deform)["means"]  # [B,N,3]
         H = float(batch["height"][0])
 
