@@ -51,7 +51,7 @@ def _cv2():
     try:
         import cv2
     except ImportError as e:  # pragma: no cover - the dependency is in pyproject.toml
-        raise ImportError("flow=dis needs OpenCV: pip install opencv-python-headless") from e
+        raise ImportError("flow=dis needs OpenCV: pip install opencv-python-headless (or the package's [flow] extra)") from e
     return cv2
 
 
