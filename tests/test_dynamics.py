@@ -214,3 +214,32 @@ def test_skinning_grid_follows_the_body_and_blends_between_the_legs():
     fresh = SkinningGrid(voxel_size=0.04)
     fresh.load_state_dict(grid.state_dict())
     assert torch.equal(fresh(p[:50]), grid(p[:50]).detach())
+
+
+def test_coverage_density_clones_the_gaussians_uncovered_pixels_pull(scenes_root):
+    """density=coverage: the Gaussians the silhouette chamfer's uncovered mask pixels pulled at least coverage_min
+    times since the last refine are cloned (the most pulled first, at most coverage_clones), the rest are not."""
+    from realityavatar.build import build_data, build_module
+
+    cfg = compose(["data=synthetic_ci", "trainer=ci", "gaussians.num_points=300", "density=coverage",
+                   "density.coverage_clones=3", "density.coverage_min=3", "density.grad_threshold=1e9",
+                   "density.prune_opacity=0.0"])
+    body = instantiate(cfg.body)
+    dm = build_data(cfg, body)
+    module = build_module(cfg, body, dm.num_train_frames, dm.scene_extent, data=dm)
+    d, g = module.density, module.gaussians
+    # The chamfer reports which Gaussians uncovered pixels pulled: a mask nothing covers pulls some of them.
+    K, E = _camera(32)
+    mask = torch.zeros(32, 32, 1)
+    mask[4:12, 4:12] = 1
+    module.silhouette(g.means.detach(), E, K, mask, torch.zeros(32, 32, 1))
+    assert module.silhouette.last_pulled is not None and module.silhouette.last_pulled.numel() == 64
+    pulled = torch.tensor([7, 7, 7, 7, 7, 42, 42, 42, 99, 99, 5])  # 7: 5x, 42: 3x, 99: 2x, 5: 1x
+    d.observe_coverage(pulled, g.num_points)
+    d.grad2d, d.count = torch.zeros(300), torch.zeros(300)
+    before = g.means.detach().clone()
+    stats = d.refine(g, None, step=100)
+    assert stats["coverage_cloned"] == 2 and g.num_points == 302
+    assert torch.equal(g.means.detach()[300], before[7]) and torch.equal(g.means.detach()[301], before[42])
+    assert float(d.demand.sum()) == 0.0 and d.demand.shape[0] == 302
+    assert int(compose(["density=coverage"]).density.coverage_min) >= 1

@@ -175,6 +175,7 @@ class SilhouetteChamfer(nn.Module):
             raise ValueError("silhouette: weights must be >= 0")
         self.weight, self.outside_weight, self.coverage_weight = float(weight), float(outside_weight), float(coverage_weight)
         self.covered_alpha, self.max_pixels, self.near = float(covered_alpha), int(max_pixels), float(near)
+        self.last_pulled: torch.Tensor | None = None  # set by forward: the Gaussians uncovered pixels pulled
 
     def forward(self, means: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor, mask: torch.Tensor,
                 alpha: torch.Tensor) -> dict[str, torch.Tensor]:
@@ -199,8 +200,11 @@ class SilhouetteChamfer(nn.Module):
             pix = need.flip(-1).to(uv.dtype)  # [P,2] (x,y)
             nearest = nearest_index(pix, uv.detach())  # [P]
             out["sil_coverage"] = (((uv[nearest] - pix) / scale) ** 2).sum(-1).mean()
+            # Which Gaussians the uncovered pixels pulled (indices into `means`), for density=coverage.
+            self.last_pulled = front.nonzero().squeeze(-1)[nearest.to(front.device)].detach()
         else:
             out["sil_coverage"] = means.new_zeros(())
+            self.last_pulled = None
         return out
 
     def total(self, terms: dict[str, torch.Tensor]) -> torch.Tensor:

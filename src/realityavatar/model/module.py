@@ -262,6 +262,9 @@ class AvatarModule(pl.LightningModule):
                 for k, v in self.silhouette(posed["means"][b], batch["viewmat"][b], batch["K"][b], batch["mask"][b],
                                             alpha[b]).items():
                     sil[k] = sil.get(k, 0.0) + v / rgb.shape[0]
+                pulled = getattr(self.silhouette, "last_pulled", None)
+                if pulled is not None and hasattr(self.density, "observe_coverage"):
+                    self.density.observe_coverage(pulled, self.gaussians.num_points)
             if sil:
                 total = total + self.silhouette.total(sil)
                 terms.update({k: v.detach() for k, v in sil.items()})
