@@ -63,18 +63,11 @@ def oracle_flow(mesh_t: tuple[np.ndarray, np.ndarray], verts_p: np.ndarray, K: n
     import trimesh
     from trimesh.ray.ray_pyembree import RayMeshIntersector
 
-    from realityavatar.data.synthetic.render import camera_rays
+    from realityavatar.data.synthetic.render import camera_rays, first_hits
 
     V, Fc = mesh_t
     caster = RayMeshIntersector(trimesh.Trimesh(V, Fc, process=False, validate=False))
-    o, d = camera_rays(K, E, W, H)
-    tri, ray = caster.intersects_id(o, d, multiple_hits=False, return_locations=False)
-    tris = V[Fc[tri]]
-    n = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
-    oo, dd = o[ray], d[ray]
-    tt = np.einsum("pc,pc->p", tris[:, 0] - oo, n) / np.einsum("pc,pc->p", dd, n)
-    bary = trimesh.triangles.points_to_barycentric(tris, oo + tt[:, None] * dd).clip(0, 1)
-    bary /= bary.sum(1, keepdims=True).clip(1e-12)
+    tri, ray, bary = first_hits(caster, V, Fc, *camera_rays(K, E, W, H))
     prev = np.einsum("pk,pkc->pc", bary, verts_p[Fc[tri]])
     cam = prev @ E[:3, :3].T + E[:3, 3]
     uv = np.stack([K[0, 0] * cam[:, 0] / cam[:, 2] + K[0, 2], K[1, 1] * cam[:, 1] / cam[:, 2] + K[1, 2]], -1)

@@ -156,8 +156,9 @@ class AvatarModule(pl.LightningModule):
     def render_batch(self, batch: dict, deform: bool = True, extra: Callable[[dict], torch.Tensor] | None = None):
         """Render every sample of a batch from its own camera. Returns rgb [B,H,W,3], alpha [B,H,W,1], metas, posed.
 
-        extra(posed) -> [B,N,E]: per-Gaussian values composited in the same pass as E more channels (background 0),
-        returned as posed["extra_image"] [B,H,W,E] (the flow loss renders the Gaussians' image motion this way).
+        extra(posed) -> [B,N,E]: per-Gaussian values composited with the image's blend weights in a second pass
+        over detached geometry (background 0), returned as posed["extra_image"] [B,H,W,E] (the flow loss renders the
+        Gaussians' image motion this way).
         """
         poses, transl = batch["poses"], batch["transl"]
         frame_idx = batch["frame_idx"]

@@ -136,17 +136,10 @@ def render_views(parts: list[tuple[np.ndarray, np.ndarray, object]], Ks: np.ndar
 
     def shade(o: np.ndarray, d: np.ndarray):
         """Colour of every ray's first hit: (ray index [P], albedo x light [P,3])."""
-        tri, ray = caster.intersects_id(o, d, multiple_hits=False, return_locations=False)
+        tri, ray, bary = first_hits(caster, V, Fc, o, d)
         if not len(ray):
             return ray, np.zeros((0, 3))
-        # Barycentrics of the hit from the ray/plane intersection (Embree's own are not exposed by trimesh).
-        tris = V[Fc[tri]]  # [P,3,3]
-        n = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
-        o, d = o[ray], d[ray]
-        tt = np.einsum("pc,pc->p", tris[:, 0] - o, n) / np.einsum("pc,pc->p", d, n)
-        loc = o + tt[:, None] * d
-        bary = trimesh.triangles.points_to_barycentric(tris, loc).clip(0, 1)
-        bary /= bary.sum(1, keepdims=True).clip(1e-12)
+        d = d[ray]
         normal = np.einsum("pk,pkc->pc", bary, vn[Fc[tri]])
         normal /= np.linalg.norm(normal, axis=1, keepdims=True).clip(1e-12)
         normal = np.where((np.einsum("pc,pc->p", normal, d) > 0)[:, None], -normal, normal)  # two-sided cloth
@@ -189,6 +182,23 @@ def render_views(parts: list[tuple[np.ndarray, np.ndarray, object]], Ks: np.ndar
     rgb8 = np.clip(np.round(rgb * 255), 0, 255).astype(np.uint8)
     rgb8[mask > 0] = np.maximum(rgb8[mask > 0], 1)
     return rgb8.reshape(C, height, width, 3), mask.reshape(C, height, width)
+
+
+def first_hits(caster, V: np.ndarray, Fc: np.ndarray, o: np.ndarray, d: np.ndarray):
+    """First hit of every ray (origins o, directions d [R,3]) on the mesh (V, Fc) behind `caster`: triangle index
+    [P], ray index [P] and barycentrics [P,3] of the hit (from the ray/plane intersection; Embree's own are not
+    exposed by trimesh)."""
+    tri, ray = caster.intersects_id(o, d, multiple_hits=False, return_locations=False)
+    if not len(ray):
+        return tri, ray, np.zeros((0, 3))
+    tris = V[Fc[tri]]  # [P,3,3]
+    n = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
+    o, d = o[ray], d[ray]
+    tt = np.einsum("pc,pc->p", tris[:, 0] - o, n) / np.einsum("pc,pc->p", d, n)
+    loc = o + tt[:, None] * d
+    bary = trimesh.triangles.points_to_barycentric(tris, loc).clip(0, 1)
+    bary /= bary.sum(1, keepdims=True).clip(1e-12)
+    return tri, ray, bary
 
 
 def _face_offset(parts, i: int) -> int:
