@@ -51,21 +51,32 @@ def phase_of(frame: int, events: dict, fps: float) -> str:
     return "after" if frame < stop + round(fps) else "settled"
 
 
-def garment_curves(npz: Path) -> dict[int, tuple[float, float]] | None:
-    """Per frame of a synthetic scene's garment: (hem radius, hem depth below the waist) in metres. The waist ring
-    is the 10% highest vertices of the first frame, the hem the 10% lowest; the radius is the hem's mean horizontal
-    distance (world y up) from the waist ring's centre, which a spin does not change but a flare does."""
+def garment_curves(npz: Path, settled_frame: int | None = None) -> dict[int, tuple[float, float, float]] | None:
+    """Per frame of a synthetic scene's garment: (hem radius, hem depth below the waist, shape change) in metres. The
+    waist ring is the 10% highest vertices of the first frame, the hem the 10% lowest; the radius is the hem's mean
+    horizontal distance (world y up) from the waist ring's centre, which a spin does not change but a flare does.
+    The shape change is the median distance of the cloth's vertices from where they are in `settled_frame` (default:
+    the last frame), with both frames rigidly aligned on the waist ring, which the pelvis carries: in a sequence
+    whose body pose does not change (a spin and its stop) it is the part of the garment's shape that only the
+    motion's history explains."""
     if not npz.is_file():
         return None
     g = np.load(npz)
-    V, frames = g["vertices"], g["frames"]  # [F,Vg,3], [F]
+    V, frames = g["vertices"].astype(np.float64), [int(f) for f in g["frames"]]  # [F,Vg,3], [F]
     order = np.argsort(V[0, :, 1])
     k = max(1, len(order) // 10)
     hem, waist = order[:k], order[-k:]
+    ref = V[frames.index(settled_frame) if settled_frame in frames else -1]
+    ref_c = ref - ref[waist].mean(0)
     out = {}
     for f, v in zip(frames, V):
         c = v[waist].mean(0)
-        out[int(f)] = (float(np.linalg.norm((v[hem] - c)[:, [0, 2]], axis=1).mean()), float(c[1] - v[hem, 1].mean()))
+        # Kabsch: the rotation taking this frame's waist ring onto the settled frame's
+        u, _, wt = np.linalg.svd((v[waist] - c).T @ ref_c[waist])
+        d = np.sign(np.linalg.det(u @ wt))
+        rot = u @ np.diag([1.0, 1.0, d]) @ wt  # row vectors: x_aligned = (x - c) @ rot
+        change = float(np.median(np.linalg.norm((v - c) @ rot - ref_c, axis=1)))
+        out[f] = (float(np.linalg.norm((v[hem] - c)[:, [0, 2]], axis=1).mean()), float(c[1] - v[hem, 1].mean()), change)
     return out
 
 
@@ -148,10 +159,11 @@ def probe_run(run_dir: Path, threads: int = 1, kinds: tuple[str, ...] = ("train"
     for r in rows:
         if r["frame"] in tracking:
             r["cloth_p50"], r["drift_p50"], r["drift_p90"] = tracking[r["frame"]]
-    garment = garment_curves(npz)
+    train_frames = [int(r.frame) for r in dm.datasets["train"].records] if "train" in dm.datasets else []
+    garment = garment_curves(npz, max(train_frames) if train_frames else None)
     if garment:
         for r in rows:
-            r["hem_radius"], r["hem_depth"] = garment.get(r["frame"], (float("nan"), float("nan")))
+            r["hem_radius"], r["hem_depth"], r["shape_change"] = garment.get(r["frame"], (float("nan"),) * 3)
     stop = events.get("spin_stop_frame")
     summary: dict = {"events": events, "fps": fps}
     for kind in ("train", "heldout"):
@@ -165,7 +177,7 @@ def probe_run(run_dir: Path, threads: int = 1, kinds: tuple[str, ...] = ("train"
                 summary[f"{kind}/{ph}/iou"] = float(np.mean([r["iou"] for r in sel]))
                 summary[f"{kind}/{ph}/psnr"] = float(np.mean([r["psnr"] for r in sel]))
                 summary[f"{kind}/{ph}/dx_p99"] = float(np.mean([r["dx_p99"] for r in sel]))
-                for m in ("cloth_p50", "drift_p50", "drift_p90"):
+                for m in ("cloth_p50", "drift_p50", "drift_p90", "shape_change"):
                     if all(m in r for r in sel):
                         summary[f"{kind}/{ph}/{m}"] = float(np.mean([r[m] for r in sel]))
     summary.update(novel_pose_phases(run_dir, split_folder(Path(str(cfg.data.root)), cfg.data.sequence, "novel_pose")))
@@ -221,9 +233,11 @@ def plot(results: dict[str, list[dict]], events: dict, path: Path) -> None:
     fig, axes = plt.subplots(4 if with_garment else 3, 1, figsize=(9, 10.5 if with_garment else 8), sharex=True)
     if with_garment:
         rows = next(iter(results.values()))
-        gt = sorted({(r["frame"], r["hem_radius"], r["hem_depth"]) for r in rows if "hem_radius" in r})
+        gt = sorted({(r["frame"], r["hem_radius"], r["hem_depth"], r["shape_change"]) for r in rows
+                     if "hem_radius" in r})
         axes[3].plot([g[0] for g in gt], [100 * g[1] for g in gt], "k-", label="hem radius")
         axes[3].plot([g[0] for g in gt], [100 * g[2] for g in gt], "k--", label="hem depth below waist")
+        axes[3].plot([g[0] for g in gt], [100 * g[3] for g in gt], "k:", label="shape change from the settled cloth")
         axes[3].legend(fontsize=8)
     for label, rows in results.items():
         held = [r for r in rows if r["kind"] == "heldout"]
@@ -245,14 +259,49 @@ def plot(results: dict[str, list[dict]], events: dict, path: Path) -> None:
     plt.close(fig)
 
 
+def scene_report(prefix: Path) -> int:
+    """Print a synthetic scene's garment shape change (cm) from its settled cloth, per 0.1 s around the stop."""
+    meta_path, npz = Path(f"{prefix}-meta.json"), Path(f"{prefix}-garment.npz")
+    for path in (meta_path, npz):
+        if not path.is_file():
+            print(f"probe.py --scene: {path} not found (build the scene with realityavatar-make-scene)", file=sys.stderr)
+            return 2
+    meta = json.loads(meta_path.read_text())
+    events, fps = meta.get("motion", {}).get("events", {}), float(meta["fps"])
+    n_train = int(meta["params"]["train_frames"])
+    curves = garment_curves(npz, n_train - 1)
+    print(f"{prefix.name}: shape change = median cloth-vertex distance from frame {n_train - 1} (settled), waist-aligned")
+    phases: dict[str, list[float]] = {}
+    for f in range(n_train):
+        phases.setdefault(phase_of(f, events, fps), []).append(curves[f][2])
+    stop = events.get("spin_stop_frame")
+    if stop is not None:
+        phases["stop"] = [curves[f][2] for f in range(stop, min(n_train, stop + round(STOP_SECONDS * fps)))]
+    print("  per phase (cm): " + ", ".join(f"{k} {100 * np.mean(v):.1f}" for k, v in phases.items()))
+    if stop is not None:
+        step = max(1, round(0.1 * fps))
+        print(f"  {'s after stop':>12} {'shape change cm':>16} {'hem radius cm':>14}")
+        for f in range(stop - 3 * step, min(n_train, stop + round(1.6 * fps)), step):
+            print(f"  {(f - stop) / fps:>+12.2f} {100 * curves[f][2]:>16.1f} {100 * curves[f][0]:>14.1f}")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("runs", nargs="+")
-    ap.add_argument("--out", required=True)
+    ap.add_argument("runs", nargs="*")
+    ap.add_argument("--out", default=None)
+    ap.add_argument("--scene", default=None, metavar="ROOT/NAME",
+                    help="no runs: print how long a synthetic scene's garment keeps the spin's history (its shape "
+                         "change from the settled cloth around the abrupt stop)")
     ap.add_argument("--labels", default=None, help="comma-separated labels, one per run (default: folder names)")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--heldout-only", action="store_true", help="skip the training cameras (3x faster)")
     a = ap.parse_args(argv)
+    if a.scene:
+        return scene_report(Path(a.scene))
+    if not a.runs or not a.out:
+        print("probe.py: give run folders and --out, or --scene ROOT/NAME", file=sys.stderr)
+        return 2
     runs = [Path(r) for r in a.runs]
     labels = a.labels.split(",") if a.labels else [r.name for r in runs]
     if len(labels) != len(runs):
@@ -291,6 +340,7 @@ def main(argv: list[str] | None = None) -> int:
     if any(len(v) > 1 for v in groups.values()):
         keys = [f"heldout/{p}/{m}" for m in ("psnr", "iou") for p in ("rest", "spin", "after", "stop", "settled")]
         keys += [f"heldout/{p}/drift_p50" for p in ("spin", "after", "settled")]
+        keys += [f"heldout/{p}/shape_change" for p in ("spin", "stop", "after")]
         keys += [f"novel_pose/{p}/psnr" for p in ("np_rest", "np_spin", "np_after")]
         lines = ["| run | n | " + " | ".join(k.replace("heldout/", "").replace("/", " ") for k in keys) + " |",
                  "|---|---:|" + "---:|" * len(keys)]

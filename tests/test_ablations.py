@@ -458,3 +458,26 @@ def test_probe_novel_pose_phases_follow_the_root(tmp_path):
     out = novel_pose_phases(run, mesh)
     assert out["novel_pose/np_after/psnr"] == 28.5 and out["novel_pose/np_rest/psnr"] == 21.0
     assert out["novel_pose/np_spin/images"] == 5
+
+
+def test_probe_garment_shape_change_ignores_the_turn(tmp_path):
+    """ablations/probe.py's garment shape change: a cloth turned and moved rigidly with its waist has none (a spin
+    at a fixed pose), a hem swung 30 cm out shows it as the median vertex's displacement, and the reference is the
+    given settled frame."""
+    import numpy as np
+    from scipy.spatial.transform import Rotation
+
+    from ablations.probe import garment_curves
+
+    theta, y = np.meshgrid(np.linspace(0, 2 * np.pi, 12, endpoint=False), np.linspace(0.0, -0.5, 6), indexing="ij")
+    tube = np.stack([0.2 * np.cos(theta), y, 0.2 * np.sin(theta)], -1).reshape(-1, 3)  # waist ring at y = 0
+    turned = Rotation.from_rotvec([0.0, 2.0, 0.0]).apply(tube) + [0.3, 0.0, -0.1]
+    swung = tube.copy()
+    low = swung[:, 1] < -0.15  # the lower four of six rings (two thirds of the vertices) move 0.3 m sideways
+    swung[low, 0] += 0.3
+    np.savez(tmp_path / "g.npz", vertices=np.stack([tube, turned, swung, tube]), faces=np.zeros((0, 3), int),
+             frames=np.arange(4))
+    c = garment_curves(tmp_path / "g.npz", settled_frame=3)
+    assert c[0][2] < 1e-9 and c[1][2] < 1e-6  # same shape, turned 115 degrees and moved
+    assert abs(c[2][2] - 0.3) < 1e-6
+    assert garment_curves(tmp_path / "g.npz", settled_frame=2)[2][2] < 1e-9

@@ -202,6 +202,23 @@ def test_every_data_config_instantiates(path, body, monkeypatch):
         assert sorted(dm.train_views + dm.test_views) == list(range(1, 24))
 
 
+@pytest.mark.parametrize("path", sorted((CONF / "data").glob("synthetic_*.yaml")), ids=lambda p: p.stem)
+def test_synthetic_configs_build_the_scene_they_read(path, monkeypatch):
+    """A synthetic data config's build settings (preset, sequence, overrides such as synthetic_sweep_soft's cloth)
+    resolve to valid scene parameters whose scene name is the `sequence` the reader opens, so prepare_data builds the
+    scene the run reads instead of failing after the build."""
+    from realityavatar.data.synthetic.cloth import garment_params
+    from realityavatar.data.synthetic.scene import resolve_params
+
+    monkeypatch.delenv("REALITYAVATAR_SCENES", raising=False)
+    cfg = compose_data(path.stem)
+    overrides = cfg.get("build_overrides")
+    overrides = OmegaConf.to_container(overrides, resolve=True) if overrides is not None else {}
+    p = resolve_params(cfg.build_preset, cfg.build_sequence, overrides)
+    assert p["name"] == cfg.sequence
+    garment_params(p["garment"], p["cloth_params"])  # unknown or bad cloth keys raise here
+
+
 @pytest.mark.parametrize("path", sorted((CONF / "data").glob("i3d_*.yaml")), ids=lambda p: p.stem)
 def test_i3d_configs_read_their_layout(path, body, tmp_path):
     """Each I3D-Human config, pointed at a fixture folder in the published layout holding every camera 0..10, reads
