@@ -80,6 +80,12 @@ def garment_curves(npz: Path, settled_frame: int | None = None) -> dict[int, tup
     return out
 
 
+def settled_frame(meta: dict) -> int | None:
+    """The reference of the garment's shape change: a synthetic scene's last training frame (from its meta)."""
+    n_train = meta.get("params", {}).get("train_frames")
+    return int(n_train) - 1 if n_train else None
+
+
 class ClothTracker:
     """Material positions of posed Gaussians on a simulated garment (vertices [F,V,3] per frame, faces [Fc,3])."""
 
@@ -159,8 +165,7 @@ def probe_run(run_dir: Path, threads: int = 1, kinds: tuple[str, ...] = ("train"
     for r in rows:
         if r["frame"] in tracking:
             r["cloth_p50"], r["drift_p50"], r["drift_p90"] = tracking[r["frame"]]
-    train_frames = [int(r.frame) for r in dm.datasets["train"].records] if "train" in dm.datasets else []
-    garment = garment_curves(npz, max(train_frames) if train_frames else None)
+    garment = garment_curves(npz, settled_frame(meta))
     if garment:
         for r in rows:
             r["hem_radius"], r["hem_depth"], r["shape_change"] = garment.get(r["frame"], (float("nan"),) * 3)
@@ -269,7 +274,7 @@ def scene_report(prefix: Path) -> int:
     meta = json.loads(meta_path.read_text())
     events, fps = meta.get("motion", {}).get("events", {}), float(meta["fps"])
     n_train = int(meta["params"]["train_frames"])
-    curves = garment_curves(npz, n_train - 1)
+    curves = garment_curves(npz, settled_frame(meta))
     print(f"{prefix.name}: shape change = median cloth-vertex distance from frame {n_train - 1} (settled), waist-aligned")
     phases: dict[str, list[float]] = {}
     for f in range(n_train):
