@@ -243,3 +243,40 @@ def test_coverage_density_clones_the_gaussians_uncovered_pixels_pull(scenes_root
     assert torch.equal(g.means.detach()[300], before[7]) and torch.equal(g.means.detach()[301], before[42])
     assert float(d.demand.sum()) == 0.0 and d.demand.shape[0] == 302
     assert int(compose(["density=coverage"]).density.coverage_min) >= 1
+
+
+def test_one_frame_from_several_cameras_is_deformed_once(scenes_root):
+    """A frame_views batch (one pose window, several cameras) runs the networks once: the posed Gaussians of every
+    sample equal deform() of that window alone, and the parameters' gradient is the sum over the samples."""
+    from realityavatar.build import build_data, build_module
+
+    cfg = compose(["data=synthetic_ci", "trainer=ci", "gaussians.num_points=300"])
+    body = instantiate(cfg.body)
+    dm = build_data(cfg, body)
+    module = build_module(cfg, body, dm.num_train_frames, dm.scene_extent, data=dm)
+    torch.manual_seed(0)
+    for p in module.deformer.parameters():  # the decoder starts at zero output: give it something to move
+        p.data.normal_(0.0, 0.05)
+    T = module.run_info.get("window_len", 6)
+    poses = 0.3 * torch.randn(1, T, 24, 3)
+    transl = torch.randn(1, T, 3) * 0.1
+    calls = []
+    hook = module.deformer.register_forward_hook(lambda m, i, o: calls.append(i[1].shape[0]))
+    one = module.deform(poses, transl)
+    shared = module.deform_shared(poses.expand(3, -1, -1, -1), transl.expand(3, -1, -1))
+    hook.remove()
+    assert calls == [1, 1], calls
+    assert shared["B"] == 3 and shared["means"].shape[0] == 3
+    for k in ("means", "quats", "scales", "rot", "weights", "x_e"):
+        assert torch.equal(shared[k][2], one[k][0]), k
+    # two different windows are deformed separately
+    other = torch.cat([poses, poses + 0.1])
+    both = module.deform_shared(other, transl.expand(2, -1, -1))
+    assert not torch.equal(both["means"][0], both["means"][1])
+    # gradients: three samples sharing one pass = three times one sample's
+    w = next(module.deformer.parameters())
+    g1 = torch.autograd.grad(module.deform(poses, transl)["means"].sum(), w)[0]
+    g3 = torch.autograd.grad(module.deform_shared(poses.expand(3, -1, -1, -1), transl.expand(3, -1, -1))["means"].sum(),
+                             w)[0]
+    err = float((g3 - 3 * g1).abs().max() / (3 * g1).abs().max())
+    assert err < 1e-5, err

@@ -249,6 +249,45 @@ class HardFrameSampler(EpochShuffle):
             self.observed = int(state.get("observed", 0))
 
 
+class FrameViewBatches(torch.utils.data.Sampler):
+    """Batches of one training frame seen from several cameras (data.sampler=frame_views): every frame once per
+    epoch in EpochShuffle's seeded, resumable order, each batch `views` of that frame's images (all of them when
+    views is null or at least their number; otherwise a subset drawn from a generator seeded by (seed, epoch, k)).
+    The module deforms the frame once and renders it from every camera of the batch, so one step's deformation
+    update sees the frame's silhouettes from all sides instead of one.
+    """
+
+    def __init__(self, frames: Sequence[int], seed: int, views: int | None = None) -> None:
+        if views is not None and int(views) < 1:
+            raise ValueError(f"data.sampler.views must be null (all cameras of a frame) or >= 1, got {views!r}")
+        ids = sorted({int(f) for f in frames})
+        col = {f: j for j, f in enumerate(ids)}
+        frame_of = [col[int(f)] for f in frames]
+        self.images_of = [[i for i, j in enumerate(frame_of) if j == c] for c in range(len(ids))]
+        self.views = None if views is None else int(views)
+        self.sampler = EpochShuffle(len(ids), seed)  # Lightning calls batch_sampler.sampler.set_epoch
+
+    def __len__(self) -> int:
+        return len(self.sampler)
+
+    def __iter__(self):
+        for j in self.sampler:
+            imgs = self.images_of[j]
+            if self.views is None or self.views >= len(imgs):
+                yield list(imgs)
+                continue
+            s = self.sampler
+            g = torch.Generator().manual_seed((s.seed * 1_000_003 + s.epoch) * 1_000_033 + s.consumed)
+            pick = torch.randperm(len(imgs), generator=g)[: self.views].sort().values.tolist()
+            yield [imgs[i] for i in pick]
+
+    def state_dict(self) -> dict:
+        return self.sampler.state_dict()
+
+    def load_state_dict(self, state: dict) -> None:
+        self.sampler.load_state_dict(state)
+
+
 class SamplerFeedback(pl.Callback):
     """Passes each training step's per-image losses to the training sampler when it wants them (`observe`)."""
 
@@ -261,18 +300,23 @@ class SamplerFeedback(pl.Callback):
         sampler.observe(batch["index"].detach().cpu(), outputs["image_loss"].detach().cpu())
 
 
-SAMPLERS = ("uniform", "hard_frames")
+SAMPLERS = ("uniform", "hard_frames", "frame_views")
 
 
 class ResumableLoader(DataLoader):
     """A DataLoader whose position Lightning saves in the checkpoint and restores on resume (its sampler's state)."""
 
+    def _stateful(self):
+        return self.batch_sampler if isinstance(self.batch_sampler, FrameViewBatches) else self.sampler
+
     def state_dict(self) -> dict:
-        return self.sampler.state_dict() if hasattr(self.sampler, "state_dict") else {}
+        s = self._stateful()
+        return s.state_dict() if hasattr(s, "state_dict") else {}
 
     def load_state_dict(self, state: dict) -> None:
-        if state and hasattr(self.sampler, "load_state_dict"):
-            self.sampler.load_state_dict(state)
+        s = self._stateful()
+        if state and hasattr(s, "load_state_dict"):
+            s.load_state_dict(state)
 
 
 class AvatarDataModule(pl.LightningDataModule):
@@ -361,11 +405,14 @@ class AvatarDataModule(pl.LightningDataModule):
         kind = self.sampler.pop("kind", "uniform")
         if kind not in SAMPLERS:
             raise ValueError(f"data.sampler.kind: unknown sampler {kind!r}; expected one of {SAMPLERS}")
-        if kind == "uniform" and self.sampler:
-            raise ValueError(f"data.sampler: options {sorted(self.sampler)} are for hard_frames, not uniform")
-        unknown = set(self.sampler) - {"mix", "power", "ema"}
+        options = {"uniform": set(), "hard_frames": {"mix", "power", "ema"}, "frame_views": {"views"}}[kind]
+        unknown = set(self.sampler) - options
         if unknown:
-            raise ValueError(f"data.sampler: unknown option(s) {sorted(unknown)} (hard_frames takes mix, power, ema)")
+            raise ValueError(f"data.sampler: unknown option(s) {sorted(unknown)} for kind {kind!r} (it takes "
+                             f"{sorted(options) or 'no options'})")
+        if kind == "frame_views" and int(batch_size) != 1:
+            raise ValueError(f"data.batch_size={batch_size}: data.sampler=frame_views makes each batch one frame's "
+                             "cameras (data.sampler.views); leave data.batch_size at 1")
         self.sampler_kind = kind
         self.train_sampler: EpochShuffle | None = None
         self.shuffle_seed = shuffle_seed  # None: torch.initial_seed() at set-up (the run's seed_everything seed)
@@ -533,6 +580,11 @@ class AvatarDataModule(pl.LightningDataModule):
         gen = torch.Generator().manual_seed(int(self.shuffle_seed or 0))
         if shuffle:
             seed = self.shuffle_seed or 0
+            if self.sampler_kind == "frame_views":
+                batches = FrameViewBatches([r.frame for r in ds.records], seed, **self.sampler)
+                self.train_sampler = batches
+                return ResumableLoader(ds, batch_sampler=batches, num_workers=self.num_workers,
+                                       persistent_workers=self.num_workers > 0, generator=gen)
             if self.sampler_kind == "hard_frames":
                 sampler = HardFrameSampler([r.frame for r in ds.records], seed, **self.sampler)
             else:

@@ -135,6 +135,32 @@ class AvatarModule(pl.LightningModule):
             "B": B,
         }
 
+    _PER_SAMPLE = ("means", "quats", "scales", "rot", "f_mt", "weights", "x_e")
+
+    def deform_shared(self, poses: torch.Tensor, transl: torch.Tensor, deform: bool = True) -> dict:
+        """`deform` once per distinct pose window of the batch, the result shared by every sample with that window
+        (a data.sampler=frame_views batch is one frame from several cameras: one network pass, gradients summed)."""
+        B = poses.shape[0]
+        reps: list[int] = []  # the first sample of each distinct window
+        use: list[int] = []  # which of reps each sample takes its deformation from
+        for b in range(B):
+            hit = next((j for j, r in enumerate(reps)
+                        if torch.equal(poses[b], poses[r]) and torch.equal(transl[b], transl[r])), None)
+            if hit is None:
+                hit = len(reps)
+                reps.append(b)
+            use.append(hit)
+        if len(reps) == B:
+            return self.deform(poses, transl, deform=deform)
+        sel = torch.tensor(reps, device=poses.device)
+        posed = self.deform(poses[sel], transl[sel], deform=deform)
+        inv = torch.tensor(use, device=poses.device)
+        for k in self._PER_SAMPLE:
+            if posed.get(k) is not None:
+                posed[k] = posed[k].index_select(0, inv)
+        posed["B"] = B
+        return posed
+
     def shade(self, posed: dict, viewmats: torch.Tensor, frame_idx: torch.Tensor) -> torch.Tensor:
         """View-dependent colour of every Gaussian for each sample's camera: [B,N,3]."""
         cam_centre = camera_centres(viewmats)  # [B,3]
@@ -164,7 +190,7 @@ class AvatarModule(pl.LightningModule):
         frame_idx = batch["frame_idx"]
         viewmats, Ks = batch["viewmat"], batch["K"]
         W, H = int(batch["width"][0]), int(batch["height"][0])
-        posed = self.deform(poses, transl, deform=deform)
+        posed = self.deform_shared(poses, transl, deform=deform)
         rgb = self.shade(posed, viewmats, frame_idx)  # [B,N,3]
         images, alphas, metas = [], [], []
         for b in range(posed["B"]):
