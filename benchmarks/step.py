@@ -1,6 +1,7 @@
 """One full training step of the demo model and its parts (data, networks, render, losses, optimizer, density).
 
 python benchmarks/step.py [--n 10000 35000] [--size 128 256 512] [--backends torch numba] [--threads 1] [--clock cpu]
+                          [--views 1 4]
 Every time is printed beside its ratio to the GEMM unit (8 float32 matmuls of 1024^3) timed in the same process,
 because the project's CPU is shared and absolute seconds drift with the load. Writes benchmarks/results/step_cpu.json.
 
@@ -9,6 +10,8 @@ timed on its own (render backward = the rasterizer's; networks backward = decode
 data -> networks fwd -> render fwd -> losses fwd -> losses bwd -> render bwd -> networks bwd -> optimizer -> density.
 "step" is module.training_step itself (one backward; optimizers and logging stubbed, no Trainer). Data is a synthetic batch
 (random pose window, one camera framing the body, random target image) built the way the DataModule collates one.
+--views V adds the whole step of a data.sampler=frame_views batch: the same pose window seen by V cameras around the
+body (one network pass, V renders and losses); its parts are not split out.
 """
 from __future__ import annotations
 
@@ -70,8 +73,9 @@ def build(n: int, backend: str, overrides: list[str]):
     return cfg, module, opt_cfg["optimizer"], opt_cfg["lr_scheduler"]["scheduler"]
 
 
-def make_batch_fn(module, size: int, window: int):
-    """A DataModule-shaped batch of one sample: pose window, one camera framing the body, target image and mask."""
+def make_batch_fn(module, size: int, window: int, views: int = 1):
+    """A DataModule-shaped batch: one pose window seen by `views` cameras framing the body (turned about the up axis),
+    target images and masks."""
     verts = module.body.canonical_vertices().detach().float()
     lo, hi = verts.min(0).values, verts.max(0).values
     centre, ext = 0.5 * (lo + hi), hi - lo
@@ -81,22 +85,31 @@ def make_batch_fn(module, size: int, window: int):
     side = (up_axis + 1) % 3
     campos = centre.clone()
     campos[side] -= 3.0
-    vm = look_at(campos, centre, up)
+    vms = []
+    for v in range(views):
+        a = 2 * math.pi * v / views
+        c, s_ = math.cos(a), math.sin(a)
+        d = campos - centre
+        k = torch.nn.functional.normalize(up, dim=0)
+        d = d * c + torch.linalg.cross(k, d) * s_ + k * (k @ d) * (1 - c)  # Rodrigues about the up axis
+        vms.append(look_at(centre + d, centre, up))
+    vm = torch.stack(vms)
     f = 0.92 * size * 3.0 / float(ext[up_axis])
     K = torch.tensor([[f, 0, size / 2], [0, f, size / 2], [0, 0, 1.0]])
     g = torch.Generator().manual_seed(0)
 
     def make():
+        V = views
         return {
-            "poses": torch.randn(1, window, 24, 3, generator=g) * 0.1,
-            "transl": torch.zeros(1, window, 3),
-            "frame_idx": torch.tensor([3]),
-            "viewmat": vm[None].clone(),
-            "K": K[None].clone(),
-            "width": torch.tensor([size]),
-            "height": torch.tensor([size]),
-            "image": torch.rand(1, size, size, 3, generator=g),
-            "mask": (torch.rand(1, size, size, 1, generator=g) > 0.5).float(),
+            "poses": (torch.randn(1, window, 24, 3, generator=g) * 0.1).expand(V, -1, -1, -1).clone(),
+            "transl": torch.zeros(V, window, 3),
+            "frame_idx": torch.full((V,), 3),
+            "viewmat": vm.clone(),
+            "K": K[None].repeat(V, 1, 1),
+            "width": torch.full((V,), size),
+            "height": torch.full((V,), size),
+            "image": torch.rand(V, size, size, 3, generator=g),
+            "mask": (torch.rand(V, size, size, 1, generator=g) > 0.5).float(),
         }
 
     return make
@@ -170,7 +183,7 @@ def _stub_trainer_hooks(module, opt, sched, step: int) -> None:
     type(module).global_step = property(lambda self: step)  # no trainer: the step the schedule sees
 
 
-def run_config(n: int, size: int, backend: str, repeats: int, overrides: list[str]) -> dict:
+def run_config(n: int, size: int, backend: str, repeats: int, overrides: list[str], views=(1,)) -> dict:
     torch.manual_seed(0)
     cfg, module, opt, sched = build(n, backend, overrides)
     make_batch = make_batch_fn(module, size, int(cfg.data.window_len))
@@ -184,8 +197,16 @@ def run_config(n: int, size: int, backend: str, repeats: int, overrides: list[st
             parts[k].append(v)
         whole.append(step_whole(module, opt, sched, make_batch, step))
     med = {k: statistics.median(v) for k, v in parts.items()}
+    multi = {}
+    for V in views:
+        if V == 1:
+            continue
+        make_v = make_batch_fn(module, size, int(cfg.data.window_len), V)
+        step_whole(module, opt, sched, make_v, step)  # warm-up
+        multi[str(V)] = statistics.median([step_whole(module, opt, sched, make_v, step) for _ in range(repeats)])
     return {"n": n, "size": size, "backend": backend, "num_gaussians": int(module.gaussians.num_points),
-            "step_s": statistics.median(whole), "sum_of_parts_s": sum(med.values()), "parts_s": med}
+            "step_s": statistics.median(whole), "sum_of_parts_s": sum(med.values()), "parts_s": med,
+            "views_step_s": multi}
 
 
 def main() -> None:
@@ -198,6 +219,8 @@ def main() -> None:
     ap.add_argument("--clock", choices=["wall", "cpu"], default="wall",
                     help="cpu: process CPU seconds, steadier than wall time on a shared CPU (only with --threads 1)")
     ap.add_argument("--override", nargs="*", default=[], help="extra hydra overrides, e.g. encoder=whole_pose")
+    ap.add_argument("--views", type=int, nargs="+", default=[1],
+                    help="also time the whole step with V cameras of one frame per batch (data.sampler=frame_views)")
     ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "step_cpu.json"))
     ap.add_argument("--no-tune-malloc", action="store_true",
                     help="leave glibc malloc as it is (training tunes it: realityavatar.runtime.tune_malloc)")
@@ -214,13 +237,15 @@ def main() -> None:
     for n in a.n:
         for size in a.size:
             for backend in a.backends:
-                r = run_config(n, size, backend, a.repeats, a.override)
+                r = run_config(n, size, backend, a.repeats, a.override, a.views)
                 units.append(gemm_unit())  # the load drifts: each row is divided by the unit measured next to it
                 r["gemm_unit_s"] = statistics.median(units[-2:])
                 results.append(r)
                 u = r["gemm_unit_s"]
                 print(f"  {backend:6s} N={n:6d} {size}^2  step {r['step_s']:.3f}s = {r['step_s'] / u:.2f} units "
-                      f"(render fwd+bwd {r['parts_s']['render_fwd'] + r['parts_s']['render_bwd']:.3f}s)", flush=True)
+                      f"(render fwd+bwd {r['parts_s']['render_fwd'] + r['parts_s']['render_bwd']:.3f}s)"
+                      + "".join(f"; {V} views {t:.3f}s = {t / u:.2f} units ({t / r['step_s']:.2f}x)"
+                                for V, t in r["views_step_s"].items()), flush=True)
     cols = ["step", *PARTS]
     print("\nseconds (GEMM units); GEMM unit = 8 float32 matmuls of 1024^3 timed in this process")
     print("| backend | N | image | " + " | ".join(cols) + " |")

@@ -423,3 +423,17 @@ def test_density_cap_reset_state_and_disabled(body):
     stats = dc.step_post_backward(g, opt, _meta(24, []), step=15, image_size=(64, 64))
     assert stats.get("reset") == 1 and (g.opacities() <= 0.1 + 1e-6).all()
     assert (opt.state[g.opacity_logits]["exp_avg"] == 0).all()
+
+
+def test_density_gradient_of_a_multi_image_batch_is_scaled_by_its_images(body):
+    """gsplat's rule: the loss is a mean over a batch's images, so a Gaussian seen by V samples (one meta each, as a
+    frame_views batch renders them) with 1/V of one image's gradient each accumulates what one image gives alone."""
+    g = CanonicalGaussians(body, num_points=20, feature_dim=4, seed=0)
+    kw = dict(refine_start=0, refine_stop=100, refine_every=10, grad_threshold=2e-4, prune_opacity=0.05,
+              grow_scale3d=0.01, scene_scale=1.0, reset_every=0, max_points=1000)
+    one, four = DensityControl(**kw), DensityControl(**kw)
+    one.step_post_backward(g, None, _meta(20, [3], 1e-2), step=1, image_size=(64, 48))
+    four.step_post_backward(g, None, [_meta(20, [3], 1e-2 / 4) for _ in range(4)], step=1, image_size=(64, 48))
+    avg_one = one.grad2d / one.count.clamp_min(1)
+    avg_four = four.grad2d / four.count.clamp_min(1)
+    assert float(avg_one[3]) > 0 and torch.allclose(avg_four, avg_one, rtol=1e-6), (avg_one[3], avg_four[3])
