@@ -91,18 +91,21 @@ def test_resume_of_finished_run_changes_nothing_and_accumulates(tiny_run, tmp_pa
     assert steps and min(steps) < 8, "rows logged before the resume point are missing from logs/csv/metrics.csv"
 
 
-def test_interrupted_and_resumed_equals_uninterrupted(scenes_root, tmp_path, monkeypatch):
-    """A run stopped after its step-6 checkpoint and resumed ends where an uninterrupted run ends (bit-equal here)."""
+@pytest.mark.parametrize("sampler", ["uniform", "frame_views"])
+def test_interrupted_and_resumed_equals_uninterrupted(scenes_root, tmp_path, monkeypatch, sampler):
+    """A run stopped after its step-6 checkpoint and resumed ends where an uninterrupted run ends (bit-equal here),
+    with one image per step and with one frame from all its cameras per step (frame_views: the batch sampler's
+    position is in the checkpoint)."""
     ref = tmp_path / "ref"
-    ref_metrics = _run(ref, "iterations=12")
+    ref_metrics = _run(ref, "iterations=12", f"sampler={sampler}")
     cut = tmp_path / "cut"
     with monkeypatch.context() as m:
         _StopAt(m, 7, RuntimeError("simulated crash"))
         with pytest.raises(RuntimeError, match="simulated crash"):
-            _run(cut, "iterations=12")
+            _run(cut, "iterations=12", f"sampler={sampler}")
     at6 = _state(cut / "last.ckpt")
     assert at6["global_step"] == 6
-    metrics = _run(cut, "iterations=12", "resume=true")
+    metrics = _run(cut, "iterations=12", "resume=true", f"sampler={sampler}")
     assert metrics["train_seconds"] > at6["callbacks"]["RunState"]["train_seconds"] > 0
     a, b = _state(ref / "last.ckpt")["state_dict"], _state(cut / "last.ckpt")["state_dict"]
     assert a.keys() == b.keys()
