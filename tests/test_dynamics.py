@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -257,6 +259,9 @@ def test_one_frame_from_several_cameras_is_deformed_once(scenes_root):
     torch.manual_seed(0)
     for p in module.deformer.parameters():  # the decoder starts at zero output: give it something to move
         p.data.normal_(0.0, 0.05)
+    J = body.joints(body.canonical_pose()[None])[0]  # the decoder's vertical axis (offsets=cylindrical)
+    assert torch.allclose(module.deformer.axis_origin, J[0])
+    assert torch.allclose(module.deformer.axis_dir, torch.nn.functional.normalize(J[12] - J[0], dim=0))
     T = module.run_info.get("window_len", 6)
     poses = 0.3 * torch.randn(1, T, 24, 3)
     transl = torch.randn(1, T, 3) * 0.1
@@ -280,3 +285,41 @@ def test_one_frame_from_several_cameras_is_deformed_once(scenes_root):
                              w)[0]
     err = float((g3 - 3 * g1).abs().max() / (3 * g1).abs().max())
     assert err < 1e-5, err
+
+
+def test_cylindrical_offsets_turn_and_flare_about_the_body_axis():
+    """deformer.offsets=cylindrical: (dr, dtheta, dh) move a point to radius r + dr, azimuth phi + dtheta and height
+    h + dh about the axis, the Gaussian's rotation turns by dtheta; zero outputs are the identity; the module puts the
+    axis through the canonical pelvis towards the neck."""
+    from realityavatar.model.deform import MotionTrendDecoder
+    from realityavatar.geometry import quat_to_matrix
+
+    d = MotionTrendDecoder(cond_dim=8, encoding="frequency", hidden_dim=16, num_layers=2, feature_dim=4,
+                           offsets="cylindrical")
+    d.set_axis(torch.tensor([1.0, 0.0, 2.0]), torch.tensor([0.0, 2.0, 0.0]))  # vertical (y) axis through x=1, z=2
+    x = torch.tensor([[1.5, 0.3, 2.0], [1.0, -0.2, 1.0]])  # r = 0.5 at phi = 0 (+x); r = 1 towards -z
+    o = torch.tensor([[[0.1, math.pi / 2, 0.05], [0.0, math.pi, -0.1]]])
+    dx, twist = d._cylindrical(x, o)
+    moved = x + dx[0]
+    # +x turned by +90 deg about +y goes to -z: radius 0.6; -z turned by 180 deg goes to +z
+    assert torch.allclose(moved[0], torch.tensor([1.0, 0.35, 2.0 - 0.6]), atol=1e-6), moved[0]
+    assert torch.allclose(moved[1], torch.tensor([1.0, -0.3, 3.0]), atol=1e-6), moved[1]
+    R = quat_to_matrix(twist[0, 0])
+    assert torch.allclose(R @ torch.tensor([1.0, 0.0, 0.0]), torch.tensor([0.0, 0.0, -1.0]), atol=1e-6)
+    out = d(x, torch.zeros(1, 8))  # zero-initialised output rows: the identity
+    assert float(out["dx"].abs().max()) == 0.0
+    assert torch.allclose(out["dq"], torch.tensor([1.0, 0.0, 0.0, 0.0]).expand_as(out["dq"]))
+    with torch.no_grad():
+        d.out.bias[1] = math.pi / 2  # every Gaussian swirls a quarter turn: its rotation turns with it
+    out = d(x, torch.zeros(1, 8))
+    R = quat_to_matrix(out["dq"][0, 0])
+    assert torch.allclose(R @ torch.tensor([1.0, 0.0, 0.0]), torch.tensor([0.0, 0.0, -1.0]), atol=1e-6)
+    assert torch.allclose((x + out["dx"][0])[1], torch.tensor([0.0, -0.2, 2.0]), atol=1e-6)
+    cfg = compose(["deformer.offsets=cylindrical", "gaussians.num_points=200"])
+    from realityavatar.body import build_body
+
+    body = build_body("mannequin")
+    dec = instantiate(cfg.deformer)
+    assert dec.offsets == "cylindrical"
+    with pytest.raises(ValueError, match="deformer.offsets"):
+        MotionTrendDecoder(offsets="polar")

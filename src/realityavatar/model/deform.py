@@ -44,10 +44,19 @@ class MotionTrendDecoder(nn.Module):
         bbox_max: tuple[float, float, float] = (1.2, 1.0, 1.2),
         auto_bounds: bool = True,
         activation: Literal["silu", "relu"] = "silu",
+        offsets: Literal["cartesian", "cylindrical"] = "cartesian",
     ) -> None:
         super().__init__()
         if activation not in _ACTIVATIONS:
             raise ValueError(f"deformer.activation: expected one of {sorted(_ACTIVATIONS)}, got {activation!r}")
+        if offsets not in ("cartesian", "cylindrical"):
+            raise ValueError(f"deformer.offsets: expected 'cartesian' or 'cylindrical', got {offsets!r}")
+        self.offsets = offsets
+        # offsets=cylindrical: the first three outputs are (dr, dtheta, dh) about the body's vertical axis through
+        # its pelvis (set_axis; AvatarModule sets it from the body model whenever it is built, so the buffers are not
+        # in the checkpoint and runs saved before this option load unchanged).
+        self.register_buffer("axis_origin", torch.zeros(3), persistent=False)
+        self.register_buffer("axis_dir", torch.tensor([0.0, 1.0, 0.0]), persistent=False)
         self.activation = activation
         act = _ACTIVATIONS[activation]
         self.in_act = act()  # after the first layer; the hidden layers have their own
@@ -86,6 +95,33 @@ class MotionTrendDecoder(nn.Module):
         self.bbox_max.copy_(hi + pad)
         self.bounds_fitted.fill_(1)
 
+    @torch.no_grad()
+    def set_axis(self, origin: torch.Tensor, direction: torch.Tensor) -> None:
+        """The vertical axis of offsets=cylindrical: a point on it and its direction (canonical space)."""
+        self.axis_origin.copy_(origin.reshape(3))
+        self.axis_dir.copy_(F.normalize(direction.reshape(3), dim=0))
+
+    def _cylindrical(self, x_c: torch.Tensor, o: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(dr, dtheta, dh) [B,N,3] about the axis -> Cartesian dx [B,N,3] and the twist's quaternion [B,N,4].
+
+        A Gaussian at radius r and azimuth phi moves to radius r + dr, azimuth phi + dtheta, height h + dh. A skirt's
+        flare (dr) and its swirl around the body (dtheta) are then functions of height and time that do not vary
+        around the body, where in Cartesian offsets they turn with the azimuth. The frame comes from x_c detached, as
+        the encoding does, so the canonical means keep the identity as their gradient path.
+        """
+        u = self.axis_dir.to(x_c)
+        rel = x_c.detach() - self.axis_origin.to(x_c)
+        radial = rel - (rel @ u)[:, None] * u  # [N,3]
+        r = radial.norm(dim=-1, keepdim=True)
+        e_r = radial / r.clamp_min(1e-6)
+        e_t = torch.linalg.cross(u.expand_as(e_r), e_r, dim=-1)
+        dr, dth, dh = o[..., 0:1], o[..., 1:2], o[..., 2:3]
+        c, s_ = torch.cos(dth), torch.sin(dth)
+        dx = (r + dr) * (c * e_r + s_ * e_t) - radial + dh * u
+        half = 0.5 * dth
+        twist = torch.cat([torch.cos(half), torch.sin(half) * u], dim=-1)  # rotation by dtheta about the axis
+        return dx, twist
+
     def forward(self, x_c: torch.Tensor, h_t: torch.Tensor) -> dict[str, torch.Tensor]:
         """x_c [N,3], h_t [B,H] -> dict(dx [B,N,3], ds [B,N,3], dq [B,N,4] unit wxyz, f_mt [B,N,F])."""
         if not bool(self.bounds_fitted):
@@ -99,8 +135,12 @@ class MotionTrendDecoder(nn.Module):
         # The MLP runs on [B*N,H] rows (2-D matmuls: no copies in the backward of 3-D inputs).
         z = torch.cat([F.linear(enc, self.in_x.weight, self.in_x.bias + e) for e in eh])  # [B*N,H]
         o = self.out(self.hidden(self.in_act(z))).reshape(eh.shape[0], enc.shape[0], -1)  # [B,N,10+F]
-        dq = o[..., 6:10] + o.new_tensor([1.0, 0.0, 0.0, 0.0])
-        return {"dx": o[..., :3], "ds": o[..., 3:6], "dq": F.normalize(dq, dim=-1), "f_mt": o[..., 10:]}
+        dq = F.normalize(o[..., 6:10] + o.new_tensor([1.0, 0.0, 0.0, 0.0]), dim=-1)
+        dx = o[..., :3]
+        if self.offsets == "cylindrical":
+            dx, twist = self._cylindrical(x_c, dx)
+            dq = quat_multiply(twist, dq)  # the Gaussian turns with its swirl
+        return {"dx": dx, "ds": o[..., 3:6], "dq": dq, "f_mt": o[..., 10:]}
 
     def param_groups(self) -> dict[str, list[nn.Parameter]]:
         enc = list(self.encoding.parameters())

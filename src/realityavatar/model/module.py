@@ -104,6 +104,11 @@ class AvatarModule(pl.LightningModule):
         # deform_start, which have moved and been densified); a loaded checkpoint replaces it with the trained box.
         if hasattr(deformer, "fit_bounds") and not bool(getattr(deformer, "bounds_fitted", 1)):
             deformer.fit_bounds(gaussians.means.detach())
+        if hasattr(deformer, "set_axis"):
+            # offsets=cylindrical turn about the canonical body's vertical axis: through the pelvis, towards the neck
+            # (a checkpoint's buffers replace it with the same values).
+            J = body.joints(body.canonical_pose()[None])[0].detach()  # [24,3]
+            deformer.set_axis(J[0], J[12] - J[0])
 
     # ------------------------------------------------------------------ forward
     def deform(self, poses: torch.Tensor, transl: torch.Tensor, deform: bool = True):
