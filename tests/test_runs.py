@@ -91,23 +91,33 @@ def test_resume_of_finished_run_changes_nothing_and_accumulates(tiny_run, tmp_pa
     assert steps and min(steps) < 8, "rows logged before the resume point are missing from logs/csv/metrics.csv"
 
 
-@pytest.mark.parametrize("sampler", ["uniform", "frame_views"])
+@pytest.mark.parametrize("sampler", ["uniform", "hard_frames", "frame_views"])
 def test_interrupted_and_resumed_equals_uninterrupted(scenes_root, tmp_path, monkeypatch, sampler):
     """A run stopped after its step-6 checkpoint and resumed ends where an uninterrupted run ends (bit-equal here),
     with one image per step and with one frame from all its cameras per step (frame_views: the batch sampler's
-    position is in the checkpoint)."""
+    position is in the checkpoint), and with frames drawn by their loss (hard_frames, the default: six one-camera
+    training frames, so the crash falls in the second, loss-driven epoch, whose draws depend on the frames' scores:
+    a resume that lost them draws other frames)."""
+    hard = ["data.max_train_frames=6", "data.train_views=[0]", "data.sampler.mix=0", "data.sampler.power=8"]
+    opts = ["iterations=12", f"sampler={sampler}", *(hard if sampler == "hard_frames" else [])]
     ref = tmp_path / "ref"
-    ref_metrics = _run(ref, "iterations=12", f"sampler={sampler}")
+    ref_metrics = _run(ref, *opts)
     cut = tmp_path / "cut"
     with monkeypatch.context() as m:
         _StopAt(m, 7, RuntimeError("simulated crash"))
         with pytest.raises(RuntimeError, match="simulated crash"):
-            _run(cut, "iterations=12", f"sampler={sampler}")
+            _run(cut, *opts)
     at6 = _state(cut / "last.ckpt")
     assert at6["global_step"] == 6
-    metrics = _run(cut, "iterations=12", "resume=true", f"sampler={sampler}")
+    metrics = _run(cut, *opts, "resume=true")
     assert metrics["train_seconds"] > at6["callbacks"]["RunState"]["train_seconds"] > 0
-    a, b = _state(ref / "last.ckpt")["state_dict"], _state(cut / "last.ckpt")["state_dict"]
+    ref_ckpt, cut_ckpt = _state(ref / "last.ckpt"), _state(cut / "last.ckpt")
+    # the training sampler ends in the same state (position; hard_frames: the frames' loss scores)
+    (sa,), (sb,) = (c["loops"]["fit_loop"]["state_dict"]["combined_loader"] for c in (ref_ckpt, cut_ckpt))
+    assert sa.keys() == sb.keys() and {k: v for k, v in sa.items() if k != "score"} == {
+        k: v for k, v in sb.items() if k != "score"}, (sa, sb)
+    np.testing.assert_allclose(sb.get("score", []), sa.get("score", []), rtol=1e-5, err_msg="sampler scores")
+    a, b = ref_ckpt["state_dict"], cut_ckpt["state_dict"]
     assert a.keys() == b.keys()
     for k in a:
         torch.testing.assert_close(b[k], a[k], rtol=1e-5, atol=1e-6, msg=k)

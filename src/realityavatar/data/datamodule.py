@@ -184,7 +184,7 @@ class HardFrameSampler(EpochShuffle):
     generator seeded by (seed, e, k), so a resumed run draws what the uninterrupted run would have.
     """
 
-    def __init__(self, frames: Sequence[int], seed: int, mix: float = 0.5, power: float = 1.0, ema: float = 0.3) -> None:
+    def __init__(self, frames: Sequence[int], seed: int, mix: float = 0.3, power: float = 2.0, ema: float = 0.3) -> None:
         super().__init__(len(frames), seed)
         if not 0.0 <= float(mix) <= 1.0:
             raise ValueError(f"data.sampler.mix must be in [0, 1], got {mix!r}")
