@@ -39,19 +39,21 @@ EXPECTED = {
     "scenes": (8, {"+variant": {"full", "no_lstm"}, "seed": {"0"},
                    "data": {"synthetic_sweep", "synthetic_sweep_dress_spin", "synthetic_sweep_skirt_flap",
                             "synthetic_sweep_dress_walk"}}),
-    "dynamics": (18, {"+garment": {"default", "no_silhouette", "no_grid", "no_shading", "plus_hull", "plus_graph"},
+    "dynamics": (21, {"+garment": {"default", "no_silhouette", "no_grid", "no_shading", "no_hard_frames", "plus_hull",
+                                   "plus_graph"},
                       "seed": SEEDS,
                       "data": {"synthetic_sweep"}}),
 }
-# conf/garment option -> (silhouette, skinning, gaussians, deformer, shading) it selects
-GARMENT_CHOICES = {"default": ("chamfer", "grid", "default", "motion_trend", "irradiance"),
-                   "no_silhouette": ("none", "grid", "default", "motion_trend", "irradiance"),
-                   "no_grid": ("chamfer", "mlp", "default", "motion_trend", "irradiance"),
-                   "no_shading": ("chamfer", "grid", "default", "motion_trend", "none"),
-                   "plus_hull": ("chamfer", "grid", "hull", "motion_trend", "irradiance"),
-                   "plus_graph": ("chamfer", "grid", "default", "motion_trend_nodes", "irradiance"),
-                   "all": ("chamfer", "grid", "hull", "motion_trend_nodes", "irradiance"),
-                   "none": ("none", "mlp", "default", "motion_trend", "none")}
+# conf/garment option -> (silhouette, skinning, gaussians, deformer, shading, sampler) it selects
+GARMENT_CHOICES = {"default": ("chamfer", "grid", "default", "motion_trend", "irradiance", "hard_frames"),
+                   "no_silhouette": ("none", "grid", "default", "motion_trend", "irradiance", "hard_frames"),
+                   "no_grid": ("chamfer", "mlp", "default", "motion_trend", "irradiance", "hard_frames"),
+                   "no_shading": ("chamfer", "grid", "default", "motion_trend", "none", "hard_frames"),
+                   "no_hard_frames": ("chamfer", "grid", "default", "motion_trend", "irradiance", "uniform"),
+                   "plus_hull": ("chamfer", "grid", "hull", "motion_trend", "irradiance", "hard_frames"),
+                   "plus_graph": ("chamfer", "grid", "default", "motion_trend_nodes", "irradiance", "hard_frames"),
+                   "all": ("chamfer", "grid", "hull", "motion_trend_nodes", "irradiance", "hard_frames"),
+                   "none": ("none", "mlp", "default", "motion_trend", "none", "uniform")}
 VARIANT_CHOICES = {"full": ("latentbone", "lstm"), "no_zc": ("no_zc", "lstm"),
                    "no_lstm": ("latentbone", "none"), "no_split": ("no_split", "lstm")}
 # Option names fixed by the project; a stand-in tree with exactly these lets the sweep files be checked on
@@ -133,7 +135,7 @@ def test_sweep_expands_to_expected_jobs(standin_conf, name):
             assert (choices["encoder"], choices["temporal"]) == VARIANT_CHOICES[ov["+variant"]]
         if "+garment" in ov:
             assert (choices["silhouette"], choices["skinning"], choices["gaussians"], choices["deformer"],
-                    choices["shading"]) == GARMENT_CHOICES[ov["+garment"]]
+                    choices["shading"], choices["sampler"]) == GARMENT_CHOICES[ov["+garment"]]
         for key in ("temporal", "color", "density", "render", "trainer", "data"):
             if key in ov:
                 assert choices[key] == ov[key]
@@ -169,7 +171,7 @@ def test_sweep_jobs_compose_in_the_real_tree(name):
             assert (choices["encoder"], choices["temporal"]) == VARIANT_CHOICES[ov["+variant"]]
         if "+garment" in ov:
             assert (choices["silhouette"], choices["skinning"], choices["gaussians"], choices["deformer"],
-                    choices["shading"]) == GARMENT_CHOICES[ov["+garment"]]
+                    choices["shading"], choices["sampler"]) == GARMENT_CHOICES[ov["+garment"]]
         for key in ("temporal", "color", "density", "render", "trainer", "data"):
             if key in ov:
                 assert choices[key] == ov[key]
