@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import math
-
 from typing import Literal
 
 import torch
@@ -47,13 +45,8 @@ class MotionTrendDecoder(nn.Module):
         auto_bounds: bool = True,
         activation: Literal["silu", "relu"] = "silu",
         offsets: Literal["cartesian", "cylindrical"] = "cartesian",
-        max_stretch: float | None = None,
     ) -> None:
         super().__init__()
-        if max_stretch is not None and not float(max_stretch) > 1.0:
-            raise ValueError(f"deformer.max_stretch: expected null or a factor > 1, got {max_stretch!r}")
-        # Soft upper bound on the decoder's scale change per axis: s_e <= max_stretch * s_c (null: unbounded).
-        self.max_stretch = None if max_stretch is None else float(max_stretch)
         if activation not in _ACTIVATIONS:
             raise ValueError(f"deformer.activation: expected one of {sorted(_ACTIVATIONS)}, got {activation!r}")
         if offsets not in ("cartesian", "cylindrical"):
@@ -147,11 +140,7 @@ class MotionTrendDecoder(nn.Module):
         if self.offsets == "cylindrical":
             dx, twist = self._cylindrical(x_c, dx)
             dq = quat_multiply(twist, dq)  # the Gaussian turns with its swirl
-        ds = o[..., 3:6]
-        if self.max_stretch is not None:  # smooth min(ds, log max_stretch): the identity well below the bound
-            cap = math.log(self.max_stretch)
-            ds = cap - F.softplus(cap - ds)
-        return {"dx": dx, "ds": ds, "dq": dq, "f_mt": o[..., 10:]}
+        return {"dx": dx, "ds": o[..., 3:6], "dq": dq, "f_mt": o[..., 10:]}
 
     def param_groups(self) -> dict[str, list[nn.Parameter]]:
         enc = list(self.encoding.parameters())
