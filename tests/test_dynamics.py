@@ -289,10 +289,10 @@ def test_one_frame_from_several_cameras_is_deformed_once(scenes_root):
 
 def test_cylindrical_offsets_turn_and_flare_about_the_body_axis():
     """deformer.offsets=cylindrical: (dr, dtheta, dh) move a point to radius r + dr, azimuth phi + dtheta and height
-    h + dh about the axis, the Gaussian's rotation turns by dtheta; zero outputs are the identity; the module puts the
-    axis through the canonical pelvis towards the neck."""
-    from realityavatar.model.deform import MotionTrendDecoder
+    h + dh about the axis, the Gaussian's rotation turns by dtheta; zero outputs are the identity; the option composes
+    and a wrong value is refused. (The module's axis, pelvis towards neck: test_one_frame_from_several_cameras_...)"""
     from realityavatar.geometry import quat_to_matrix
+    from realityavatar.model.deform import MotionTrendDecoder
 
     d = MotionTrendDecoder(cond_dim=8, encoding="frequency", hidden_dim=16, num_layers=2, feature_dim=4,
                            offsets="cylindrical")
@@ -315,10 +315,7 @@ def test_cylindrical_offsets_turn_and_flare_about_the_body_axis():
     R = quat_to_matrix(out["dq"][0, 0])
     assert torch.allclose(R @ torch.tensor([1.0, 0.0, 0.0]), torch.tensor([0.0, 0.0, -1.0]), atol=1e-6)
     assert torch.allclose((x + out["dx"][0])[1], torch.tensor([0.0, -0.2, 2.0]), atol=1e-6)
-    cfg = compose(["deformer.offsets=cylindrical", "gaussians.num_points=200"])
-    from realityavatar.body import build_body
-
-    body = build_body("mannequin")
+    cfg = compose(["deformer.offsets=cylindrical"])
     dec = instantiate(cfg.deformer)
     assert dec.offsets == "cylindrical"
     with pytest.raises(ValueError, match="deformer.offsets"):

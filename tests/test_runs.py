@@ -96,8 +96,9 @@ def test_interrupted_and_resumed_equals_uninterrupted(scenes_root, tmp_path, mon
     """A run stopped after its step-6 checkpoint and resumed ends where an uninterrupted run ends (bit-equal here),
     with one image per step and with one frame from all its cameras per step (frame_views: the batch sampler's
     position is in the checkpoint), and with frames drawn by their loss (hard_frames, the default: six one-camera
-    training frames, so the crash falls in the second, loss-driven epoch, whose draws depend on the frames' scores:
-    a resume that lost them draws other frames)."""
+    training frames, so the crash falls in the second, loss-driven epoch). Both runs' samplers must end in the same
+    state: with nearly equal scores a resume that lost them can still draw the same frames, so the draws alone would
+    not show it."""
     hard = ["data.max_train_frames=6", "data.train_views=[0]", "data.sampler.mix=0", "data.sampler.power=8"]
     opts = ["iterations=12", f"sampler={sampler}", *(hard if sampler == "hard_frames" else [])]
     ref = tmp_path / "ref"
