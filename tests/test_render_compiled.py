@@ -191,18 +191,36 @@ def test_numba_projection_matches_torch(mode):
 
 
 def test_numba_inline_exp_matches_libm():
-    """The compositing kernels' inline exp (glibc's algorithm) against libm's, over the arguments they pass it."""
+    """The compositing kernels' inline exp (glibc's algorithm) against libm's, over the arguments they pass it; then
+    _exp_sigma, which evaluates sigma and takes its exp in one loop: -1 where the sigma test fails, NaN passed on."""
+    import numba
     import numpy as np
+
+    @numba.njit
+    def exp_core(v):
+        out = np.empty_like(v)
+        for i in range(v.shape[0]):
+            out[i] = nb._exp_core(v[i])
+        return out
 
     rng = np.random.default_rng(0)
     x = np.concatenate([np.linspace(-700.0, 0.0, 100_001), -rng.exponential(2.0, 200_000),
-                        -rng.uniform(0.0, 1e-3, 10_000), [0.0, -0.0, -1e-300, -5e-324, -699.9, np.nan]])
+                        -rng.uniform(0.0, 1e-3, 10_000), [0.0, -0.0, -1e-300, -5e-324, -699.9]])
     ref = np.array([math.exp(v) for v in x])  # libm
-    fast, slow = x.copy(), x.copy()
-    nb._exp_batch(fast, x.shape[0], True)
-    nb._exp_batch(slow, x.shape[0], False)
-    assert np.array_equal(slow, ref, equal_nan=True)
-    assert np.isnan(fast[-1]) and not np.isnan(fast[:-1]).any()
+    fast = exp_core(x)
     # glibc's x86-64 FMA build gives the same bits; other libms (or glibc without FMA) may round differently
-    ulps = np.abs(fast[:-1] - ref[:-1]) / np.spacing(ref[:-1])
+    ulps = np.abs(fast - ref) / np.spacing(ref)
     assert ulps.max() <= 1.0 and (ulps == 0).mean() > 0.999
+
+    A, B, Cc = 1.0, 3.0, 1.0  # not positive definite: sigma < 0 along dx = -dy
+    dx = rng.uniform(-6.0, 6.0, 61)
+    dy = rng.uniform(-6.0, 6.0, 61)
+    dx[:3], dy[:3] = [1.0, np.nan, 0.0], [-1.0, 0.0, 0.0]
+    sigma = 0.5 * (A * dx * dx + Cc * dy * dy) + B * dx * dy  # the kernels' expression, same rounding
+    for thr in (20.0, 800.0):  # the inline exp (thr < 700) and libm's
+        ev = np.full(64, 7.0)  # padded to whole 8-wide vectors
+        nb._exp_sigma(np.append(dx, [9.0] * 3), np.append(dy, [9.0] * 3), 61, A, B, Cc, thr, ev)
+        ok = (sigma >= 0.0) & (sigma <= thr)
+        assert ok.any() and (~ok & ~np.isnan(sigma)).any() and (sigma < 0).any()
+        assert np.allclose(ev[:61][ok], np.exp(-sigma[ok]), rtol=1e-15, atol=0.0)
+        assert (ev[:61][~ok & ~np.isnan(sigma)] == -1.0).all() and np.isnan(ev[1])

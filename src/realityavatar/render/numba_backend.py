@@ -50,7 +50,7 @@ _PIX_EPS = 1e-3  # pixels: row/column bounds of an ellipse are widened by this m
 # A call to libm's exp inside the pixel loops cost more than the exp itself (every live value spilled around it).
 # _exp_core is glibc's exp (ARM optimized-routines, e_exp.c with EXP_TABLE_BITS = 7): x = k*ln2/128 + r,
 # exp(x) = 2^(k/128) * (1 + tail_k + r + r^2*poly(r)), with the FMAs of the x86-64 FMA build; it matched math.exp
-# bit for bit on 5e7 random arguments in [-745, 710] here. Valid for |x| < 700 (callers check), NaN-safe in _exp_batch.
+# bit for bit on 5e7 random arguments in [-745, 710] here. Valid for |x| < 700 (callers check), NaN-safe in _exp_sigma.
 
 
 @intrinsic
@@ -105,7 +105,7 @@ _EXP_FAST_LIMIT = 700.0  # _exp_core is used for arguments in [-700, 0]; a Gauss
 
 @njit(cache=True, inline="always")
 def _exp_core(x):
-    """exp(x) for finite |x| < 700, no branches (the batch loops vectorise)."""
+    """exp(x) for finite |x| < 700, no branches (the batch loop vectorises)."""
     kd = _fma(x, _EXP_INVLN2N, _EXP_SHIFT) - _EXP_SHIFT  # k = round(x*128/ln2), exact
     k = np.int64(kd)
     r = _fma(kd, _EXP_NEGLN2LON, _fma(kd, _EXP_NEGLN2HIN, x))
@@ -117,16 +117,29 @@ def _exp_core(x):
 
 
 @njit(cache=True, inline="always")
-def _exp_batch(v, n, fast):
-    """v[:n] = exp(v[:n]); fast: every finite argument lies in [-700, 0] (NaN passes through as math.exp's does)."""
-    if fast:
-        for i in range(n):
-            x = v[i]
-            e = _exp_core(x if x == x else 0.0)
-            v[i] = e if x == x else x
+def _exp_sigma(bdx, bdy, n, A, B, Cc, thr, ev):
+    """ev[i] = exp(-sigma) for one Gaussian's pixels at offsets (bdx, bdy)[i], i < n; -1.0 where the sigma test
+    fails (sigma < 0 or > thr): its alpha, o*ev < 0 (o > 0: _prep drops the rest), fails the 1/255 test. NaN passes
+    through as math.exp's does.
+
+    The fast loop runs to n rounded up to whole 8-wide vectors (buffers padded, the pad zeroed): these batches are
+    short (~40 pixels), so a scalar remainder loop took a good part of the time.
+    """
+    if thr < _EXP_FAST_LIMIT:  # every argument that passes the test lies in [-700, 0]
+        n8 = (n + 7) & -8
+        for i in range(n, n8):
+            bdx[i] = bdy[i] = 0.0
+        for i in range(n8):
+            dx, dy = bdx[i], bdy[i]
+            sigma = 0.5 * (A * dx * dx + Cc * dy * dy) + B * dx * dy
+            ok = (sigma >= 0.0) & (sigma <= thr)
+            e = _exp_core(-sigma if ok else 0.0)
+            ev[i] = e if ok else (sigma if sigma != sigma else -1.0)
     else:
         for i in range(n):
-            v[i] = math.exp(v[i])
+            dx, dy = bdx[i], bdy[i]
+            sigma = 0.5 * (A * dx * dx + Cc * dy * dy) + B * dx * dy
+            ev[i] = -1.0 if sigma < 0.0 or sigma > thr else math.exp(-sigma)
 
 
 @njit(cache=True, inline="always")
@@ -267,6 +280,30 @@ def _cols(mx, dy, A, B, inv_a, q, thr, ox, nx, ry):
     return math.ceil(lo), int(hi)
 
 
+@njit(cache=True, inline="always")
+def _list_pixels(mx, my, A, B, inv_a, q, thr, ry, ox, oy, nx, ny, ts, row_key, key, xl, xh, pix, bdx, bdy):
+    """One Gaussian's pixels in a tile, row-major: its rows' column ranges (_rows, _cols), in rows with
+    row_key[y] >= key. pix, bdx, bdy get the pixel index and its offsets from the centre; returns their count.
+
+    The column ranges are worked out first, in a loop of their own: the listing loop waiting on each row's sqrt was
+    ~20% slower.
+    """
+    y_lo, y_hi = _rows(my, ry, oy, ny)
+    for y in range(y_lo, y_hi):
+        x_lo, x_hi = _cols(mx, my - (oy + y + 0.5), A, B, inv_a, q, thr, ox, nx, ry)
+        xl[y] = x_lo
+        xh[y] = x_hi if row_key[y] >= key else x_lo
+    n = 0
+    for y in range(y_lo, y_hi):
+        dy = my - (oy + y + 0.5)
+        for x in range(xl[y], xh[y]):
+            pix[n] = y * ts + x
+            bdx[n] = mx - (ox + x + 0.5)
+            bdy[n] = dy
+            n += 1
+    return n
+
+
 @njit(cache=True, parallel=True, error_model="numpy")
 def _forward(means2d, conics, opac, colors, prep, starts, ids, C, width, height, ts, alpha_max,
              img, alpha_out, t_final, last):
@@ -289,8 +326,12 @@ def _forward(means2d, conics, opac, colors, prep, starts, ids, C, width, height,
         done = np.zeros(P, np.bool_)
         n_left = nx * ny
         row_left = np.full(ts, nx, np.int64)  # pixels of each row still compositing
-        pix = np.empty(P, np.int64)  # one Gaussian's pixels that pass the sigma test, in row-major order
-        ev = np.empty(P)  # their -sigma, then exp(-sigma)
+        pix = np.empty(P + 8, np.int64)  # one Gaussian's pixels in row-major order (+8: _exp_sigma's padding)
+        bdx = np.empty(P + 8)  # their offsets from the centre
+        bdy = np.empty(P + 8)
+        ev = np.empty(P + 8)  # exp(-sigma)
+        xl = np.empty(ts, np.int64)  # column range of each row
+        xh = np.empty(ts, np.int64)
         for k in range(starts[t], starts[t + 1]):
             if n_left == 0:
                 break
@@ -304,29 +345,15 @@ def _forward(means2d, conics, opac, colors, prep, starts, ids, C, width, height,
                 c0, c1, c2 = float(colors[g, 0]), float(colors[g, 1]), float(colors[g, 2])
             else:
                 c0 = c1 = c2 = 0.0
-            # Three passes per Gaussian: gather the pixels, exp of all of them in one loop, composite. Pixels of one
-            # Gaussian are independent, so this is the per-pixel order of the single loop, value for value.
-            n = 0
-            y_lo, y_hi = _rows(my, ry, oy, ny)
-            for y in range(y_lo, y_hi):
-                if row_left[y] == 0:
-                    continue
-                dy = my - (oy + y + 0.5)
-                x_lo, x_hi = _cols(mx, dy, A, B, inv_a, q, thr, ox, nx, ry)
-                for x in range(x_lo, x_hi):
-                    p = y * ts + x
-                    if done[p]:
-                        continue
-                    dx = mx - (ox + x + 0.5)
-                    sigma = 0.5 * (A * dx * dx + Cc * dy * dy) + B * dx * dy
-                    if sigma < 0.0 or sigma > thr:
-                        continue
-                    pix[n] = p
-                    ev[n] = -sigma
-                    n += 1
-            _exp_batch(ev, n, thr < _EXP_FAST_LIMIT)
+            # Three passes per Gaussian: list its pixels, sigma and exp of all of them in one vector loop, composite.
+            # Pixels of one Gaussian are independent, so this is the per-pixel order of the single loop, value for
+            # value. Finished pixels are listed too and skipped in the last pass (no test per pixel in the listing).
+            n = _list_pixels(mx, my, A, B, inv_a, q, thr, ry, ox, oy, nx, ny, ts, row_left, 1, xl, xh, pix, bdx, bdy)
+            _exp_sigma(bdx, bdy, n, A, B, Cc, thr, ev)
             for i in range(n):
                 p = pix[i]
+                if done[p]:
+                    continue
                 alpha = min(alpha_max, o * ev[i])
                 if alpha < ALPHA_THRESHOLD:
                     continue
@@ -383,12 +410,14 @@ def _backward(means2d, conics, opac, colors, prep, starts, ids, C, width, height
         gcol = np.empty(D)
         kmax = -1
         row_last = np.full(ts, -1, np.int64)  # last contributing slot of any pixel in the row
-        pix = np.empty(P, np.int64)  # as in _forward: one Gaussian's pixels, their offsets, exp(-sigma), alpha and
-        ev = np.empty(P)  # 1/(1 - alpha), each pass a loop of its own
-        bdx = np.empty(P)
-        bdy = np.empty(P)
-        bal = np.empty(P)
-        bra = np.empty(P)
+        pix = np.empty(P + 8, np.int64)  # as in _forward: one Gaussian's pixels, their offsets, exp(-sigma), alpha
+        bdx = np.empty(P + 8)  # and 1/(1 - alpha), each pass a loop of its own
+        bdy = np.empty(P + 8)
+        ev = np.empty(P + 8)
+        bal = np.empty(P + 8)
+        bra = np.empty(P + 8)
+        xl = np.empty(ts, np.int64)
+        xh = np.empty(ts, np.int64)
         for y in range(ny):
             for x in range(nx):
                 p = y * ts + x
@@ -413,36 +442,17 @@ def _backward(means2d, conics, opac, colors, prep, starts, ids, C, width, height
             g_mx = g_my = g_a = g_b = g_c = g_o = 0.0
             gc0 = gc1 = gc2 = 0.0
             c0, c1, c2 = col[0], col[min(1, D - 1)], col[min(2, D - 1)]
-            n = 0
-            y_lo, y_hi = _rows(my, ry, oy, ny)
-            for y in range(y_lo, y_hi):
-                if row_last[y] < k:
-                    continue
-                dy = my - (oy + y + 0.5)
-                x_lo, x_hi = _cols(mx, dy, A, B, inv_a, q, thr, ox, nx, ry)
-                for x in range(x_lo, x_hi):
-                    p = y * ts + x
-                    if lastp[p] < k:
-                        continue
-                    dx = mx - (ox + x + 0.5)
-                    sigma = 0.5 * (A * dx * dx + Cc * dy * dy) + B * dx * dy
-                    if sigma < 0.0 or sigma > thr:
-                        continue
-                    pix[n] = p
-                    bdx[n] = dx
-                    bdy[n] = dy
-                    ev[n] = -sigma
-                    n += 1
-            _exp_batch(ev, n, thr < _EXP_FAST_LIMIT)
+            n = _list_pixels(mx, my, A, B, inv_a, q, thr, ry, ox, oy, nx, ny, ts, row_last, k, xl, xh, pix, bdx, bdy)
+            _exp_sigma(bdx, bdy, n, A, B, Cc, thr, ev)
             for i in range(n):
                 alpha = min(alpha_max, o * ev[i])
                 bal[i] = alpha
                 bra[i] = 1.0 / (1.0 - alpha)
             for i in range(n):
-                alpha = bal[i]
-                if alpha < ALPHA_THRESHOLD:
-                    continue
                 p = pix[i]
+                alpha = bal[i]
+                if lastp[p] < k or alpha < ALPHA_THRESHOLD:  # behind the pixel's last Gaussian, or too faint
+                    continue
                 vis = ev[i]
                 ra = bra[i]
                 Tp[p] *= ra  # transmittance in front of this Gaussian
