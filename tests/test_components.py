@@ -350,7 +350,7 @@ def test_sh_color_matches_eval_sh():
 def _adam_with_state(g: CanonicalGaussians) -> torch.optim.Adam:
     groups = [{"params": ps, "name": n} for n, ps in g.param_groups().items()]
     opt = torch.optim.Adam(groups, lr=1e-3)
-    for n in PARAM_NAMES:
+    for n in g.param_names:
         p = getattr(g, n)
         p.grad = torch.arange(p.numel(), dtype=torch.float32).reshape(p.shape) + 1.0
     opt.step()
@@ -364,16 +364,20 @@ def _meta(n, high_idx, value=1e-2):
     return {"means2d": means2d, "radii": torch.ones(1, n, dtype=torch.int32)}
 
 
-def test_density_clone_split_prune_with_optimizer_state(body):
-    g = CanonicalGaussians(body, num_points=20, feature_dim=4, seed=0)
+@pytest.mark.parametrize("code_dim", [0, 3])
+def test_density_clone_split_prune_with_optimizer_state(body, code_dim):
+    """code_dim > 0: the Gaussians' deformation codes (gaussians.deform_code_dim) follow every edit too."""
+    g = CanonicalGaussians(body, num_points=20, feature_dim=4, seed=0, deform_code_dim=code_dim)
+    assert g.param_names == PARAM_NAMES + (("deform_codes",) if code_dim else ())
     with torch.no_grad():
         g.log_scales[:10] = math.log(0.001)  # small -> clone
         g.log_scales[10:] = math.log(0.05)  # large -> split
         g.opacity_logits[:] = 2.0
         g.opacity_logits[19] = -8.0  # prune
     opt = _adam_with_state(g)
-    old_avg = {n: opt.state[getattr(g, n)]["exp_avg"].clone() for n in PARAM_NAMES}
+    old_avg = {n: opt.state[getattr(g, n)]["exp_avg"].clone() for n in g.param_names}
     old_means = g.means.detach().clone()
+    old_codes = g.deform_codes.detach().clone() if code_dim else None
     old_scales = g.scales().detach().clone()
     dc = DensityControl(refine_start=0, refine_stop=100, refine_every=10, grad_threshold=2e-4, prune_opacity=0.05,
                         grow_scale3d=0.01, scene_scale=1.0, reset_every=0, max_points=1000)
@@ -382,7 +386,7 @@ def test_density_clone_split_prune_with_optimizer_state(body):
     assert stats["cloned"] == 3 and stats["split"] == 2 and stats["pruned"] == 1
     assert g.num_points == 20 + 3 + 2 - 1
     # the optimizer now points at the new parameters and its rows follow them
-    for n in PARAM_NAMES:
+    for n in g.param_names:
         p = getattr(g, n)
         assert any(p is q for grp in opt.param_groups for q in grp["params"])
         st = opt.state[p]["exp_avg"]
@@ -395,8 +399,11 @@ def test_density_clone_split_prune_with_optimizer_state(body):
     assert torch.allclose(g.means[: len(kept)], old_means[kept])
     assert torch.allclose(g.means[len(kept): len(kept) + 3], old_means[[0, 1, 2]])  # clones copy
     assert torch.allclose(g.scales()[-4:], old_scales[[12, 13, 12, 13]] / 1.6, rtol=1e-5)  # split children
+    if code_dim:  # clones and split children carry their source's code
+        assert torch.equal(g.deform_codes[: len(kept) + 3], old_codes[kept + [0, 1, 2]])
+        assert torch.equal(g.deform_codes[-4:], old_codes[[12, 13, 12, 13]])
     # training continues with the edited optimizer
-    for n in PARAM_NAMES:
+    for n in g.param_names:
         getattr(g, n).grad = torch.ones_like(getattr(g, n))
     opt.step()
     assert dc.grad2d.shape == (g.num_points,) and float(dc.grad2d.sum()) == 0.0

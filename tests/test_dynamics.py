@@ -320,3 +320,93 @@ def test_cylindrical_offsets_turn_and_flare_about_the_body_axis():
     assert dec.offsets == "cylindrical"
     with pytest.raises(ValueError, match="deformer.offsets"):
         MotionTrendDecoder(offsets="polar")
+
+
+def test_gaussian_codes_let_coincident_gaussians_move_apart():
+    """gaussians.deform_code_dim / deformer.gaussian_code_dim: two Gaussians at the same canonical position with
+    different codes get different offsets (the position encoding alone cannot separate them); the decoder starts at
+    the identity, refuses missing or mis-sized codes, the config keeps both sizes in step, and the deformation graph
+    refuses per-Gaussian codes."""
+    from realityavatar.model.deform import MotionTrendDecoder
+
+    d = MotionTrendDecoder(cond_dim=8, encoding="frequency", hidden_dim=16, num_layers=2, feature_dim=4,
+                           gaussian_code_dim=3, auto_bounds=False)
+    x = torch.tensor([[0.1, 0.2, 0.3], [0.1, 0.2, 0.3]])
+    codes = torch.tensor([[0.5, -0.2, 0.1], [-0.4, 0.3, 0.0]], requires_grad=True)
+    h = torch.randn(2, 8)
+    assert float(d(x, h, codes=codes)["dx"].detach().abs().max()) == 0.0  # zero-initialised output rows: the identity
+    with torch.no_grad():
+        d.out.weight.normal_(0.0, 0.5)
+    out = d(x, h, codes=codes)
+    assert float((out["dx"][:, 0] - out["dx"][:, 1]).norm(dim=-1).min()) > 1e-4
+    out["dx"].sum().backward()
+    assert float(codes.grad.abs().sum()) > 0  # the codes are learnt through the offsets
+    d0 = MotionTrendDecoder(cond_dim=8, encoding="frequency", hidden_dim=16, num_layers=2, feature_dim=4,
+                            auto_bounds=False)
+    with torch.no_grad():
+        d0.out.weight.normal_(0.0, 0.5)
+    same = d0(x, h)["dx"]
+    assert torch.allclose(same[:, 0], same[:, 1], atol=1e-6)  # without codes: one offset per position
+    with pytest.raises(ValueError, match="gaussian_code_dim=3 needs codes"):
+        d(x, h)
+    with pytest.raises(ValueError, match="gaussian_code_dim=3 needs codes"):
+        d(x, h, codes=torch.zeros(2, 4))
+    cfg = compose(["gaussians.deform_code_dim=6"])
+    assert cfg.deformer.gaussian_code_dim == 6 and compose([]).deformer.gaussian_code_dim == 0
+    with pytest.raises(ValueError, match="per-Gaussian decoder"):
+        NodeDeformer(num_nodes=8, cond_dim=4, encoding="frequency", gaussian_code_dim=3)
+
+
+def test_gaussian_codes_train_and_must_agree_with_the_decoder(scenes_root, tmp_path):
+    """A short run with per-Gaussian codes trains them (they leave their initial values), density control keeps
+    them aligned, the checkpoint reloads; a decoder sized differently from the Gaussians' codes is refused by name."""
+    from realityavatar.build import build_data, build_module, load_run
+    from realityavatar.config import prepare_run
+    from realityavatar.train import run
+
+    over = ["data=synthetic_ci", "trainer=ci", "iterations=30", "gaussians.num_points=800", "test_after_fit=false",
+            "logger=none", "gaussians.deform_code_dim=4"]
+    cfg, choices = prepare_run(compose(over), tmp_path / "run")
+    run(cfg, choices)
+    _, module, _ = load_run(tmp_path / "run")
+    g = module.gaussians
+    assert g.deform_codes.shape == (g.num_points, 4)
+    init = CanonicalGaussiansInit(module.body, g)
+    assert float((g.deform_codes[: init.shape[0]] - init).abs().max()) > 1e-5
+    bad = compose(over[:1] + ["gaussians.deform_code_dim=4", "deformer.gaussian_code_dim=2"])
+    body = instantiate(bad.body)
+    dm = build_data(bad, body)
+    with pytest.raises(ValueError, match=r"gaussians.deform_code_dim \(4\) and deformer.gaussian_code_dim \(2\)"):
+        build_module(bad, body, dm.num_train_frames, dm.scene_extent, data=dm)
+
+
+def CanonicalGaussiansInit(body, g):
+    """The deformation codes a fresh CanonicalGaussians with g's settings starts from (same seed draws)."""
+    from realityavatar.model.gaussians import CanonicalGaussians
+
+    return CanonicalGaussians(body, num_points=800, feature_dim=g.feature_dim, seed=0,
+                              deform_code_dim=g.deform_code_dim).deform_codes.detach()
+
+
+def test_frame_codes_pick_a_shape_per_training_frame():
+    """deformer.frame_code_dim (the diagnostic per-frame code): different training frames give different offsets
+    for the same h_t; a frame not trained on (-1) or no index takes the mean code; out-of-range indices and negative
+    sizes are refused; the codes get their own optimizer group (optim.lr.deformer_codes)."""
+    from realityavatar.model.deform import MotionTrendDecoder
+
+    d = MotionTrendDecoder(cond_dim=8, encoding="frequency", hidden_dim=16, num_layers=2, feature_dim=4,
+                           frame_code_dim=3, num_frames=5)
+    with torch.no_grad():
+        d.out.weight.normal_(0.0, 0.5)
+        d.frame_codes.weight.normal_(0.0, 1.0)
+    x, h = torch.rand(6, 3), torch.randn(1, 8).expand(2, -1)
+    out = d(x, h, torch.tensor([0, 3]))["dx"]
+    assert float((out[0] - out[1]).abs().max()) > 1e-4
+    mean = d(x, h, torch.tensor([-1, -1]))["dx"]
+    assert torch.allclose(mean, d(x, h)["dx"]) and torch.allclose(mean[0], mean[1])
+    with pytest.raises(IndexError, match="out of range for 5 training frames"):
+        d(x, h, torch.tensor([5, 0]))
+    with pytest.raises(ValueError, match="frame_code_dim"):
+        MotionTrendDecoder(frame_code_dim=-1)
+    assert set(d.param_groups()) == {"deformer", "deformer_codes"}
+    assert d.param_groups()["deformer_codes"] == [d.frame_codes.weight]

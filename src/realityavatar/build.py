@@ -32,7 +32,8 @@ def build_module(cfg: DictConfig, body, num_train_frames: int, scene_extent: flo
     gaussians = instantiate(cfg.gaussians, body=body, **extra)
     encoder = instantiate(cfg.encoder)
     temporal = instantiate(cfg.temporal)
-    deformer = instantiate(cfg.deformer)
+    codes = int(cfg.deformer.get("frame_code_dim", 0) or 0) > 0  # per-frame codes need the frame count
+    deformer = instantiate(cfg.deformer, **({"num_frames": max(int(num_train_frames), 1)} if codes else {}))
     skinning = instantiate(cfg.skinning)
     color = instantiate(cfg.color, num_frames=max(int(num_train_frames), 1))
     density = instantiate(cfg.density)

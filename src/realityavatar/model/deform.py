@@ -45,6 +45,9 @@ class MotionTrendDecoder(nn.Module):
         auto_bounds: bool = True,
         activation: Literal["silu", "relu"] = "silu",
         offsets: Literal["cartesian", "cylindrical"] = "cartesian",
+        frame_code_dim: int = 0,
+        num_frames: int = 1,
+        gaussian_code_dim: int = 0,
     ) -> None:
         super().__init__()
         if activation not in _ACTIVATIONS:
@@ -82,6 +85,26 @@ class MotionTrendDecoder(nn.Module):
             hidden += [nn.Linear(hidden_dim, hidden_dim), act()]
         self.hidden = nn.Sequential(*hidden)
         self.out = nn.Linear(hidden_dim, 3 + 3 + 4 + feature_dim)
+        # frame_code_dim > 0: a learnt code per training frame joins h_t (a deformation code, as in Nerfies /
+        # HyperNeRF). It lets the decoder fit any training frame's shape, whether or not the pose window determines
+        # it, so it is the diagnostic upper bound of what the inputs cannot explain; frames not trained on (novel
+        # pose) take the mean code. Off by default: the paper's decoder sees h_t only.
+        self.frame_code_dim = int(frame_code_dim)
+        if self.frame_code_dim > 0:
+            if num_frames < 1:
+                raise ValueError(f"deformer.num_frames: expected >= 1 training frames, got {num_frames}")
+            self.num_frames = int(num_frames)
+            self.frame_codes = nn.Embedding(self.num_frames, self.frame_code_dim)
+            nn.init.normal_(self.frame_codes.weight, std=0.01)
+            self.in_code = nn.Linear(self.frame_code_dim, hidden_dim, bias=False)
+        elif self.frame_code_dim < 0:
+            raise ValueError(f"deformer.frame_code_dim: expected >= 0, got {frame_code_dim}")
+        # gaussian_code_dim > 0: each Gaussian's learnt code (gaussians.deform_codes) joins its position encoding, so
+        # the offset field can differ between Gaussians that share a canonical neighbourhood.
+        if gaussian_code_dim < 0:
+            raise ValueError(f"deformer.gaussian_code_dim: expected >= 0, got {gaussian_code_dim}")
+        self.gaussian_code_dim = int(gaussian_code_dim)
+        self.in_g = nn.Linear(self.gaussian_code_dim, hidden_dim, bias=False) if self.gaussian_code_dim else None
         with torch.no_grad():
             self.out.weight[:10].zero_()
             self.out.bias[:10].zero_()
@@ -122,8 +145,22 @@ class MotionTrendDecoder(nn.Module):
         twist = torch.cat([torch.cos(half), torch.sin(half) * u], dim=-1)  # rotation by dtheta about the axis
         return dx, twist
 
-    def forward(self, x_c: torch.Tensor, h_t: torch.Tensor) -> dict[str, torch.Tensor]:
-        """x_c [N,3], h_t [B,H] -> dict(dx [B,N,3], ds [B,N,3], dq [B,N,4] unit wxyz, f_mt [B,N,F])."""
+    def code(self, frame_idx: torch.Tensor | None, B: int) -> torch.Tensor:
+        """frame_idx [B] (long, -1 or None: not a training frame) -> the frame codes [B,frame_code_dim]."""
+        table = self.frame_codes.weight
+        mean = table.mean(0, keepdim=True).expand(B, -1)
+        if frame_idx is None:
+            return mean
+        frame_idx = frame_idx.long().to(table.device)
+        if frame_idx.numel() and int(frame_idx.max()) >= self.num_frames:
+            raise IndexError(f"deformer: frame_idx {int(frame_idx.max())} out of range for {self.num_frames} "
+                             "training frames")
+        return torch.where((frame_idx < 0)[:, None], mean, table[frame_idx.clamp_min(0)])
+
+    def forward(self, x_c: torch.Tensor, h_t: torch.Tensor, frame_idx: torch.Tensor | None = None,
+                codes: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+        """x_c [N,3], h_t [B,H], frame_idx [B] | None (used with frame codes only), codes [N,gaussian_code_dim]
+        (with gaussian codes only) -> dict(dx [B,N,3], ds [B,N,3], dq [B,N,4] unit wxyz, f_mt [B,N,F])."""
         if not bool(self.bounds_fitted):
             self.fit_bounds(x_c.detach())  # auto_bounds: the first x_c seen (the initial canonical Gaussians)
         u = (x_c - self.bbox_min) / (self.bbox_max - self.bbox_min)
@@ -131,9 +168,19 @@ class MotionTrendDecoder(nn.Module):
             u = u * 2 - 1
         enc = self.encoding(u.detach())  # [N,E]
         eh = self.in_h(h_t)  # [B,H]
+        if self.frame_code_dim > 0:
+            eh = eh + self.in_code(self.code(frame_idx, h_t.shape[0]))
         # h_t's term enters as the first layer's bias (one addmm per sample instead of a broadcast add over [B,N,H])
         # The MLP runs on [B*N,H] rows (2-D matmuls: no copies in the backward of 3-D inputs).
-        z = torch.cat([F.linear(enc, self.in_x.weight, self.in_x.bias + e) for e in eh])  # [B*N,H]
+        if self.in_g is None:
+            z = torch.cat([F.linear(enc, self.in_x.weight, self.in_x.bias + e) for e in eh])  # [B*N,H]
+        else:
+            if codes is None or codes.shape != (x_c.shape[0], self.gaussian_code_dim):
+                got = None if codes is None else tuple(codes.shape)
+                raise ValueError(f"deformer: gaussian_code_dim={self.gaussian_code_dim} needs codes "
+                                 f"[{x_c.shape[0]},{self.gaussian_code_dim}] (gaussians.deform_code_dim), got {got}")
+            xin = self.in_x(enc) + self.in_g(codes)
+            z = torch.cat([xin + e for e in eh])
         o = self.out(self.hidden(self.in_act(z))).reshape(eh.shape[0], enc.shape[0], -1)  # [B,N,10+F]
         dq = F.normalize(o[..., 6:10] + o.new_tensor([1.0, 0.0, 0.0, 0.0]), dim=-1)
         dx = o[..., :3]
@@ -144,10 +191,13 @@ class MotionTrendDecoder(nn.Module):
 
     def param_groups(self) -> dict[str, list[nn.Parameter]]:
         enc = list(self.encoding.parameters())
-        ids = {id(p) for p in enc}
+        codes = [self.frame_codes.weight] if self.frame_code_dim > 0 else []
+        ids = {id(p) for p in enc + codes}
         groups = {"deformer": [p for p in self.parameters() if id(p) not in ids]}
         if enc:
             groups["deformer_encoding"] = enc
+        if codes:  # optim.lr.deformer_codes, else the deformer's rate
+            groups["deformer_codes"] = codes
         return groups
 
 
@@ -191,6 +241,9 @@ class NodeDeformer(MotionTrendDecoder):
 
     def __init__(self, num_nodes: int = 256, k: int = 4, radius: float = 1.0, **kwargs) -> None:
         super().__init__(**kwargs)
+        if self.gaussian_code_dim:
+            raise ValueError("deformer.gaussian_code_dim: per-Gaussian codes need the per-Gaussian decoder "
+                             "(deformer=motion_trend), not the deformation graph")
         if num_nodes < 1 or k < 1:
             raise ValueError(f"deformer.num_nodes and deformer.k must be >= 1, got {num_nodes}, {k}")
         self.num_nodes, self.k, self.radius = int(num_nodes), int(k), float(radius)
@@ -212,11 +265,12 @@ class NodeDeformer(MotionTrendDecoder):
         self.sigma.fill_(float(spacing) * self.radius)
         self.nodes_fitted.fill_(1)
 
-    def forward(self, x_c: torch.Tensor, h_t: torch.Tensor) -> dict[str, torch.Tensor]:
-        """x_c [N,3], h_t [B,H] -> dict(dx [B,N,3], ds [B,N,3], dq [B,N,4], f_mt [B,N,F])."""
+    def forward(self, x_c: torch.Tensor, h_t: torch.Tensor, frame_idx: torch.Tensor | None = None
+                ) -> dict[str, torch.Tensor]:
+        """x_c [N,3], h_t [B,H], frame_idx [B] | None -> dict(dx [B,N,3], ds [B,N,3], dq [B,N,4], f_mt [B,N,F])."""
         if not bool(self.nodes_fitted):
             self.fit_nodes(x_c)
-        return self.blend(x_c, super().forward(self.nodes, h_t))
+        return self.blend(x_c, super().forward(self.nodes, h_t, frame_idx))
 
     def blend(self, x_c: torch.Tensor, node_out: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         """Per-node outputs (dx = t_j [B,K,3], ds [B,K,3], dq unit [B,K,4], f_mt [B,K,F]) -> per-Gaussian outputs."""

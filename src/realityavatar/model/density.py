@@ -8,7 +8,7 @@ import torch
 from torch import nn
 
 from realityavatar.geometry import quat_to_matrix
-from realityavatar.model.gaussians import PARAM_NAMES, CanonicalGaussians, inverse_sigmoid
+from realityavatar.model.gaussians import CanonicalGaussians, inverse_sigmoid
 
 
 def _swap_in_optimizer(
@@ -197,7 +197,7 @@ class DensityControl:
     def duplicate(self, gaussians: CanonicalGaussians, optimizer, mask: torch.Tensor) -> None:
         """Append a copy of every masked Gaussian; new optimizer rows are zero."""
         sel = mask.nonzero().squeeze(-1)
-        params = {n: torch.cat([getattr(gaussians, n), getattr(gaussians, n)[sel]]) for n in PARAM_NAMES}
+        params = {n: torch.cat([getattr(gaussians, n), getattr(gaussians, n)[sel]]) for n in gaussians.param_names}
         swapped = gaussians.replace(params)
         _swap_in_optimizer(optimizer, swapped, lambda n, v: torch.cat([v, v.new_zeros((len(sel),) + v.shape[1:])]))
 
@@ -217,14 +217,15 @@ class DensityControl:
             "opacity_logits": gaussians.opacity_logits[sel].repeat(2),
             "features": gaussians.features[sel].repeat(2, 1),
         }
-        params = {n: torch.cat([getattr(gaussians, n)[rest], new[n]]) for n in PARAM_NAMES}
+        new.update({n: getattr(gaussians, n)[sel].repeat(2, 1) for n in gaussians.param_names if n not in new})
+        params = {n: torch.cat([getattr(gaussians, n)[rest], new[n]]) for n in gaussians.param_names}
         swapped = gaussians.replace(params)
         _swap_in_optimizer(optimizer, swapped, lambda n, v: torch.cat([v[rest], v.new_zeros((2 * k,) + v.shape[1:])]))
 
     def remove(self, gaussians: CanonicalGaussians, optimizer, mask: torch.Tensor) -> None:
         """Drop every masked Gaussian and its optimizer rows."""
         keep = (~mask).nonzero().squeeze(-1)
-        swapped = gaussians.replace({n: getattr(gaussians, n)[keep] for n in PARAM_NAMES})
+        swapped = gaussians.replace({n: getattr(gaussians, n)[keep] for n in gaussians.param_names})
         _swap_in_optimizer(optimizer, swapped, lambda n, v: v[keep])
 
     def reset_opacity(self, gaussians: CanonicalGaussians, optimizer) -> None:

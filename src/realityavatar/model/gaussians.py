@@ -11,8 +11,10 @@ from torch import nn
 from realityavatar.body.base import BodyModel
 from realityavatar.geometry import sample_surface
 
-# Order matters only for readability; density control and checkpoint resizing iterate over these names.
+# Order matters only for readability; density control and checkpoint resizing iterate over these names (an
+# instance's `param_names`: these, plus "deform_codes" when gaussians.deform_code_dim > 0).
 PARAM_NAMES = ("means", "log_scales", "quats", "opacity_logits", "features")
+CODE_NAME = "deform_codes"
 
 
 def inverse_sigmoid(x: torch.Tensor) -> torch.Tensor:
@@ -35,6 +37,7 @@ class CanonicalGaussians(nn.Module):
         init_opacity: float = 0.1,
         feature_init_std: float = 0.01,
         seed: int = 0,
+        deform_code_dim: int = 0,
     ) -> None:
         super().__init__()
         if num_points < 1:
@@ -43,7 +46,11 @@ class CanonicalGaussians(nn.Module):
             raise ValueError(f"gaussians.feature_dim: expected a positive size, got {feature_dim}")
         if not 0.0 < init_opacity < 1.0:
             raise ValueError(f"gaussians.init_opacity: expected a value in (0,1), got {init_opacity}")
+        if deform_code_dim < 0:
+            raise ValueError(f"gaussians.deform_code_dim: expected a size >= 0, got {deform_code_dim}")
         self.feature_dim = feature_dim
+        self.deform_code_dim = int(deform_code_dim)
+        self.param_names = PARAM_NAMES + ((CODE_NAME,) if self.deform_code_dim > 0 else ())
         gen = torch.Generator().manual_seed(seed)
         verts = body.canonical_vertices().detach().float().cpu()  # [V,3]
         faces = body.faces.cpu()
@@ -61,6 +68,10 @@ class CanonicalGaussians(nn.Module):
         self.quats = nn.Parameter(quats)
         self.opacity_logits = nn.Parameter(torch.full((num_points,), float(inverse_sigmoid(torch.tensor(init_opacity)))))
         self.features = nn.Parameter(torch.randn(num_points, feature_dim, generator=gen) * feature_init_std)
+        if self.deform_code_dim > 0:
+            # A learnt code per Gaussian that the motion-trend decoder reads beside its canonical position: Gaussians
+            # that sit side by side in canonical space (a skirt's and the thigh's under it) can then move apart.
+            self.deform_codes = nn.Parameter(torch.randn(num_points, self.deform_code_dim, generator=gen) * 0.01)
         self.register_load_state_dict_pre_hook(self._resize_to_checkpoint)
 
     def initial_points(self, body: BodyModel, n: int, gen: torch.Generator) -> torch.Tensor:
@@ -86,7 +97,7 @@ class CanonicalGaussians(nn.Module):
 
     def param_groups(self) -> dict[str, list[nn.Parameter]]:
         """One optimizer group per attribute, named like the parameters (they need different learning rates)."""
-        return {name: [getattr(self, name)] for name in PARAM_NAMES}
+        return {name: [getattr(self, name)] for name in self.param_names}
 
     def replace(self, params: dict[str, torch.Tensor]) -> dict[str, tuple[nn.Parameter, nn.Parameter]]:
         """Swap in new tensors (same leading count for all) as fresh Parameters; returns {name: (old, new)}.
@@ -95,26 +106,28 @@ class CanonicalGaussians(nn.Module):
         """
         swapped = {}
         for name, value in params.items():
-            if name not in PARAM_NAMES:
-                raise KeyError(f"CanonicalGaussians.replace: unknown parameter {name!r}; expected one of {PARAM_NAMES}")
+            if name not in self.param_names:
+                raise KeyError(f"CanonicalGaussians.replace: unknown parameter {name!r}; expected one of "
+                               f"{self.param_names}")
             old = getattr(self, name)
             new = nn.Parameter(value.detach().to(device=old.device, dtype=old.dtype).contiguous(), requires_grad=old.requires_grad)
             setattr(self, name, new)
             swapped[name] = (old, new)
-        counts = {getattr(self, n).shape[0] for n in PARAM_NAMES}
+        counts = {getattr(self, n).shape[0] for n in self.param_names}
         if len(counts) != 1:
             raise ValueError(f"CanonicalGaussians.replace: parameters disagree on the Gaussian count: {counts}")
         return swapped
 
     def resize(self, n: int) -> None:
         """Re-allocate every parameter with n rows (values are placeholders, to be overwritten by a load)."""
-        self.replace({name: getattr(self, name).new_zeros((n,) + getattr(self, name).shape[1:]) for name in PARAM_NAMES})
+        self.replace({name: getattr(self, name).new_zeros((n,) + getattr(self, name).shape[1:])
+                      for name in self.param_names})
 
     def _resize_to_checkpoint(self, module, state_dict, prefix, local_metadata, strict, missing, unexpected, errors):
         key = prefix + "means"
         if key in state_dict and state_dict[key].shape[0] != self.num_points:
             n = state_dict[key].shape[0]
-            for name in PARAM_NAMES:
+            for name in self.param_names:
                 k = prefix + name
                 if k in state_dict and state_dict[k].shape[0] != n:
                     raise ValueError(f"checkpoint field {k}: has {state_dict[k].shape[0]} rows but {key} has {n}")

@@ -19,7 +19,7 @@ from realityavatar.model.skinning import lbs_gaussians
 from realityavatar.render import rasterize
 
 # Per-Gaussian parameter groups; component groups use the component's name.
-GAUSSIAN_GROUPS = ("means", "log_scales", "quats", "opacity_logits", "features")
+GAUSSIAN_GROUPS = ("means", "log_scales", "quats", "opacity_logits", "features", "deform_codes")
 COMPONENTS = ("encoder", "temporal", "deformer", "skinning", "color", "shading")
 
 
@@ -104,6 +104,10 @@ class AvatarModule(pl.LightningModule):
         # deform_start, which have moved and been densified); a loaded checkpoint replaces it with the trained box.
         if hasattr(deformer, "fit_bounds") and not bool(getattr(deformer, "bounds_fitted", 1)):
             deformer.fit_bounds(gaussians.means.detach())
+        codes_g, codes_d = int(getattr(gaussians, "deform_code_dim", 0)), int(getattr(deformer, "gaussian_code_dim", 0))
+        if codes_g != codes_d:
+            raise ValueError(f"gaussians.deform_code_dim ({codes_g}) and deformer.gaussian_code_dim ({codes_d}) must "
+                             "agree: the decoder reads the Gaussians' codes")
         if hasattr(deformer, "set_axis"):
             # offsets=cylindrical turn about the canonical body's vertical axis: through the pelvis, towards the neck
             # (a checkpoint's buffers replace it with the same values).
@@ -111,9 +115,11 @@ class AvatarModule(pl.LightningModule):
             deformer.set_axis(J[0], J[12] - J[0])
 
     # ------------------------------------------------------------------ forward
-    def deform(self, poses: torch.Tensor, transl: torch.Tensor, deform: bool = True):
-        """poses [B,T,24,3], transl [B,T,3] -> posed Gaussians of the current (last) frame (geometry does not depend
-        on the frame index; only the colour's per-frame latent does, see `shade`).
+    def deform(self, poses: torch.Tensor, transl: torch.Tensor, deform: bool = True,
+               frame_idx: torch.Tensor | None = None):
+        """poses [B,T,24,3], transl [B,T,3] -> posed Gaussians of the current (last) frame. Geometry does not depend
+        on the frame index (only the colour's per-frame latent does, see `shade`) unless the decoder has per-frame
+        codes (deformer.frame_code_dim > 0, a diagnostic): then frame_idx [B] picks them (None: the mean code).
 
         Returns dict: means [B,N,3], quats [B,N,4], scales [B,N,3], opacities [N], rot [B,N,3,3]
         (canonical-to-posed rotation per Gaussian, for canonical view directions) and the decoder output.
@@ -123,7 +129,14 @@ class AvatarModule(pl.LightningModule):
         f_p = self.encoder(poses, transl)  # [B,T,D]
         h_t = self.temporal(f_p)  # [B,H]
         # Canonical warm-up: before deform_start the decoder is skipped and the offsets are the identity.
-        out = self.deformer(g.means, h_t) if deform else identity_deformation(B, g.means, self.deformer.feature_dim)
+        if not deform:
+            out = identity_deformation(B, g.means, self.deformer.feature_dim)
+        elif getattr(self.deformer, "gaussian_code_dim", 0) > 0:
+            out = self.deformer(g.means, h_t, frame_idx, codes=g.deform_codes)
+        elif getattr(self.deformer, "frame_code_dim", 0) > 0:
+            out = self.deformer(g.means, h_t, frame_idx)
+        else:
+            out = self.deformer(g.means, h_t)
         x_e, log_s_e, q_e = apply_deformation(g.means, g.log_scales, g.quats, out)  # [B,N,3],[B,N,3],[B,N,4]
         w = self.skinning(x_e)  # [B,N,24]
         A = self.body.canonical_transforms(poses[:, -1], transl[:, -1])  # [B,24,4,4]
@@ -142,7 +155,8 @@ class AvatarModule(pl.LightningModule):
 
     _PER_SAMPLE = ("means", "quats", "scales", "rot", "f_mt", "weights", "x_e")
 
-    def deform_shared(self, poses: torch.Tensor, transl: torch.Tensor, deform: bool = True) -> dict:
+    def deform_shared(self, poses: torch.Tensor, transl: torch.Tensor, deform: bool = True,
+                      frame_idx: torch.Tensor | None = None) -> dict:
         """`deform` once per distinct pose window of the batch, the result shared by every sample with that window
         (a data.sampler=frame_views batch is one frame from several cameras: one network pass, gradients summed)."""
         B = poses.shape[0]
@@ -156,9 +170,10 @@ class AvatarModule(pl.LightningModule):
                 reps.append(b)
             use.append(hit)
         if len(reps) == B:
-            return self.deform(poses, transl, deform=deform)
+            return self.deform(poses, transl, deform=deform, frame_idx=frame_idx)
         sel = torch.tensor(reps, device=poses.device)
-        posed = self.deform(poses[sel], transl[sel], deform=deform)
+        posed = self.deform(poses[sel], transl[sel], deform=deform,
+                            frame_idx=None if frame_idx is None else frame_idx[sel])
         inv = torch.tensor(use, device=poses.device)
         for k in self._PER_SAMPLE:
             if posed.get(k) is not None:
@@ -195,7 +210,7 @@ class AvatarModule(pl.LightningModule):
         frame_idx = batch["frame_idx"]
         viewmats, Ks = batch["viewmat"], batch["K"]
         W, H = int(batch["width"][0]), int(batch["height"][0])
-        posed = self.deform_shared(poses, transl, deform=deform)
+        posed = self.deform_shared(poses, transl, deform=deform, frame_idx=frame_idx)
         rgb = self.shade(posed, viewmats, frame_idx)  # [B,N,3]
         images, alphas, metas = [], [], []
         for b in range(posed["B"]):

@@ -1,0 +1,166 @@
+"""Where a trained model puts the garment's Gaussians, against the simulated cloth (synthetic scenes only).
+
+Usage: python ablations/garment_section.py <run_dir> [...] --out <folder> [--labels a,b] [--frames 10,28,32,36]
+
+Garment Gaussians are those within 2 cm of the cloth in every rest frame (ablations/probe.py's rule). For every
+training frame it deforms the Gaussians (the training frame's own inputs, frame codes included) and writes, per run:
+- section_<label>.png: radius from the waist ring's centre against height below it, the cloth's surface samples
+  (black) and the Gaussians within 15 cm of the cloth (garment ones coloured by their distance to the cloth, the rest
+  orange), for the frames of --frames. A skirt that flares less than the cloth shows as a cone steeper than the black
+  one; body Gaussians dragged along with it as an orange fan between the legs and the cone.
+- section.csv: per frame, the garment Gaussians' median distance to the cloth (cm) and how far their material
+  position has slid in texture cells, split into around the waist (u, GarmentTexture's 16 cells) and from waist to
+  hem (v, its 24 cells): median |du|, median du, median |dv|, median dv. A Gaussian whose material position has slid
+  shows the colour of another cell.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+from torch.utils.data import default_collate
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from probe import CLOTH_NEAR, phase_of
+
+from realityavatar.build import build_data, load_run
+
+CELLS_U, CELLS_V = 16, 24  # realityavatar.data.synthetic.render.GarmentTexture's default cells
+SAMPLES = 60000  # cloth surface samples (a few mm apart on the demo skirt)
+
+
+def cloth_samples(faces: np.ndarray, n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Triangles [n] and barycentrics [n,3] of uniform samples on a mesh's faces (fixed across frames)."""
+    rng = np.random.default_rng(seed)
+    tri = rng.integers(0, len(faces), n)
+    r = rng.random((n, 2))
+    r = np.where(r.sum(1, keepdims=True) > 1, 1 - r, r)
+    return tri, np.stack([1 - r.sum(1), r[:, 0], r[:, 1]], 1)
+
+
+@torch.no_grad()
+def section(run_dir: Path, threads: int = 1) -> dict:
+    """Per training frame: posed means [N,3], their distance to the cloth [N] and material uv [N,2]; plus the cloth."""
+    torch.set_num_threads(threads)
+    cfg, module, _ = load_run(run_dir)
+    dm = build_data(cfg, module.body)
+    npz = Path(str(cfg.data.root)) / f"{cfg.data.sequence}-garment.npz"
+    if not npz.is_file():
+        raise FileNotFoundError(f"{npz}: garment_section needs a synthetic scene's simulated garment")
+    g = np.load(npz)
+    V, F, UV, gframes = g["vertices"], g["faces"], g["uv"].astype(np.float64), [int(f) for f in g["frames"]]
+    tri, bary = cloth_samples(F, SAMPLES)
+    uv_s = np.einsum("pk,pkc->pc", bary, UV[F[tri]])
+    meta = dm.scene.meta or {}
+    events, fps = meta.get("motion", {}).get("events", {}), float(meta.get("fps", 25.0))
+    ds = dm.datasets["train"]
+    frames: dict[int, dict] = {}
+    for i, rec in enumerate(ds.records):
+        f = int(rec.frame)
+        if f in frames or f not in gframes:
+            continue
+        b = default_collate([ds[i]])
+        x = module.deform(b["poses"], b["transl"], frame_idx=b["frame_idx"])["means"][0].double().numpy()
+        pts = np.einsum("pk,pkc->pc", bary, V[gframes.index(f)][F[tri]])
+        d, j = cKDTree(pts).query(x)
+        frames[f] = {"x": x, "d": d, "uv": uv_s[j], "cloth": pts, "phase": phase_of(f, events, fps)}
+    rest = [f for f in sorted(frames) if frames[f]["phase"] == "rest"] or sorted(frames)[:1]
+    on = np.all([frames[f]["d"] < CLOTH_NEAR for f in rest], 0)
+    if not on.any():
+        raise ValueError(f"{run_dir}: no Gaussian lies within {CLOTH_NEAR} m of the cloth in every rest frame")
+    home = np.mean([frames[f]["uv"][on] for f in rest], 0)
+    return {"frames": frames, "garment": on, "home": home}
+
+
+def table(res: dict) -> list[dict]:
+    on, home, rows = res["garment"], res["home"], []
+    for f in sorted(res["frames"]):
+        r = res["frames"][f]
+        du = (r["uv"][on, 0] - home[:, 0] + 0.5) % 1.0 - 0.5  # u wraps around the waist
+        dv = r["uv"][on, 1] - home[:, 1]
+        rows.append({"frame": f, "phase": r["phase"], "garment_gaussians": int(on.sum()),
+                     "dist_cm": float(np.median(r["d"][on]) * 100),
+                     "abs_du_cells": float(np.median(np.abs(du)) * CELLS_U), "du_cells": float(np.median(du) * CELLS_U),
+                     "abs_dv_cells": float(np.median(np.abs(dv)) * CELLS_V), "dv_cells": float(np.median(dv) * CELLS_V)})
+    return rows
+
+
+def plot(res: dict, frames: list[int], title: str, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    frames = [f for f in frames if f in res["frames"]]
+    fig, axs = plt.subplots(1, len(frames), figsize=(4.2 * len(frames), 4.6), squeeze=False)
+    sc = None
+    for ax, f in zip(axs[0], frames):
+        r = res["frames"][f]
+        cloth, x, d, on = r["cloth"], r["x"], r["d"], res["garment"]
+        top = cloth[:, 1].max()
+        ring = cloth[cloth[:, 1] > top - 0.02]  # the waist ring: the cloth's top 2 cm
+        c = ring.mean(0)
+        def rad(p: np.ndarray, c: np.ndarray = c) -> np.ndarray:  # horizontal distance from the centre (y is up)
+            return np.linalg.norm((p - c)[:, [0, 2]], axis=1)
+
+        near = d < 0.15
+        sub = cloth[:: max(1, len(cloth) // 3000)]  # drawn first: the Gaussians go on top
+        ax.scatter(rad(sub), sub[:, 1] - c[1], s=1, c="0.75", label="cloth")
+        ax.scatter(rad(x[near & ~on]), x[near & ~on, 1] - c[1], s=2, c="tab:orange", alpha=0.4, label="other Gaussians")
+        sc = ax.scatter(rad(x[near & on]), x[near & on, 1] - c[1], s=2, c=d[near & on] * 100, cmap="viridis", vmin=0,
+                        vmax=8, alpha=0.7)
+        ax.set_title(f"frame {f} ({r['phase']})")
+        ax.set_xlabel("radius from the waist's centre (m)")
+        ax.set_xlim(0, 0.75)
+        ax.set_ylim(-0.7, 0.1)
+        ax.set_aspect("equal")
+    axs[0][0].set_ylabel("height below the waist (m)")
+    axs[0][0].legend(loc="lower left", markerscale=4, fontsize=8)
+    fig.suptitle(title)
+    if sc is not None:
+        fig.colorbar(sc, ax=axs[0].tolist(), label="garment Gaussian's distance to the cloth (cm)")
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("runs", nargs="+", type=Path)
+    ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--labels", default=None, help="comma-separated, one per run (default: folder names)")
+    ap.add_argument("--frames", default="10,28,32,36", help="frames of the section plots")
+    ap.add_argument("--threads", type=int, default=1)
+    a = ap.parse_args(argv)
+    labels = a.labels.split(",") if a.labels else [p.name for p in a.runs]
+    if len(labels) != len(a.runs):
+        ap.error(f"--labels: {len(labels)} labels for {len(a.runs)} runs")
+    a.out.mkdir(parents=True, exist_ok=True)
+    frames = [int(f) for f in a.frames.split(",")]
+    rows = []
+    for run, label in zip(a.runs, labels):
+        res = section(run, a.threads)
+        rows += [{"run": label, **r} for r in table(res)]
+        plot(res, frames, f"{label}: garment Gaussians against the simulated cloth", a.out / f"section_{label}.png")
+    with open(a.out / "section.csv", "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    keys = ("dist_cm", "abs_du_cells", "abs_dv_cells", "dv_cells")
+    print("run | phase | " + " | ".join(keys) + "  (medians over the phase's frames)")
+    for label in labels:
+        for ph in ("rest", "spin", "after", "settled"):
+            sel = [r for r in rows if r["run"] == label and r["phase"] == ph]
+            if sel:
+                print(f"{label} | {ph} | " + " | ".join(f"{np.mean([r[k] for r in sel]):.2f}" for k in keys))
+    print(f"wrote {a.out}/section.csv and section_<label>.png")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
