@@ -79,9 +79,6 @@ class BodyModel(nn.Module):
 
     parents: tuple[int, ...] = SMPL_PARENTS
     name: str = "body"
-    # The canonical pose's hip abduction (degrees, each leg): 30 separates the inner thighs (3DGS-Avatar's star pose);
-    # body.canonical_leg_angle sets it per run.
-    canonical_leg_angle: float = 30.0
 
     def _set_buffers(self, rest_vertices, faces, skin_weights, rest_joints) -> None:
         self.register_buffer("rest_vertices", torch.as_tensor(rest_vertices, dtype=torch.float32), persistent=False)
@@ -132,8 +129,7 @@ class BodyModel(nn.Module):
 
     def canonical_pose(self) -> torch.Tensor:
         """[24,3] on the body's device and in its dtype (Lightning moves the buffers before on_fit_start)."""
-        return canonical_pose(dtype=self.rest_joints.dtype, leg_angle_deg=float(self.canonical_leg_angle),
-                              device=self.rest_joints.device)
+        return canonical_pose(dtype=self.rest_joints.dtype, device=self.rest_joints.device)
 
     def canonical_vertices(self) -> torch.Tensor:
         return self.posed_vertices(self.canonical_pose())

@@ -59,9 +59,8 @@ class MannequinBody(BodyModel):
 
     name = "mannequin"
 
-    def __init__(self, kind: str = "wooden", canonical_leg_angle: float = 30.0) -> None:
+    def __init__(self, kind: str = "wooden") -> None:
         super().__init__()
-        self.canonical_leg_angle = float(canonical_leg_angle)
         if kind not in _CACHE:  # building the package's identity takes ~0.3 s; reuse it across instances
             _CACHE[kind] = mannequin_arrays(kind)
         a = _CACHE[kind]

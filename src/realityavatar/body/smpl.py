@@ -120,10 +120,8 @@ class SMPLBody(BodyModel):
     name = "smpl"
 
     def __init__(self, model_dir: str | None = None, gender: str = "neutral",
-                 betas: Sequence[float] | str | None = None, num_betas: int = 10,
-                 canonical_leg_angle: float = 30.0) -> None:
+                 betas: Sequence[float] | str | None = None, num_betas: int = 10) -> None:
         super().__init__()
-        self.canonical_leg_angle = float(canonical_leg_angle)
         import smplx
         from smplx.utils import Struct
 
