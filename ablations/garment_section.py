@@ -11,7 +11,8 @@ training frame it deforms the Gaussians (the training frame's own inputs, frame 
 - section.csv: per frame, the garment Gaussians' median distance to the cloth (cm) and how far their material
   position has slid in texture cells, split into around the waist (u, GarmentTexture's 16 cells) and from waist to
   hem (v, its 24 cells): median |du|, median du, median |dv|, median dv. A Gaussian whose material position has slid
-  shows the colour of another cell.
+  shows the colour of another cell. Columns band0..band4: the median distance to the cloth (cm) of the garment
+  Gaussians in each fifth of the skirt's length, by their rest material position (band0 at the waist, band4 the hem).
 """
 
 from __future__ import annotations
@@ -88,6 +89,10 @@ def table(res: dict) -> list[dict]:
                      "dist_cm": float(np.median(r["d"][on]) * 100),
                      "abs_du_cells": float(np.median(np.abs(du)) * CELLS_U), "du_cells": float(np.median(du) * CELLS_U),
                      "abs_dv_cells": float(np.median(np.abs(dv)) * CELLS_V), "dv_cells": float(np.median(dv) * CELLS_V)})
+        band = np.minimum((home[:, 1] * 5).astype(int), 4)  # fifths of the length by rest position (v: waist 0)
+        for k in range(5):
+            sel = band == k
+            rows[-1][f"band{k}"] = float(np.median(r["d"][on][sel]) * 100) if sel.any() else float("nan")
     return rows
 
 
