@@ -610,24 +610,27 @@ def warm_up() -> float:
 
 
 # ---- projection (project.py's EWA rules) with a hand-written backward -------------------------------------------
+# 3x3 matrices are row-major 9-tuples of scalars: LLVM keeps them in registers, where small scratch arrays kept every
+# entry in memory (~2x slower). Each product sums its terms in index order, as the earlier loops did; the zero
+# entries of the Jacobian are left out of the sums (no value changes: only x + 0*y terms go).
 
 
-@njit(cache=True, inline="always")
-def _mm(A, B, out, ta=False, tb=False):
-    """out = A @ B for small matrices (optionally transposed), as loops: numba's matmul calls BLAS, slow at 3x3."""
-    n = A.shape[1] if ta else A.shape[0]
-    k = A.shape[0] if ta else A.shape[1]
-    m = B.shape[0] if tb else B.shape[1]
-    for i in range(n):
-        for j in range(m):
-            acc = 0.0
-            for t in range(k):
-                acc += (A[t, i] if ta else A[i, t]) * (B[j, t] if tb else B[t, j])
-            out[i, j] = acc
-    return out
+@njit(cache=True)
+def _t33(a):
+    return a[0], a[3], a[6], a[1], a[4], a[7], a[2], a[5], a[8]
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
+def _mul33(a, b):
+    return (a[0] * b[0] + a[1] * b[3] + a[2] * b[6], a[0] * b[1] + a[1] * b[4] + a[2] * b[7],
+            a[0] * b[2] + a[1] * b[5] + a[2] * b[8],
+            a[3] * b[0] + a[4] * b[3] + a[5] * b[6], a[3] * b[1] + a[4] * b[4] + a[5] * b[7],
+            a[3] * b[2] + a[4] * b[5] + a[5] * b[8],
+            a[6] * b[0] + a[7] * b[3] + a[8] * b[6], a[6] * b[1] + a[7] * b[4] + a[8] * b[7],
+            a[6] * b[2] + a[7] * b[5] + a[8] * b[8])
+
+
+@njit(cache=True)
 def _rotmat(w, x, y, z):
     return (1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
             2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
@@ -635,71 +638,79 @@ def _rotmat(w, x, y, z):
 
 
 @njit(cache=True)
-def _scratch():
-    """Small work arrays, allocated once per block of Gaussians (per-Gaussian allocations cost more than the math)."""
-    return (np.empty(4), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)),
-            np.empty(3), np.empty((2, 3)), np.empty((2, 3)), np.empty((2, 2)))
+def _quat(quats, n):
+    """Unit quaternion of Gaussian n (F.normalize), its norm with the eps clamp and whether the clamp was off."""
+    w, x, y, z = float(quats[n, 0]), float(quats[n, 1]), float(quats[n, 2]), float(quats[n, 3])
+    raw = math.sqrt(w * w + x * x + y * y + z * z)
+    nrm = max(raw, 1e-12)
+    return w / nrm, x / nrm, y / nrm, z / nrm, nrm, raw > 1e-12
 
 
-@njit(cache=True, inline="always")
-def _cam_cov(means, quats, scales, W, t, n, q, Rq, M, S, Sc, tmp, p):
-    """Fills unit quaternion q, Rq, M = Rq diag(s), world covariance S, camera covariance Sc, camera-space mean p.
-
-    Returns the quaternion's norm (F.normalize's eps)."""
-    nrm = 0.0
-    for i in range(4):
-        q[i] = quats[n, i]
-        nrm += q[i] * q[i]
-    nrm = max(math.sqrt(nrm), 1e-12)
-    for i in range(4):
-        q[i] /= nrm
-    r = _rotmat(q[0], q[1], q[2], q[3])
-    for i in range(3):
-        for j in range(3):
-            Rq[i, j] = r[3 * i + j]
-            M[i, j] = r[3 * i + j] * scales[n, j]
-    _mm(M, M, S, tb=True)
-    _mm(W, S, tmp)
-    _mm(tmp, W, Sc, tb=True)
-    for i in range(3):
-        p[i] = W[i, 0] * means[n, 0] + W[i, 1] * means[n, 1] + W[i, 2] * means[n, 2] + t[i]
-    return nrm
+@njit(cache=True)
+def _scaled(r, scales, n):
+    """M = Rq diag(s)."""
+    s0, s1, s2 = float(scales[n, 0]), float(scales[n, 1]), float(scales[n, 2])
+    return r[0] * s0, r[1] * s1, r[2] * s2, r[3] * s0, r[4] * s1, r[5] * s2, r[6] * s0, r[7] * s1, r[8] * s2
 
 
-@njit(cache=True, inline="always")
-def _jacobian(p, K, width, height, near, far, J):
-    x, y, z = p[0], p[1], p[2]
+@njit(cache=True)
+def _cameras(viewmats, Ks, width, height):
+    """Per camera [C,20]: W (9, row-major), t (3), fx, fy, cx, cy and the Jacobian's clamp limits lim_x+/-, lim_y+/-
+    (1.3x the frustum, gsplat's persp_proj)."""
+    out = np.empty((viewmats.shape[0], 20))
+    for c in range(viewmats.shape[0]):
+        for i in range(3):
+            for j in range(3):
+                out[c, 3 * i + j] = viewmats[c, i, j]
+            out[c, 9 + i] = viewmats[c, i, 3]
+        fx, fy, cx, cy = Ks[c, 0, 0], Ks[c, 1, 1], Ks[c, 0, 2], Ks[c, 1, 2]
+        tan_fovx, tan_fovy = 0.5 * width / fx, 0.5 * height / fy
+        out[c, 12], out[c, 13], out[c, 14], out[c, 15] = fx, fy, cx, cy
+        out[c, 16], out[c, 17] = (width - cx) / fx + 0.3 * tan_fovx, cx / fx + 0.3 * tan_fovx
+        out[c, 18], out[c, 19] = (height - cy) / fy + 0.3 * tan_fovy, cy / fy + 0.3 * tan_fovy
+    return out
+
+
+@njit(cache=True)
+def _cam_view(cams, c):
+    """Camera c of _cameras: W, its translation and (fx, fy, cx, cy, lim_x+, lim_x-, lim_y+, lim_y-)."""
+    W = (cams[c, 0], cams[c, 1], cams[c, 2], cams[c, 3], cams[c, 4], cams[c, 5], cams[c, 6], cams[c, 7], cams[c, 8])
+    return W, (cams[c, 9], cams[c, 10], cams[c, 11]), (cams[c, 12], cams[c, 13], cams[c, 14], cams[c, 15],
+                                                         cams[c, 16], cams[c, 17], cams[c, 18], cams[c, 19])
+
+
+@njit(cache=True)
+def _cam_space(means, n, S, W, t):
+    """Camera-space mean p and covariance Sc = W S W^T."""
+    m0, m1, m2 = float(means[n, 0]), float(means[n, 1]), float(means[n, 2])
+    p = (W[0] * m0 + W[1] * m1 + W[2] * m2 + t[0], W[3] * m0 + W[4] * m1 + W[5] * m2 + t[1],
+         W[6] * m0 + W[7] * m1 + W[8] * m2 + t[2])
+    return p, _mul33(_mul33(W, S), _t33(W))
+
+
+@njit(cache=True)
+def _jacobian(p, k, near, far):
+    """J = [[j00, 0, j02], [0, j11, j12]] at the clamped point; k: _cam_view's intrinsics and limits."""
+    x, y, z = p
+    fx, fy, _cx, _cy, lim_xp, lim_xn, lim_yp, lim_yn = k
     in_range = z >= near and z <= far
     zz = z if in_range else 1.0
-    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-    tan_fovx, tan_fovy = 0.5 * width / fx, 0.5 * height / fy
-    lim_xp, lim_xn = (width - cx) / fx + 0.3 * tan_fovx, cx / fx + 0.3 * tan_fovx
-    lim_yp, lim_yn = (height - cy) / fy + 0.3 * tan_fovy, cy / fy + 0.3 * tan_fovy
     rz = 1.0 / zz
     u, v = x * rz, y * rz
     uc, vc = min(lim_xp, max(-lim_xn, u)), min(lim_yp, max(-lim_yn, v))
     tx, ty = zz * uc, zz * vc
-    J[0, 0] = fx * rz
-    J[0, 1] = 0.0
-    J[0, 2] = -fx * tx * rz * rz
-    J[1, 0] = 0.0
-    J[1, 1] = fy * rz
-    J[1, 2] = -fy * ty * rz * rz
     u_free = u > -lim_xn and u < lim_xp  # gradient passes the clamp
     v_free = v > -lim_yn and v < lim_yp
-    return in_range, zz, rz, uc, vc, tx, ty, u_free, v_free
+    return in_range, zz, rz, uc, vc, tx, ty, u_free, v_free, fx * rz, -fx * tx * rz * rz, fy * rz, -fy * ty * rz * rz
 
 
-@njit(cache=True, inline="always")
-def _cov2d(J, Sc, tmp23):
-    _mm(J, Sc, tmp23)
-    c00 = c01 = c10 = c11 = 0.0
-    for t in range(3):
-        c00 += tmp23[0, t] * J[0, t]
-        c01 += tmp23[0, t] * J[1, t]
-        c10 += tmp23[1, t] * J[0, t]
-        c11 += tmp23[1, t] * J[1, t]
-    return c00, 0.5 * (c01 + c10), c11
+@njit(cache=True)
+def _cov2d(j00, j02, j11, j12, Sc):
+    """J Sc J^T as (a, b, c), b the mean of its two off-diagonal entries."""
+    t00, t01, t02 = j00 * Sc[0] + j02 * Sc[6], j00 * Sc[1] + j02 * Sc[7], j00 * Sc[2] + j02 * Sc[8]
+    t10, t11, t12 = j11 * Sc[3] + j12 * Sc[6], j11 * Sc[4] + j12 * Sc[7], j11 * Sc[5] + j12 * Sc[8]
+    c01, c10 = t01 * j11 + t02 * j12, t10 * j00 + t12 * j02
+    return t00 * j00 + t02 * j02, 0.5 * (c01 + c10), t11 * j11 + t12 * j12
 
 
 _BLOCK = 256
@@ -709,15 +720,19 @@ _BLOCK = 256
 def _project_fwd(means, quats, scales, opac, viewmats, Ks, width, height, near, far, eps2d, radius_clip,
                  antialiased, means2d, conics, depths, opac_out, comp, radii, visible):
     C, N = viewmats.shape[0], means.shape[0]
+    cams = _cameras(viewmats, Ks, width, height)
     for blk in prange((N + _BLOCK - 1) // _BLOCK):
-        q, Rq, M, S, Sc, tmp, p, J, tmp23, _ = _scratch()
         for n in range(blk * _BLOCK, min(N, (blk + 1) * _BLOCK)):
+            w, x, y, z, _nrm, _ok = _quat(quats, n)
+            M = _scaled(_rotmat(w, x, y, z), scales, n)
+            S = _mul33(M, _t33(M))
             for c in range(C):
-                _cam_cov(means, quats, scales, viewmats[c, :3, :3], viewmats[c, :3, 3], n, q, Rq, M, S, Sc, tmp, p)
-                in_range, _zz, rz, _uc, _vc, _tx, _ty, _uf, _vf = _jacobian(p, Ks[c], width, height, near, far, J)
-                a, b, cc = _cov2d(J, Sc, tmp23)
-                mx = Ks[c, 0, 0] * p[0] * rz + Ks[c, 0, 2]
-                my = Ks[c, 1, 1] * p[1] * rz + Ks[c, 1, 2]
+                W, t, k = _cam_view(cams, c)
+                p, Sc = _cam_space(means, n, S, W, t)
+                in_range, _zz, rz, _uc, _vc, _tx, _ty, _uf, _vf, j00, j02, j11, j12 = _jacobian(p, k, near, far)
+                a, b, cc = _cov2d(j00, j02, j11, j12, Sc)
+                mx = k[0] * p[0] * rz + k[2]
+                my = k[1] * p[1] * rz + k[3]
                 det_orig = a * cc - b * b
                 a2, c2 = a + eps2d, cc + eps2d
                 det = a2 * c2 - b * b
@@ -755,20 +770,21 @@ def _project_bwd(means, quats, scales, opac, viewmats, Ks, width, height, near, 
                  g_m2, g_con, g_dep, g_op, g_comp, d_means, d_quats, d_scales, d_opac):
     """Gradients of project.py's outputs (means2d, conics, depths, opacities, compensations) w.r.t. its inputs."""
     C, N = viewmats.shape[0], means.shape[0]
+    cams = _cameras(viewmats, Ks, width, height)
     for blk in prange((N + _BLOCK - 1) // _BLOCK):
-        q, Rq, M, S, Sc, tmp, p, J, tmp23, dcov = _scratch()
-        dJ, dSc, dS = np.empty((2, 3)), np.empty((3, 3)), np.empty((3, 3))
-        dM_sum, tmp2 = np.empty((3, 3)), np.empty((3, 3))
-        dp, dq_n = np.empty(3), np.empty(4)
         for n in range(blk * _BLOCK, min(N, (blk + 1) * _BLOCK)):
-            dM_sum[:] = 0.0
-            nrm = 1.0
+            w, x, y, z, nrm, nrm_ok = _quat(quats, n)
+            Rq = _rotmat(w, x, y, z)
+            M = _scaled(Rq, scales, n)
+            S = _mul33(M, _t33(M))
+            dM = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)  # summed over cameras
+            dm0 = dm1 = dm2 = do = 0.0
             for c in range(C):
-                W = viewmats[c, :3, :3]
-                nrm = _cam_cov(means, quats, scales, W, viewmats[c, :3, 3], n, q, Rq, M, S, Sc, tmp, p)
-                in_range, zz, rz, uc, vc, tx, ty, u_free, v_free = _jacobian(p, Ks[c], width, height, near, far, J)
-                fx, fy = Ks[c, 0, 0], Ks[c, 1, 1]
-                a, b, cc = _cov2d(J, Sc, tmp23)
+                W, t, k = _cam_view(cams, c)
+                p, Sc = _cam_space(means, n, S, W, t)
+                in_range, zz, rz, uc, vc, tx, ty, u_free, v_free, j00, j02, j11, j12 = _jacobian(p, k, near, far)
+                fx, fy = k[0], k[1]
+                a, b, cc = _cov2d(j00, j02, j11, j12, Sc)
                 det_orig = a * cc - b * b
                 a2, c2 = a + eps2d, cc + eps2d
                 det = a2 * c2 - b * b
@@ -777,7 +793,7 @@ def _project_bwd(means, quats, scales, opac, viewmats, Ks, width, height, near, 
                     det = 1.0
                 da = db = dc = 0.0  # w.r.t. cov2d's a, b, c (a2 = a + eps2d has the same gradient)
                 ddet = 0.0
-                dp[:] = 0.0
+                dp0 = dp1 = dp2 = 0.0
                 drz = 0.0
                 if visible[c, n]:
                     g0, g1, g2 = g_con[c, n, 0], g_con[c, n, 1], g_con[c, n, 2]
@@ -785,15 +801,15 @@ def _project_bwd(means, quats, scales, opac, viewmats, Ks, width, height, near, 
                     db -= g1 / det
                     da += g2 / det
                     ddet += (-g0 * c2 + g1 * b - g2 * a2) / (det * det)
-                    dp[0] += g_m2[c, n, 0] * fx * rz
-                    dp[1] += g_m2[c, n, 1] * fy * rz
+                    dp0 += g_m2[c, n, 0] * fx * rz
+                    dp1 += g_m2[c, n, 1] * fy * rz
                     drz += g_m2[c, n, 0] * fx * p[0] + g_m2[c, n, 1] * fy * p[1]
-                    dp[2] += g_dep[c, n]
+                    dp2 += g_dep[c, n]
                 if antialiased:
                     r = det_orig / det
                     cm = math.sqrt(max(r, 0.0))
                     gc = g_comp[c, n] + g_op[c, n] * opac[n]
-                    d_opac[n] += g_op[c, n] * cm
+                    do += g_op[c, n] * cm
                     if r >= 0.0 and cm > 0.0:
                         dr = gc * 0.5 / cm
                         ddo = dr / det
@@ -803,62 +819,64 @@ def _project_bwd(means, quats, scales, opac, viewmats, Ks, width, height, near, 
                         dc += ddo * a
                         db -= 2.0 * b * ddo
                 else:
-                    d_opac[n] += g_op[c, n]
+                    do += g_op[c, n]
                 if det_kept:
                     da += ddet * c2
                     dc += ddet * a2
                     db -= 2.0 * b * ddet
-                dcov[0, 0], dcov[0, 1], dcov[1, 0], dcov[1, 1] = da, 0.5 * db, 0.5 * db, dc
-                _mm(dcov, J, tmp23)
-                _mm(tmp23, Sc, dJ)
-                for i in range(3):
-                    for j in range(3):
-                        dSc[i, j] = (J[0, i] * dcov[0, 0] + J[1, i] * dcov[1, 0]) * J[0, j] + \
-                                    (J[0, i] * dcov[0, 1] + J[1, i] * dcov[1, 1]) * J[1, j]
-                drz += 2.0 * (dJ[0, 0] * fx + dJ[1, 1] * fy - 2.0 * rz * (dJ[0, 2] * fx * tx + dJ[1, 2] * fy * ty))
-                dtx = -2.0 * dJ[0, 2] * fx * rz * rz
-                dty = -2.0 * dJ[1, 2] * fy * rz * rz
+                h = 0.5 * db  # dcov = [[da, h], [h, dc]]
+                # dJ = dcov J Sc (the four entries that J depends on)
+                e00, e01, e02 = da * j00, h * j11, da * j02 + h * j12
+                e10, e11, e12 = h * j00, dc * j11, h * j02 + dc * j12
+                dj00 = e00 * Sc[0] + e01 * Sc[3] + e02 * Sc[6]
+                dj02 = e00 * Sc[2] + e01 * Sc[5] + e02 * Sc[8]
+                dj11 = e10 * Sc[1] + e11 * Sc[4] + e12 * Sc[7]
+                dj12 = e10 * Sc[2] + e11 * Sc[5] + e12 * Sc[8]
+                # dSc = J^T dcov J: rows (u_i, v_i) of J^T dcov
+                u0, v0, u1, v1 = j00 * da, j00 * h, j11 * h, j11 * dc
+                u2, v2 = j02 * da + j12 * h, j02 * h + j12 * dc
+                dSc = (u0 * j00, v0 * j11, u0 * j02 + v0 * j12, u1 * j00, v1 * j11, u1 * j02 + v1 * j12,
+                       u2 * j00, v2 * j11, u2 * j02 + v2 * j12)
+                drz += 2.0 * (dj00 * fx + dj11 * fy - 2.0 * rz * (dj02 * fx * tx + dj12 * fy * ty))
+                dtx = -2.0 * dj02 * fx * rz * rz
+                dty = -2.0 * dj12 * fy * rz * rz
                 dzz = dtx * uc + dty * vc
                 if u_free:
                     du = dtx * zz
-                    dp[0] += du * rz
+                    dp0 += du * rz
                     drz += du * p[0]
                 if v_free:
                     dv = dty * zz
-                    dp[1] += dv * rz
+                    dp1 += dv * rz
                     drz += dv * p[1]
                 dzz -= drz * rz * rz
                 if in_range:
-                    dp[2] += dzz
-                for j in range(3):
-                    d_means[n, j] += W[0, j] * dp[0] + W[1, j] * dp[1] + W[2, j] * dp[2]
-                _mm(W, dSc, tmp2, ta=True)
-                _mm(tmp2, W, dS)
-                _mm(dS, M, tmp2)
-                for i in range(3):
-                    for j in range(3):
-                        dM_sum[i, j] += 2.0 * tmp2[i, j]
-            # M = Rq diag(s): scales and rotation entries (q, Rq are the same for every camera)
+                    dp2 += dzz
+                dm0 += W[0] * dp0 + W[3] * dp1 + W[6] * dp2
+                dm1 += W[1] * dp0 + W[4] * dp1 + W[7] * dp2
+                dm2 += W[2] * dp0 + W[5] * dp1 + W[8] * dp2
+                g = _mul33(_mul33(_mul33(_t33(W), dSc), W), M)  # dS M, dS = W^T dSc W
+                dM = (dM[0] + 2.0 * g[0], dM[1] + 2.0 * g[1], dM[2] + 2.0 * g[2], dM[3] + 2.0 * g[3],
+                      dM[4] + 2.0 * g[4], dM[5] + 2.0 * g[5], dM[6] + 2.0 * g[6], dM[7] + 2.0 * g[7],
+                      dM[8] + 2.0 * g[8])
+            d_means[n, 0], d_means[n, 1], d_means[n, 2], d_opac[n] = dm0, dm1, dm2, do
+            # M = Rq diag(s): scales and rotation entries
             for j in range(3):
-                d_scales[n, j] = dM_sum[0, j] * Rq[0, j] + dM_sum[1, j] * Rq[1, j] + dM_sum[2, j] * Rq[2, j]
-            for i in range(3):
-                for j in range(3):
-                    tmp2[i, j] = dM_sum[i, j] * scales[n, j]
-            dR = tmp2
-            w, x, y, z = q[0], q[1], q[2], q[3]
-            dq_n[0] = 2 * (-z * dR[0, 1] + y * dR[0, 2] + z * dR[1, 0] - x * dR[1, 2] - y * dR[2, 0] + x * dR[2, 1])
-            dq_n[1] = 2 * (y * dR[0, 1] + z * dR[0, 2] + y * dR[1, 0] - 2 * x * dR[1, 1] - w * dR[1, 2]
-                           + z * dR[2, 0] + w * dR[2, 1] - 2 * x * dR[2, 2])
-            dq_n[2] = 2 * (-2 * y * dR[0, 0] + x * dR[0, 1] + w * dR[0, 2] + x * dR[1, 0] + z * dR[1, 2]
-                           - w * dR[2, 0] + z * dR[2, 1] - 2 * y * dR[2, 2])
-            dq_n[3] = 2 * (-2 * z * dR[0, 0] - w * dR[0, 1] + x * dR[0, 2] + w * dR[1, 0] - 2 * z * dR[1, 1]
-                           + y * dR[1, 2] + x * dR[2, 0] + y * dR[2, 1])
-            dot = q[0] * dq_n[0] + q[1] * dq_n[1] + q[2] * dq_n[2] + q[3] * dq_n[3]
-            raw = 0.0
-            for i in range(4):
-                raw += quats[n, i] * quats[n, i]
-            for i in range(4):  # through F.normalize (its eps branch divides by a constant)
-                d_quats[n, i] = (dq_n[i] - q[i] * dot) / nrm if math.sqrt(raw) > 1e-12 else dq_n[i] / nrm
+                d_scales[n, j] = dM[j] * Rq[j] + dM[3 + j] * Rq[3 + j] + dM[6 + j] * Rq[6 + j]
+            dR = _scaled(dM, scales, n)
+            dq0 = 2 * (-z * dR[1] + y * dR[2] + z * dR[3] - x * dR[5] - y * dR[6] + x * dR[7])
+            dq1 = 2 * (y * dR[1] + z * dR[2] + y * dR[3] - 2 * x * dR[4] - w * dR[5] + z * dR[6] + w * dR[7]
+                       - 2 * x * dR[8])
+            dq2 = 2 * (-2 * y * dR[0] + x * dR[1] + w * dR[2] + x * dR[3] + z * dR[5] - w * dR[6] + z * dR[7]
+                       - 2 * y * dR[8])
+            dq3 = 2 * (-2 * z * dR[0] - w * dR[1] + x * dR[2] + w * dR[3] - 2 * z * dR[4] + y * dR[5] + x * dR[6]
+                       + y * dR[7])
+            dot = w * dq0 + x * dq1 + y * dq2 + z * dq3
+            if nrm_ok:  # through F.normalize (its eps branch divides by a constant)
+                d_quats[n, 0], d_quats[n, 1] = (dq0 - w * dot) / nrm, (dq1 - x * dot) / nrm
+                d_quats[n, 2], d_quats[n, 3] = (dq2 - y * dot) / nrm, (dq3 - z * dot) / nrm
+            else:
+                d_quats[n, 0], d_quats[n, 1], d_quats[n, 2], d_quats[n, 3] = dq0 / nrm, dq1 / nrm, dq2 / nrm, dq3 / nrm
 
 
 class _ProjectNumba(torch.autograd.Function):
