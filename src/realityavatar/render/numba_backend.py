@@ -518,6 +518,50 @@ def set_threads() -> int:
     return n
 
 
+@njit(cache=True)
+def _depth_order(vals, bits, width, order):
+    """order[c] = stable ascending argsort of vals[c] [C,N] (torch.argsort(stable=True)'s order: -0.0 ties with 0.0,
+    NaN last), from bits, vals' bit patterns (width 32 or 64) as integers. LSD radix sort on bytes, skipping the bytes
+    all keys share: ~10x faster than torch's sort at 10k depths."""
+    C, N = vals.shape
+    nb = width // 8
+    top = np.int64(1) << (width - 1)
+    ones = np.int64(-1) if width == 64 else (np.int64(1) << 32) - 1
+    key, key2 = np.empty(N, np.int64), np.empty(N, np.int64)
+    idx, idx2 = np.empty(N, np.int64), np.empty(N, np.int64)
+    cnt = np.empty((nb, 256), np.int64)
+    for c in range(C):
+        cnt[:] = 0
+        for i in range(N):
+            v, b = vals[c, i], np.int64(bits[c, i])
+            if v != v:
+                k = ones
+            elif v == 0.0:
+                k = top
+            else:  # ordered as unsigned integers: negatives flipped, the sign bit set on the rest
+                k = (~b if b < 0 else b | top) & ones
+            key[i] = k
+            idx[i] = i
+            for d in range(nb):
+                cnt[d, (k >> (8 * d)) & 255] += 1
+        for d in range(nb):
+            if cnt[d, (key[0] >> (8 * d)) & 255] == N:  # one digit value: the pass would keep the order
+                continue
+            pos = 0
+            for j in range(256):
+                pos, cnt[d, j] = pos + cnt[d, j], pos
+            for i in range(N):
+                k = key[i]
+                j = (k >> (8 * d)) & 255
+                key2[cnt[d, j]] = k
+                idx2[cnt[d, j]] = idx[i]
+                cnt[d, j] += 1
+            key, key2 = key2, key
+            idx, idx2 = idx2, idx
+        for i in range(N):
+            order[c, i] = idx[i]
+
+
 class NumbaPlan:
     def __init__(self, starts: np.ndarray, ids: np.ndarray, C: int, width: int, height: int, tile_size: int):
         self.starts, self.ids = starts, ids
@@ -532,10 +576,15 @@ def build_plan_numba(means2d, conics, opacities, depths, radii_xy, width, height
                      tile_cull=True) -> NumbaPlan:
     """Tile lists for [C,N,...] projections (the same pairs and order as tiles.build_plan)."""
     C, N = depths.shape
-    order = torch.argsort(depths.detach(), dim=1, stable=True)  # [C,N], torch's tie order
     set_threads()
+    d = _np(depths)
+    if d.dtype in (np.float32, np.float64) and N > 0:
+        order = np.empty((C, N), np.int64)
+        _depth_order(d, d.view(np.int32 if d.dtype == np.float32 else np.int64), d.itemsize * 8, order)
+    else:
+        order = _np(torch.argsort(depths.detach(), dim=1, stable=True))  # [C,N], torch's tie order
     starts, ids = _bin(_np(means2d.reshape(C * N, 2)), _np(radii_xy.reshape(C * N, 2).to(torch.int32)),
-                       _np(conics.reshape(C * N, 3)), _np(opacities.reshape(C * N)), _np(order),
+                       _np(conics.reshape(C * N, 3)), _np(opacities.reshape(C * N)), order,
                        C, N, int(width), int(height), int(tile_size), bool(tile_cull))
     return NumbaPlan(starts, ids, C, int(width), int(height), int(tile_size))
 
