@@ -534,7 +534,7 @@ def _depth_order(vals, bits, width, order):
         cnt[:] = 0
         for i in range(N):
             v, b = vals[c, i], np.int64(bits[c, i])
-            if v != v:
+            if math.isnan(v):
                 k = ones
             elif v == 0.0:
                 k = top
