@@ -408,11 +408,11 @@ def _backward(means2d, conics, opac, colors, prep, starts, ids, C, width, height
         ox = (ti - (ti // tx_n) * tx_n) * ts
         nx = min(ts, width - ox)
         ny = min(ts, height - oy)
-        Tp = np.ones(P)
-        tfin = np.ones(P)
-        lastp = np.full(P, -1, np.int64)
-        go = np.zeros((P, D))
-        ga = np.zeros(P)
+        Tp = np.empty(P)  # these five are set for every pixel of the image below; no other pixel is listed
+        tfin = np.empty(P)
+        lastp = np.empty(P, np.int64)
+        go = np.empty((P, D))
+        ga = np.empty(P)
         buf = np.zeros((P, D))  # sum of colour * weight of the Gaussians behind, per pixel
         col = np.empty(D)
         gcol = np.empty(D)
