@@ -672,12 +672,12 @@ def warm_up() -> float:
 # entries of the Jacobian are left out of the sums (no value changes: only x + 0*y terms go).
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _t33(a):
     return a[0], a[3], a[6], a[1], a[4], a[7], a[2], a[5], a[8]
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _mul33(a, b):
     return (a[0] * b[0] + a[1] * b[3] + a[2] * b[6], a[0] * b[1] + a[1] * b[4] + a[2] * b[7],
             a[0] * b[2] + a[1] * b[5] + a[2] * b[8],
@@ -687,30 +687,28 @@ def _mul33(a, b):
             a[6] * b[2] + a[7] * b[5] + a[8] * b[8])
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _rotmat(w, x, y, z):
     return (1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
             2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
             2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y))
 
 
-@njit(cache=True)
-def _quat(quats, n):
-    """Unit quaternion of Gaussian n (F.normalize), its norm with the eps clamp and whether the clamp was off."""
-    w, x, y, z = float(quats[n, 0]), float(quats[n, 1]), float(quats[n, 2]), float(quats[n, 3])
+@njit(cache=True, inline="always")
+def _quat(w, x, y, z):
+    """Unit quaternion (F.normalize), its norm with the eps clamp and whether the clamp was off."""
     raw = math.sqrt(w * w + x * x + y * y + z * z)
     nrm = max(raw, 1e-12)
     return w / nrm, x / nrm, y / nrm, z / nrm, nrm, raw > 1e-12
 
 
-@njit(cache=True)
-def _scaled(r, scales, n):
+@njit(cache=True, inline="always")
+def _scaled(r, s0, s1, s2):
     """M = Rq diag(s)."""
-    s0, s1, s2 = float(scales[n, 0]), float(scales[n, 1]), float(scales[n, 2])
     return r[0] * s0, r[1] * s1, r[2] * s2, r[3] * s0, r[4] * s1, r[5] * s2, r[6] * s0, r[7] * s1, r[8] * s2
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _cameras(viewmats, Ks, width, height):
     """Per camera [C,20]: W (9, row-major), t (3), fx, fy, cx, cy and the Jacobian's clamp limits lim_x+/-, lim_y+/-
     (1.3x the frustum, gsplat's persp_proj)."""
@@ -728,7 +726,7 @@ def _cameras(viewmats, Ks, width, height):
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _cam_view(cams, c):
     """Camera c of _cameras: W, its translation and (fx, fy, cx, cy, lim_x+, lim_x-, lim_y+, lim_y-)."""
     W = (cams[c, 0], cams[c, 1], cams[c, 2], cams[c, 3], cams[c, 4], cams[c, 5], cams[c, 6], cams[c, 7], cams[c, 8])
@@ -736,16 +734,15 @@ def _cam_view(cams, c):
                                                          cams[c, 16], cams[c, 17], cams[c, 18], cams[c, 19])
 
 
-@njit(cache=True)
-def _cam_space(means, n, S, W, t):
+@njit(cache=True, inline="always")
+def _cam_space(m0, m1, m2, S, W, t):
     """Camera-space mean p and covariance Sc = W S W^T."""
-    m0, m1, m2 = float(means[n, 0]), float(means[n, 1]), float(means[n, 2])
     p = (W[0] * m0 + W[1] * m1 + W[2] * m2 + t[0], W[3] * m0 + W[4] * m1 + W[5] * m2 + t[1],
          W[6] * m0 + W[7] * m1 + W[8] * m2 + t[2])
     return p, _mul33(_mul33(W, S), _t33(W))
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _jacobian(p, k, near, far):
     """J = [[j00, 0, j02], [0, j11, j12]] at the clamped point; k: _cam_view's intrinsics and limits."""
     x, y, z = p
@@ -761,7 +758,7 @@ def _jacobian(p, k, near, far):
     return in_range, zz, rz, uc, vc, tx, ty, u_free, v_free, fx * rz, -fx * tx * rz * rz, fy * rz, -fy * ty * rz * rz
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _cov2d(j00, j02, j11, j12, Sc):
     """J Sc J^T as (a, b, c), b the mean of its two off-diagonal entries."""
     t00, t01, t02 = j00 * Sc[0] + j02 * Sc[6], j00 * Sc[1] + j02 * Sc[7], j00 * Sc[2] + j02 * Sc[8]
@@ -771,169 +768,248 @@ def _cov2d(j00, j02, j11, j12, Sc):
 
 
 _BLOCK = 256
+_PF = 20  # per-Gaussian rows of _project_fwd's block buffer: 10 inputs to its vector loop, 10 outputs
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
 def _project_fwd(means, quats, scales, opac, viewmats, Ks, width, height, near, far, eps2d, radius_clip,
                  antialiased, means2d, conics, depths, opac_out, comp, radii, visible):
-    C, N = viewmats.shape[0], means.shape[0]
+    N = means.shape[0]
     cams = _cameras(viewmats, Ks, width, height)
     for blk in prange((N + _BLOCK - 1) // _BLOCK):
-        for n in range(blk * _BLOCK, min(N, (blk + 1) * _BLOCK)):
-            w, x, y, z, _nrm, _ok = _quat(quats, n)
-            M = _scaled(_rotmat(w, x, y, z), scales, n)
-            S = _mul33(M, _t33(M))
-            for c in range(C):
-                W, t, k = _cam_view(cams, c)
-                p, Sc = _cam_space(means, n, S, W, t)
-                in_range, _zz, rz, _uc, _vc, _tx, _ty, _uf, _vf, j00, j02, j11, j12 = _jacobian(p, k, near, far)
-                a, b, cc = _cov2d(j00, j02, j11, j12, Sc)
-                mx = k[0] * p[0] * rz + k[2]
-                my = k[1] * p[1] * rz + k[3]
-                det_orig = a * cc - b * b
-                a2, c2 = a + eps2d, cc + eps2d
-                det = a2 * c2 - b * b
-                vis = in_range and det > 0
-                if not vis:
-                    det = 1.0
-                o = float(opac[n])
-                if antialiased:
-                    cm = math.sqrt(max(det_orig / det, 0.0))
-                    comp[c, n] = cm
-                    o = o * cm
-                opac_out[c, n] = o
-                vis = vis and o >= ALPHA_THRESHOLD
-                ext = min(math.sqrt(2.0 * math.log(max(o, ALPHA_THRESHOLD) / ALPHA_THRESHOLD)), 3.33)
-                rx = math.ceil(ext * math.sqrt(max(a2, 0.0)))
-                ry = math.ceil(ext * math.sqrt(max(c2, 0.0)))
-                vis = vis and not (rx <= radius_clip and ry <= radius_clip)
-                vis = vis and not (mx + rx <= 0 or mx - rx >= width or my + ry <= 0 or my - ry >= height)
-                vis = vis and math.isfinite(rx) and math.isfinite(ry)
-                visible[c, n] = vis
-                if vis:
-                    means2d[c, n, 0], means2d[c, n, 1] = mx, my
-                    conics[c, n, 0], conics[c, n, 1], conics[c, n, 2] = c2 / det, -b / det, a2 / det
-                    depths[c, n] = p[2]
-                    radii[c, n, 0], radii[c, n, 1] = int(rx), int(ry)
-                else:
-                    means2d[c, n, 0] = means2d[c, n, 1] = 0.0
-                    conics[c, n, 0] = conics[c, n, 1] = conics[c, n, 2] = 0.0
-                    depths[c, n] = 0.0
-                    radii[c, n, 0] = radii[c, n, 1] = 0
+        _project_fwd_block(blk * _BLOCK, min(N - blk * _BLOCK, _BLOCK), means, quats, scales, opac, cams, width,
+                           height, near, far, eps2d, radius_clip, antialiased, means2d, conics, depths, opac_out,
+                           comp, radii, visible)
+
+
+@njit(cache=True, error_model="numpy")
+def _project_fwd_block(n0, m, means, quats, scales, opac, cams, width, height, near, far, eps2d, radius_clip,
+                       antialiased, means2d, conics, depths, opac_out, comp, radii, visible):
+    """Gaussians n0 .. n0+m-1 of _project_fwd. The projection kernels run their blocks through plain functions:
+    numba's parallel analysis failed on the helpers' nested tuples once inlined, and called helpers kept the loops
+    scalar."""
+    C = cams.shape[0]
+    # One row of _BLOCK per value, in and out of the vector loop: its loads and stores then lie at fixed offsets
+    # in one array, with unit stride (LLVM gave up on the inputs' strides and on alias checks with the outputs).
+    f = np.empty(_PF * _BLOCK)
+    B = _BLOCK
+    for j in range(m):
+        for i in range(4):
+            f[i * B + j] = quats[n0 + j, i]
+        for i in range(3):
+            f[(4 + i) * B + j] = scales[n0 + j, i]
+            f[(7 + i) * B + j] = means[n0 + j, i]
+    for c in range(C):
+        W, t, k = _cam_view(cams, c)
+        for j in range(m):  # the maths up to the log, one Gaussian a vector lane (no calls, no branches)
+            w, x, y, z, _nrm, _ok = _quat(f[j], f[B + j], f[2 * B + j], f[3 * B + j])
+            M = _scaled(_rotmat(w, x, y, z), f[4 * B + j], f[5 * B + j], f[6 * B + j])
+            p, Sc = _cam_space(f[7 * B + j], f[8 * B + j], f[9 * B + j], _mul33(M, _t33(M)), W, t)
+            in_range, _zz, rz, _uc, _vc, _tx, _ty, _uf, _vf, j00, j02, j11, j12 = _jacobian(p, k, near, far)
+            a, b, cc = _cov2d(j00, j02, j11, j12, Sc)
+            det_orig = a * cc - b * b
+            a2, c2 = a + eps2d, cc + eps2d
+            det = a2 * c2 - b * b
+            vis = in_range and det > 0
+            det = det if vis else 1.0
+            f[10 * B + j] = k[0] * p[0] * rz + k[2]
+            f[11 * B + j] = k[1] * p[1] * rz + k[3]
+            f[12 * B + j] = p[2]
+            f[13 * B + j] = 1.0 if vis else 0.0
+            f[14 * B + j] = c2 / det
+            f[15 * B + j] = -b / det
+            f[16 * B + j] = a2 / det
+            f[17 * B + j] = math.sqrt(max(det_orig / det, 0.0))
+            f[18 * B + j] = math.sqrt(max(a2, 0.0))
+            f[19 * B + j] = math.sqrt(max(c2, 0.0))
+        for j in range(m):
+            n = n0 + j
+            mx, my = f[10 * B + j], f[11 * B + j]
+            o = float(opac[n])
+            if antialiased:
+                cm = f[17 * B + j]
+                comp[c, n] = cm
+                o = o * cm
+            opac_out[c, n] = o
+            vis = f[13 * B + j] != 0.0 and o >= ALPHA_THRESHOLD
+            ext = min(math.sqrt(2.0 * math.log(max(o, ALPHA_THRESHOLD) / ALPHA_THRESHOLD)), 3.33)
+            rx = math.ceil(ext * f[18 * B + j])
+            ry = math.ceil(ext * f[19 * B + j])
+            vis = vis and not (rx <= radius_clip and ry <= radius_clip)
+            vis = vis and not (mx + rx <= 0 or mx - rx >= width or my + ry <= 0 or my - ry >= height)
+            vis = vis and math.isfinite(rx) and math.isfinite(ry)
+            visible[c, n] = vis
+            if vis:
+                means2d[c, n, 0], means2d[c, n, 1] = mx, my
+                conics[c, n, 0], conics[c, n, 1] = f[14 * B + j], f[15 * B + j]
+                conics[c, n, 2] = f[16 * B + j]
+                depths[c, n] = f[12 * B + j]
+                radii[c, n, 0], radii[c, n, 1] = int(rx), int(ry)
+            else:
+                means2d[c, n, 0] = means2d[c, n, 1] = 0.0
+                conics[c, n, 0] = conics[c, n, 1] = conics[c, n, 2] = 0.0
+                depths[c, n] = 0.0
+                radii[c, n, 0] = radii[c, n, 1] = 0
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
 def _project_bwd(means, quats, scales, opac, viewmats, Ks, width, height, near, far, eps2d, antialiased, visible,
                  g_m2, g_con, g_dep, g_op, g_comp, d_means, d_quats, d_scales, d_opac):
     """Gradients of project.py's outputs (means2d, conics, depths, opacities, compensations) w.r.t. its inputs."""
-    C, N = viewmats.shape[0], means.shape[0]
+    N = means.shape[0]
     cams = _cameras(viewmats, Ks, width, height)
     for blk in prange((N + _BLOCK - 1) // _BLOCK):
-        for n in range(blk * _BLOCK, min(N, (blk + 1) * _BLOCK)):
-            w, x, y, z, nrm, nrm_ok = _quat(quats, n)
-            Rq = _rotmat(w, x, y, z)
-            M = _scaled(Rq, scales, n)
-            S = _mul33(M, _t33(M))
-            dM = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)  # summed over cameras
-            dm0 = dm1 = dm2 = do = 0.0
-            for c in range(C):
-                W, t, k = _cam_view(cams, c)
-                p, Sc = _cam_space(means, n, S, W, t)
-                in_range, zz, rz, uc, vc, tx, ty, u_free, v_free, j00, j02, j11, j12 = _jacobian(p, k, near, far)
-                fx, fy = k[0], k[1]
-                a, b, cc = _cov2d(j00, j02, j11, j12, Sc)
-                det_orig = a * cc - b * b
-                a2, c2 = a + eps2d, cc + eps2d
-                det = a2 * c2 - b * b
-                det_kept = in_range and det > 0
-                if not det_kept:
-                    det = 1.0
-                da = db = dc = 0.0  # w.r.t. cov2d's a, b, c (a2 = a + eps2d has the same gradient)
-                ddet = 0.0
-                dp0 = dp1 = dp2 = 0.0
-                drz = 0.0
-                if visible[c, n]:
-                    g0, g1, g2 = g_con[c, n, 0], g_con[c, n, 1], g_con[c, n, 2]
-                    dc += g0 / det
-                    db -= g1 / det
-                    da += g2 / det
-                    ddet += (-g0 * c2 + g1 * b - g2 * a2) / (det * det)
-                    dp0 += g_m2[c, n, 0] * fx * rz
-                    dp1 += g_m2[c, n, 1] * fy * rz
-                    drz += g_m2[c, n, 0] * fx * p[0] + g_m2[c, n, 1] * fy * p[1]
-                    dp2 += g_dep[c, n]
-                if antialiased:
-                    r = det_orig / det
-                    cm = math.sqrt(max(r, 0.0))
-                    gc = g_comp[c, n] + g_op[c, n] * opac[n]
-                    do += g_op[c, n] * cm
-                    if r >= 0.0 and cm > 0.0:
-                        dr = gc * 0.5 / cm
-                        ddo = dr / det
-                        if det_kept:
-                            ddet -= dr * det_orig / (det * det)
-                        da += ddo * cc
-                        dc += ddo * a
-                        db -= 2.0 * b * ddo
-                else:
-                    do += g_op[c, n]
-                if det_kept:
-                    da += ddet * c2
-                    dc += ddet * a2
-                    db -= 2.0 * b * ddet
-                h = 0.5 * db  # dcov = [[da, h], [h, dc]]
-                # dJ = dcov J Sc (the four entries that J depends on)
-                e00, e01, e02 = da * j00, h * j11, da * j02 + h * j12
-                e10, e11, e12 = h * j00, dc * j11, h * j02 + dc * j12
-                dj00 = e00 * Sc[0] + e01 * Sc[3] + e02 * Sc[6]
-                dj02 = e00 * Sc[2] + e01 * Sc[5] + e02 * Sc[8]
-                dj11 = e10 * Sc[1] + e11 * Sc[4] + e12 * Sc[7]
-                dj12 = e10 * Sc[2] + e11 * Sc[5] + e12 * Sc[8]
-                # dSc = J^T dcov J: rows (u_i, v_i) of J^T dcov
-                u0, v0, u1, v1 = j00 * da, j00 * h, j11 * h, j11 * dc
-                u2, v2 = j02 * da + j12 * h, j02 * h + j12 * dc
-                dSc = (u0 * j00, v0 * j11, u0 * j02 + v0 * j12, u1 * j00, v1 * j11, u1 * j02 + v1 * j12,
-                       u2 * j00, v2 * j11, u2 * j02 + v2 * j12)
-                drz += 2.0 * (dj00 * fx + dj11 * fy - 2.0 * rz * (dj02 * fx * tx + dj12 * fy * ty))
-                dtx = -2.0 * dj02 * fx * rz * rz
-                dty = -2.0 * dj12 * fy * rz * rz
-                dzz = dtx * uc + dty * vc
-                if u_free:
-                    du = dtx * zz
-                    dp0 += du * rz
-                    drz += du * p[0]
-                if v_free:
-                    dv = dty * zz
-                    dp1 += dv * rz
-                    drz += dv * p[1]
-                dzz -= drz * rz * rz
-                if in_range:
-                    dp2 += dzz
-                dm0 += W[0] * dp0 + W[3] * dp1 + W[6] * dp2
-                dm1 += W[1] * dp0 + W[4] * dp1 + W[7] * dp2
-                dm2 += W[2] * dp0 + W[5] * dp1 + W[8] * dp2
-                g = _mul33(_mul33(_mul33(_t33(W), dSc), W), M)  # dS M, dS = W^T dSc W
-                dM = (dM[0] + 2.0 * g[0], dM[1] + 2.0 * g[1], dM[2] + 2.0 * g[2], dM[3] + 2.0 * g[3],
-                      dM[4] + 2.0 * g[4], dM[5] + 2.0 * g[5], dM[6] + 2.0 * g[6], dM[7] + 2.0 * g[7],
-                      dM[8] + 2.0 * g[8])
-            d_means[n, 0], d_means[n, 1], d_means[n, 2], d_opac[n] = dm0, dm1, dm2, do
-            # M = Rq diag(s): scales and rotation entries
-            for j in range(3):
-                d_scales[n, j] = dM[j] * Rq[j] + dM[3 + j] * Rq[3 + j] + dM[6 + j] * Rq[6 + j]
-            dR = _scaled(dM, scales, n)
-            dq0 = 2 * (-z * dR[1] + y * dR[2] + z * dR[3] - x * dR[5] - y * dR[6] + x * dR[7])
-            dq1 = 2 * (y * dR[1] + z * dR[2] + y * dR[3] - 2 * x * dR[4] - w * dR[5] + z * dR[6] + w * dR[7]
-                       - 2 * x * dR[8])
-            dq2 = 2 * (-2 * y * dR[0] + x * dR[1] + w * dR[2] + x * dR[3] + z * dR[5] - w * dR[6] + z * dR[7]
-                       - 2 * y * dR[8])
-            dq3 = 2 * (-2 * z * dR[0] - w * dR[1] + x * dR[2] + w * dR[3] - 2 * z * dR[4] + y * dR[5] + x * dR[6]
-                       + y * dR[7])
-            dot = w * dq0 + x * dq1 + y * dq2 + z * dq3
-            if nrm_ok:  # through F.normalize (its eps branch divides by a constant)
-                d_quats[n, 0], d_quats[n, 1] = (dq0 - w * dot) / nrm, (dq1 - x * dot) / nrm
-                d_quats[n, 2], d_quats[n, 3] = (dq2 - y * dot) / nrm, (dq3 - z * dot) / nrm
+        _project_bwd_block(blk * _BLOCK, min(N - blk * _BLOCK, _BLOCK), means, quats, scales, opac, cams, near, far,
+                           eps2d, antialiased, visible, g_m2, g_con, g_dep, g_op, g_comp, d_means, d_quats, d_scales,
+                           d_opac)
+
+
+_PB = 40  # rows of _project_bwd's block buffer, as in _project_fwd: inputs 0-10, camera c's 11-19, sums 20-32, out 33-39
+
+
+@njit(cache=True, error_model="numpy")
+def _project_bwd_block(n0, m, means, quats, scales, opac, cams, near, far, eps2d, antialiased, visible, g_m2, g_con,
+                       g_dep, g_op, g_comp, d_means, d_quats, d_scales, d_opac):
+    """Gaussians n0 .. n0+m-1 of _project_bwd, one a vector lane as in _project_fwd_block: the branches are selects
+    (each adds to a 0.0 that the skipped branch leaves as it is)."""
+    C = cams.shape[0]
+    f = np.empty(_PB * _BLOCK)
+    B = _BLOCK
+    for j in range(m):
+        n = n0 + j
+        for i in range(4):
+            f[i * B + j] = quats[n, i]
+        for i in range(3):
+            f[(4 + i) * B + j] = scales[n, i]
+            f[(7 + i) * B + j] = means[n, i]
+        f[10 * B + j] = opac[n]
+        for i in range(20, 33):  # gradients summed over cameras
+            f[i * B + j] = 0.0
+    for c in range(C):
+        W, t, k = _cam_view(cams, c)
+        fx, fy = k[0], k[1]
+        for j in range(m):
+            n = n0 + j
+            f[11 * B + j] = 1.0 if visible[c, n] else 0.0
+            f[12 * B + j], f[13 * B + j] = g_m2[c, n, 0], g_m2[c, n, 1]
+            f[14 * B + j], f[15 * B + j], f[16 * B + j] = g_con[c, n, 0], g_con[c, n, 1], g_con[c, n, 2]
+            f[17 * B + j], f[18 * B + j], f[19 * B + j] = g_dep[c, n], g_op[c, n], g_comp[c, n]
+        for j in range(m):
+            w, x, y, z, _nrm, _ok = _quat(f[j], f[B + j], f[2 * B + j], f[3 * B + j])
+            M = _scaled(_rotmat(w, x, y, z), f[4 * B + j], f[5 * B + j], f[6 * B + j])
+            p, Sc = _cam_space(f[7 * B + j], f[8 * B + j], f[9 * B + j], _mul33(M, _t33(M)), W, t)
+            in_range, zz, rz, uc, vc, tx, ty, u_free, v_free, j00, j02, j11, j12 = _jacobian(p, k, near, far)
+            a, b, cc = _cov2d(j00, j02, j11, j12, Sc)
+            det_orig = a * cc - b * b
+            a2, c2 = a + eps2d, cc + eps2d
+            det = a2 * c2 - b * b
+            det_kept = in_range and det > 0
+            det = det if det_kept else 1.0
+            g0, g1, g2, gm0, gm1 = f[14 * B + j], f[15 * B + j], f[16 * B + j], f[12 * B + j], f[13 * B + j]
+            g_op_c = f[18 * B + j]
+            da = db = dc = 0.0  # w.r.t. cov2d's a, b, c (a2 = a + eps2d has the same gradient)
+            ddet = 0.0
+            dp0 = dp1 = dp2 = 0.0
+            drz = 0.0
+            if f[11 * B + j] != 0.0:  # visible
+                dc += g0 / det
+                db -= g1 / det
+                da += g2 / det
+                ddet += (-g0 * c2 + g1 * b - g2 * a2) / (det * det)
+                dp0 += gm0 * fx * rz
+                dp1 += gm1 * fy * rz
+                drz += gm0 * fx * p[0] + gm1 * fy * p[1]
+                dp2 += f[17 * B + j]
+            if antialiased:
+                r = det_orig / det
+                cm = math.sqrt(max(r, 0.0))
+                gc = f[19 * B + j] + g_op_c * f[10 * B + j]
+                do = g_op_c * cm
+                if r >= 0.0 and cm > 0.0:
+                    dr = gc * 0.5 / cm
+                    ddo = dr / det
+                    if det_kept:
+                        ddet -= dr * det_orig / (det * det)
+                    da += ddo * cc
+                    dc += ddo * a
+                    db -= 2.0 * b * ddo
             else:
-                d_quats[n, 0], d_quats[n, 1], d_quats[n, 2], d_quats[n, 3] = dq0 / nrm, dq1 / nrm, dq2 / nrm, dq3 / nrm
+                do = g_op_c
+            if det_kept:
+                da += ddet * c2
+                dc += ddet * a2
+                db -= 2.0 * b * ddet
+            h = 0.5 * db  # dcov = [[da, h], [h, dc]]
+            # dJ = dcov J Sc (the four entries that J depends on)
+            e00, e01, e02 = da * j00, h * j11, da * j02 + h * j12
+            e10, e11, e12 = h * j00, dc * j11, h * j02 + dc * j12
+            dj00 = e00 * Sc[0] + e01 * Sc[3] + e02 * Sc[6]
+            dj02 = e00 * Sc[2] + e01 * Sc[5] + e02 * Sc[8]
+            dj11 = e10 * Sc[1] + e11 * Sc[4] + e12 * Sc[7]
+            dj12 = e10 * Sc[2] + e11 * Sc[5] + e12 * Sc[8]
+            # dSc = J^T dcov J: rows (u_i, v_i) of J^T dcov
+            u0, v0, u1, v1 = j00 * da, j00 * h, j11 * h, j11 * dc
+            u2, v2 = j02 * da + j12 * h, j02 * h + j12 * dc
+            dSc = (u0 * j00, v0 * j11, u0 * j02 + v0 * j12, u1 * j00, v1 * j11, u1 * j02 + v1 * j12,
+                   u2 * j00, v2 * j11, u2 * j02 + v2 * j12)
+            drz += 2.0 * (dj00 * fx + dj11 * fy - 2.0 * rz * (dj02 * fx * tx + dj12 * fy * ty))
+            dtx = -2.0 * dj02 * fx * rz * rz
+            dty = -2.0 * dj12 * fy * rz * rz
+            dzz = dtx * uc + dty * vc
+            if u_free:
+                du = dtx * zz
+                dp0 += du * rz
+                drz += du * p[0]
+            if v_free:
+                dv = dty * zz
+                dp1 += dv * rz
+                drz += dv * p[1]
+            dzz -= drz * rz * rz
+            if in_range:
+                dp2 += dzz
+            f[29 * B + j] += W[0] * dp0 + W[3] * dp1 + W[6] * dp2
+            f[30 * B + j] += W[1] * dp0 + W[4] * dp1 + W[7] * dp2
+            f[31 * B + j] += W[2] * dp0 + W[5] * dp1 + W[8] * dp2
+            f[32 * B + j] += do
+            g = _mul33(_mul33(_mul33(_t33(W), dSc), W), M)  # dS M, dS = W^T dSc W
+            f[20 * B + j] += 2.0 * g[0]
+            f[21 * B + j] += 2.0 * g[1]
+            f[22 * B + j] += 2.0 * g[2]
+            f[23 * B + j] += 2.0 * g[3]
+            f[24 * B + j] += 2.0 * g[4]
+            f[25 * B + j] += 2.0 * g[5]
+            f[26 * B + j] += 2.0 * g[6]
+            f[27 * B + j] += 2.0 * g[7]
+            f[28 * B + j] += 2.0 * g[8]
+    for j in range(m):  # M = Rq diag(s): scales and rotation entries
+        w, x, y, z, nrm, nrm_ok = _quat(f[j], f[B + j], f[2 * B + j], f[3 * B + j])
+        Rq = _rotmat(w, x, y, z)
+        dM = (f[20 * B + j], f[21 * B + j], f[22 * B + j], f[23 * B + j], f[24 * B + j], f[25 * B + j],
+              f[26 * B + j], f[27 * B + j], f[28 * B + j])
+        f[33 * B + j] = dM[0] * Rq[0] + dM[3] * Rq[3] + dM[6] * Rq[6]
+        f[34 * B + j] = dM[1] * Rq[1] + dM[4] * Rq[4] + dM[7] * Rq[7]
+        f[35 * B + j] = dM[2] * Rq[2] + dM[5] * Rq[5] + dM[8] * Rq[8]
+        dR = _scaled(dM, f[4 * B + j], f[5 * B + j], f[6 * B + j])
+        dq0 = 2 * (-z * dR[1] + y * dR[2] + z * dR[3] - x * dR[5] - y * dR[6] + x * dR[7])
+        dq1 = 2 * (y * dR[1] + z * dR[2] + y * dR[3] - 2 * x * dR[4] - w * dR[5] + z * dR[6] + w * dR[7]
+                   - 2 * x * dR[8])
+        dq2 = 2 * (-2 * y * dR[0] + x * dR[1] + w * dR[2] + x * dR[3] + z * dR[5] - w * dR[6] + z * dR[7]
+                   - 2 * y * dR[8])
+        dq3 = 2 * (-2 * z * dR[0] - w * dR[1] + x * dR[2] + w * dR[3] - 2 * z * dR[4] + y * dR[5] + x * dR[6]
+                   + y * dR[7])
+        dot = w * dq0 + x * dq1 + y * dq2 + z * dq3 if nrm_ok else 0.0  # F.normalize's eps branch: a constant
+        f[36 * B + j] = (dq0 - w * dot) / nrm if nrm_ok else dq0 / nrm
+        f[37 * B + j] = (dq1 - x * dot) / nrm if nrm_ok else dq1 / nrm
+        f[38 * B + j] = (dq2 - y * dot) / nrm if nrm_ok else dq2 / nrm
+        f[39 * B + j] = (dq3 - z * dot) / nrm if nrm_ok else dq3 / nrm
+    for j in range(m):
+        n = n0 + j
+        for i in range(3):
+            d_means[n, i] = f[(29 + i) * B + j]
+            d_scales[n, i] = f[(33 + i) * B + j]
+        for i in range(4):
+            d_quats[n, i] = f[(36 + i) * B + j]
+        d_opac[n] = f[32 * B + j]
 
 
 class _ProjectNumba(torch.autograd.Function):
