@@ -228,7 +228,7 @@ def _bin(means2d, radii, conics, opac, order, C, N, width, height, ts, tile_cull
     return counts, ids
 
 
-@njit(cache=True, parallel=True, error_model="numpy")
+@njit(cache=True, error_model="numpy")
 def _prep(conics, opac, out):
     """Per-Gaussian constants of the pixel loops, out [G,4]: thr, 1/A, q = B^2 - A*Cc and the row half-extent.
 
@@ -236,7 +236,7 @@ def _prep(conics, opac, out):
     0.5*dy^2*(A*Cc - B^2)/A, so only rows with |dy| <= sqrt(2*A*thr/-q) can hold such pixels. ry < 0: no pixel can;
     ry = inf: not a positive-definite conic, every pixel takes the exact test.
     """
-    for g in prange(opac.shape[0]):
+    for g in range(opac.shape[0]):  # serial (~6 ns a Gaussian): at 10k, less than a launch of the parallel layer
         A, B, Cc, o = float(conics[g, 0]), float(conics[g, 1]), float(conics[g, 2]), float(opac[g])
         q = B * B - A * Cc
         if not o > 0.0:
@@ -313,197 +313,225 @@ def _list_pixels(mx, my, A, B, inv_a, q, thr, ry, ox, oy, nx, ny, ts, row_key, k
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def _forward(means2d, conics, opac, colors, prep, starts, ids, C, width, height, ts, alpha_max,
+def _forward(parallel, means2d, conics, opac, colors, prep, starts, ids, C, width, height, ts, alpha_max,
              img, alpha_out, t_final, last):
     """img [C,H,W,D], alpha_out [C,H,W] (input dtype); t_final [C,H,W] float64, last [C,H,W] int64 (-1: none)."""
+    n = C * ((width + ts - 1) // ts) * ((height + ts - 1) // ts)
+    if parallel:
+        for t in prange(n):
+            _forward_tile(t, means2d, conics, opac, colors, prep, starts, ids, C, width, height, ts, alpha_max, img,
+                          alpha_out, t_final, last)
+    else:  # one thread: not through numba's parallel layer, whose every launch took ~0.1 ms here
+        for t in range(n):
+            _forward_tile(t, means2d, conics, opac, colors, prep, starts, ids, C, width, height, ts, alpha_max, img,
+                          alpha_out, t_final, last)
+
+
+@njit(cache=True, error_model="numpy")
+def _forward_tile(t, means2d, conics, opac, colors, prep, starts, ids, C, width, height, ts, alpha_max, img,
+                  alpha_out, t_final, last):
+    """Tile t of _forward."""
     tx_n = (width + ts - 1) // ts
     ty_n = (height + ts - 1) // ts
     T = tx_n * ty_n
     P = ts * ts
     D = colors.shape[1]
-    for t in prange(C * T):
-        cam = t // T
-        ti = t - cam * T
-        oy = (ti // tx_n) * ts
-        ox = (ti - (ti // tx_n) * tx_n) * ts
-        nx = min(ts, width - ox)  # edge tiles: only pixels inside the image
-        ny = min(ts, height - oy)
-        Tp = np.ones(P)
-        acc = np.zeros(P * D)
-        lastp = np.full(P, -1, np.int64)
-        done = np.zeros(P, np.bool_)
-        n_left = nx * ny
-        row_left = np.full(ts + 8, nx, np.int64)  # pixels of each row still compositing (+8: _list_pixels)
-        pix = np.empty(P + 8, np.int64)  # one Gaussian's pixels in row-major order (+8: _exp_sigma's padding)
-        bdx = np.empty(P + 8)  # their offsets from the centre
-        bdy = np.empty(P + 8)
-        ev = np.empty(P + 8)  # exp(-sigma)
-        xl = np.empty(ts + 8, np.int64)  # column range of each row
-        xh = np.empty(ts + 8, np.int64)
-        for k in range(starts[t], starts[t + 1]):
-            if n_left == 0:
-                break
-            g = ids[k]
-            thr, inv_a, q, ry = prep[g, 0], prep[g, 1], prep[g, 2], prep[g, 3]
-            if ry < 0.0:
+    cam = t // T
+    ti = t - cam * T
+    oy = (ti // tx_n) * ts
+    ox = (ti - (ti // tx_n) * tx_n) * ts
+    nx = min(ts, width - ox)  # edge tiles: only pixels inside the image
+    ny = min(ts, height - oy)
+    Tp = np.ones(P)
+    acc = np.zeros(P * D)
+    lastp = np.full(P, -1, np.int64)
+    done = np.zeros(P, np.bool_)
+    n_left = nx * ny
+    row_left = np.full(ts + 8, nx, np.int64)  # pixels of each row still compositing (+8: _list_pixels)
+    pix = np.empty(P + 8, np.int64)  # one Gaussian's pixels in row-major order (+8: _exp_sigma's padding)
+    bdx = np.empty(P + 8)  # their offsets from the centre
+    bdy = np.empty(P + 8)
+    ev = np.empty(P + 8)  # exp(-sigma)
+    xl = np.empty(ts + 8, np.int64)  # column range of each row
+    xh = np.empty(ts + 8, np.int64)
+    for k in range(starts[t], starts[t + 1]):
+        if n_left == 0:
+            break
+        g = ids[k]
+        thr, inv_a, q, ry = prep[g, 0], prep[g, 1], prep[g, 2], prep[g, 3]
+        if ry < 0.0:
+            continue
+        mx, my = float(means2d[g, 0]), float(means2d[g, 1])
+        A, B, Cc, o = float(conics[g, 0]), float(conics[g, 1]), float(conics[g, 2]), float(opac[g])
+        if D == 3:
+            c0, c1, c2 = float(colors[g, 0]), float(colors[g, 1]), float(colors[g, 2])
+        else:
+            c0 = c1 = c2 = 0.0
+        # Three passes per Gaussian: list its pixels, sigma and exp of all of them in one vector loop, composite.
+        # Pixels of one Gaussian are independent, so this is the per-pixel order of the single loop, value for
+        # value. Finished pixels are listed too and skipped in the last pass (no test per pixel in the listing).
+        n = _list_pixels(mx, my, A, B, inv_a, q, thr, ry, ox, oy, nx, ny, ts, row_left, 1, xl, xh, pix, bdx, bdy)
+        _exp_sigma(bdx, bdy, n, A, B, Cc, thr, ev)
+        for i in range(n):
+            p = pix[i]
+            if done[p]:
                 continue
-            mx, my = float(means2d[g, 0]), float(means2d[g, 1])
-            A, B, Cc, o = float(conics[g, 0]), float(conics[g, 1]), float(conics[g, 2]), float(opac[g])
+            alpha = min(alpha_max, o * ev[i])
+            if alpha < ALPHA_THRESHOLD:
+                continue
+            tp = Tp[p]
+            next_T = tp * (1.0 - alpha)
+            if next_T <= T_MIN:
+                done[p] = True
+                n_left -= 1
+                row_left[p // ts] -= 1
+                continue
+            w = alpha * tp
             if D == 3:
-                c0, c1, c2 = float(colors[g, 0]), float(colors[g, 1]), float(colors[g, 2])
+                acc[3 * p] += w * c0
+                acc[3 * p + 1] += w * c1
+                acc[3 * p + 2] += w * c2
             else:
-                c0 = c1 = c2 = 0.0
-            # Three passes per Gaussian: list its pixels, sigma and exp of all of them in one vector loop, composite.
-            # Pixels of one Gaussian are independent, so this is the per-pixel order of the single loop, value for
-            # value. Finished pixels are listed too and skipped in the last pass (no test per pixel in the listing).
-            n = _list_pixels(mx, my, A, B, inv_a, q, thr, ry, ox, oy, nx, ny, ts, row_left, 1, xl, xh, pix, bdx, bdy)
-            _exp_sigma(bdx, bdy, n, A, B, Cc, thr, ev)
-            for i in range(n):
-                p = pix[i]
-                if done[p]:
-                    continue
-                alpha = min(alpha_max, o * ev[i])
-                if alpha < ALPHA_THRESHOLD:
-                    continue
-                tp = Tp[p]
-                next_T = tp * (1.0 - alpha)
-                if next_T <= T_MIN:
-                    done[p] = True
-                    n_left -= 1
-                    row_left[p // ts] -= 1
-                    continue
-                w = alpha * tp
-                if D == 3:
-                    acc[3 * p] += w * c0
-                    acc[3 * p + 1] += w * c1
-                    acc[3 * p + 2] += w * c2
-                else:
-                    for d in range(D):
-                        acc[p * D + d] += w * float(colors[g, d])
-                Tp[p] = next_T
-                lastp[p] = k
-        for y in range(ny):
-            for x in range(nx):
-                p = y * ts + x
                 for d in range(D):
-                    img[cam, oy + y, ox + x, d] = acc[p * D + d]
-                alpha_out[cam, oy + y, ox + x] = 1.0 - Tp[p]
-                t_final[cam, oy + y, ox + x] = Tp[p]
-                last[cam, oy + y, ox + x] = lastp[p]
+                    acc[p * D + d] += w * float(colors[g, d])
+            Tp[p] = next_T
+            lastp[p] = k
+    for y in range(ny):
+        for x in range(nx):
+            p = y * ts + x
+            for d in range(D):
+                img[cam, oy + y, ox + x, d] = acc[p * D + d]
+            alpha_out[cam, oy + y, ox + x] = 1.0 - Tp[p]
+            t_final[cam, oy + y, ox + x] = Tp[p]
+            last[cam, oy + y, ox + x] = lastp[p]
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def _backward(means2d, conics, opac, colors, prep, starts, ids, C, width, height, ts, alpha_max,
+def _backward(parallel, means2d, conics, opac, colors, prep, starts, ids, C, width, height, ts, alpha_max,
               t_final, last, g_img, g_alpha, pair_grad):
     """pair_grad [pairs, 6+D] float64 (means2d x,y, conic a,b,c, opacity, colour...), one row per tile-list slot."""
+    n = C * ((width + ts - 1) // ts) * ((height + ts - 1) // ts)
+    if parallel:
+        for t in prange(n):
+            _backward_tile(t, means2d, conics, opac, colors, prep, starts, ids, C, width, height, ts, alpha_max,
+                           t_final, last, g_img, g_alpha, pair_grad)
+    else:  # one thread: not through numba's parallel layer, whose every launch took ~0.1 ms here
+        for t in range(n):
+            _backward_tile(t, means2d, conics, opac, colors, prep, starts, ids, C, width, height, ts, alpha_max,
+                           t_final, last, g_img, g_alpha, pair_grad)
+
+
+@njit(cache=True, error_model="numpy")
+def _backward_tile(t, means2d, conics, opac, colors, prep, starts, ids, C, width, height, ts, alpha_max,
+                   t_final, last, g_img, g_alpha, pair_grad):
+    """Tile t of _backward."""
     tx_n = (width + ts - 1) // ts
     ty_n = (height + ts - 1) // ts
     T = tx_n * ty_n
     P = ts * ts
     D = colors.shape[1]
-    for t in prange(C * T):
-        cam = t // T
-        ti = t - cam * T
-        oy = (ti // tx_n) * ts
-        ox = (ti - (ti // tx_n) * tx_n) * ts
-        nx = min(ts, width - ox)
-        ny = min(ts, height - oy)
-        Tp = np.empty(P)  # these five are set for every pixel of the image below; no other pixel is listed
-        tfin = np.empty(P)
-        lastp = np.empty(P, np.int64)
-        go = np.empty((P, D))
-        ga = np.empty(P)
-        buf = np.zeros((P, D))  # sum of colour * weight of the Gaussians behind, per pixel
-        col = np.empty(D)
-        gcol = np.empty(D)
-        kmax = -1
-        row_last = np.full(ts + 8, -1, np.int64)  # last contributing slot of any pixel in the row
-        pix = np.empty(P + 8, np.int64)  # as in _forward: one Gaussian's pixels, their offsets, exp(-sigma), alpha
-        bdx = np.empty(P + 8)  # and 1/(1 - alpha), each pass a loop of its own
-        bdy = np.empty(P + 8)
-        ev = np.empty(P + 8)
-        bal = np.empty(P + 8)
-        bra = np.empty(P + 8)
-        xl = np.empty(ts + 8, np.int64)
-        xh = np.empty(ts + 8, np.int64)
-        for y in range(ny):
-            for x in range(nx):
-                p = y * ts + x
-                tfin[p] = t_final[cam, oy + y, ox + x]
-                Tp[p] = tfin[p]
-                lastp[p] = last[cam, oy + y, ox + x]
-                row_last[y] = max(row_last[y], lastp[p])
-                kmax = max(kmax, lastp[p])
-                for d in range(D):
-                    go[p, d] = g_img[cam, oy + y, ox + x, d]
-                ga[p] = g_alpha[cam, oy + y, ox + x]
-        for k in range(kmax, starts[t] - 1, -1):
-            g = ids[k]
-            mx, my = float(means2d[g, 0]), float(means2d[g, 1])
-            A, B, Cc, o = float(conics[g, 0]), float(conics[g, 1]), float(conics[g, 2]), float(opac[g])
-            thr, inv_a, q, ry = prep[g, 0], prep[g, 1], prep[g, 2], prep[g, 3]
-            if ry < 0.0:
+    cam = t // T
+    ti = t - cam * T
+    oy = (ti // tx_n) * ts
+    ox = (ti - (ti // tx_n) * tx_n) * ts
+    nx = min(ts, width - ox)
+    ny = min(ts, height - oy)
+    Tp = np.empty(P)  # these five are set for every pixel of the image below; no other pixel is listed
+    tfin = np.empty(P)
+    lastp = np.empty(P, np.int64)
+    go = np.empty((P, D))
+    ga = np.empty(P)
+    buf = np.zeros((P, D))  # sum of colour * weight of the Gaussians behind, per pixel
+    col = np.empty(D)
+    gcol = np.empty(D)
+    kmax = -1
+    row_last = np.full(ts + 8, -1, np.int64)  # last contributing slot of any pixel in the row
+    pix = np.empty(P + 8, np.int64)  # as in _forward: one Gaussian's pixels, their offsets, exp(-sigma), alpha
+    bdx = np.empty(P + 8)  # and 1/(1 - alpha), each pass a loop of its own
+    bdy = np.empty(P + 8)
+    ev = np.empty(P + 8)
+    bal = np.empty(P + 8)
+    bra = np.empty(P + 8)
+    xl = np.empty(ts + 8, np.int64)
+    xh = np.empty(ts + 8, np.int64)
+    for y in range(ny):
+        for x in range(nx):
+            p = y * ts + x
+            tfin[p] = t_final[cam, oy + y, ox + x]
+            Tp[p] = tfin[p]
+            lastp[p] = last[cam, oy + y, ox + x]
+            row_last[y] = max(row_last[y], lastp[p])
+            kmax = max(kmax, lastp[p])
+            for d in range(D):
+                go[p, d] = g_img[cam, oy + y, ox + x, d]
+            ga[p] = g_alpha[cam, oy + y, ox + x]
+    for k in range(kmax, starts[t] - 1, -1):
+        g = ids[k]
+        mx, my = float(means2d[g, 0]), float(means2d[g, 1])
+        A, B, Cc, o = float(conics[g, 0]), float(conics[g, 1]), float(conics[g, 2]), float(opac[g])
+        thr, inv_a, q, ry = prep[g, 0], prep[g, 1], prep[g, 2], prep[g, 3]
+        if ry < 0.0:
+            continue
+        for d in range(D):
+            col[d] = colors[g, d]
+            gcol[d] = 0.0
+        g_mx = g_my = g_a = g_b = g_c = g_o = 0.0
+        gc0 = gc1 = gc2 = 0.0
+        c0, c1, c2 = col[0], col[min(1, D - 1)], col[min(2, D - 1)]
+        n = _list_pixels(mx, my, A, B, inv_a, q, thr, ry, ox, oy, nx, ny, ts, row_last, k, xl, xh, pix, bdx, bdy)
+        _exp_sigma(bdx, bdy, n, A, B, Cc, thr, ev)
+        for i in range(n):
+            alpha = min(alpha_max, o * ev[i])
+            bal[i] = alpha
+            bra[i] = 1.0 / (1.0 - alpha)
+        for i in range(n):
+            p = pix[i]
+            alpha = bal[i]
+            if lastp[p] < k or alpha < ALPHA_THRESHOLD:  # behind the pixel's last Gaussian, or too faint
                 continue
-            for d in range(D):
-                col[d] = colors[g, d]
-                gcol[d] = 0.0
-            g_mx = g_my = g_a = g_b = g_c = g_o = 0.0
-            gc0 = gc1 = gc2 = 0.0
-            c0, c1, c2 = col[0], col[min(1, D - 1)], col[min(2, D - 1)]
-            n = _list_pixels(mx, my, A, B, inv_a, q, thr, ry, ox, oy, nx, ny, ts, row_last, k, xl, xh, pix, bdx, bdy)
-            _exp_sigma(bdx, bdy, n, A, B, Cc, thr, ev)
-            for i in range(n):
-                alpha = min(alpha_max, o * ev[i])
-                bal[i] = alpha
-                bra[i] = 1.0 / (1.0 - alpha)
-            for i in range(n):
-                p = pix[i]
-                alpha = bal[i]
-                if lastp[p] < k or alpha < ALPHA_THRESHOLD:  # behind the pixel's last Gaussian, or too faint
-                    continue
-                vis = ev[i]
-                ra = bra[i]
-                Tp[p] *= ra  # transmittance in front of this Gaussian
-                fac = alpha * Tp[p]
-                v_alpha = tfin[p] * ra * ga[p]
-                tp = Tp[p]
-                if D == 3:
-                    go0, go1, go2 = go[p, 0], go[p, 1], go[p, 2]
-                    gc0 += fac * go0
-                    gc1 += fac * go1
-                    gc2 += fac * go2
-                    b0, b1, b2 = buf[p, 0], buf[p, 1], buf[p, 2]
-                    v_alpha += (c0 * tp - b0 * ra) * go0
-                    v_alpha += (c1 * tp - b1 * ra) * go1
-                    v_alpha += (c2 * tp - b2 * ra) * go2
-                    buf[p, 0] = b0 + c0 * fac
-                    buf[p, 1] = b1 + c1 * fac
-                    buf[p, 2] = b2 + c2 * fac
-                else:
-                    for d in range(D):
-                        gcol[d] += fac * go[p, d]
-                        v_alpha += (col[d] * tp - buf[p, d] * ra) * go[p, d]
-                        buf[p, d] += col[d] * fac
-                if o * vis < alpha_max:  # no gradient through the clamp
-                    dx = bdx[i]
-                    dy = bdy[i]
-                    v_sigma = -alpha * v_alpha
-                    g_mx += v_sigma * (A * dx + B * dy)
-                    g_my += v_sigma * (B * dx + Cc * dy)
-                    g_a += 0.5 * v_sigma * dx * dx
-                    g_b += v_sigma * dx * dy
-                    g_c += 0.5 * v_sigma * dy * dy
-                    g_o += vis * v_alpha
-            pair_grad[k, 0] = g_mx
-            pair_grad[k, 1] = g_my
-            pair_grad[k, 2] = g_a
-            pair_grad[k, 3] = g_b
-            pair_grad[k, 4] = g_c
-            pair_grad[k, 5] = g_o
+            vis = ev[i]
+            ra = bra[i]
+            Tp[p] *= ra  # transmittance in front of this Gaussian
+            fac = alpha * Tp[p]
+            v_alpha = tfin[p] * ra * ga[p]
+            tp = Tp[p]
             if D == 3:
-                gcol[0], gcol[1], gcol[2] = gc0, gc1, gc2
-            for d in range(D):
-                pair_grad[k, 6 + d] = gcol[d]
+                go0, go1, go2 = go[p, 0], go[p, 1], go[p, 2]
+                gc0 += fac * go0
+                gc1 += fac * go1
+                gc2 += fac * go2
+                b0, b1, b2 = buf[p, 0], buf[p, 1], buf[p, 2]
+                v_alpha += (c0 * tp - b0 * ra) * go0
+                v_alpha += (c1 * tp - b1 * ra) * go1
+                v_alpha += (c2 * tp - b2 * ra) * go2
+                buf[p, 0] = b0 + c0 * fac
+                buf[p, 1] = b1 + c1 * fac
+                buf[p, 2] = b2 + c2 * fac
+            else:
+                for d in range(D):
+                    gcol[d] += fac * go[p, d]
+                    v_alpha += (col[d] * tp - buf[p, d] * ra) * go[p, d]
+                    buf[p, d] += col[d] * fac
+            if o * vis < alpha_max:  # no gradient through the clamp
+                dx = bdx[i]
+                dy = bdy[i]
+                v_sigma = -alpha * v_alpha
+                g_mx += v_sigma * (A * dx + B * dy)
+                g_my += v_sigma * (B * dx + Cc * dy)
+                g_a += 0.5 * v_sigma * dx * dx
+                g_b += v_sigma * dx * dy
+                g_c += 0.5 * v_sigma * dy * dy
+                g_o += vis * v_alpha
+        pair_grad[k, 0] = g_mx
+        pair_grad[k, 1] = g_my
+        pair_grad[k, 2] = g_a
+        pair_grad[k, 3] = g_b
+        pair_grad[k, 4] = g_c
+        pair_grad[k, 5] = g_o
+        if D == 3:
+            gcol[0], gcol[1], gcol[2] = gc0, gc1, gc2
+        for d in range(D):
+            pair_grad[k, 6 + d] = gcol[d]
 
 
 @njit(cache=True)
@@ -608,10 +636,10 @@ class _CompositeNumba(torch.autograd.Function):
         t_final = np.empty((C, H, W), np.float64)
         last = np.empty((C, H, W), np.int64)
         prep = np.empty((arrs[0].shape[0], 4))
-        set_threads()
+        par = set_threads() > 1
         _prep(arrs[1], arrs[2], prep)
-        _forward(*arrs, prep, plan.starts, plan.ids, C, W, H, plan.tile_size, float(alpha_max), img, alpha, t_final,
-                 last)
+        _forward(par, *arrs, prep, plan.starts, plan.ids, C, W, H, plan.tile_size, float(alpha_max), img, alpha,
+                 t_final, last)
         ctx.save_for_backward(means2d, conics, opacities, colors)
         ctx.plan, ctx.alpha_max, ctx.t_final, ctx.last, ctx.prep = plan, float(alpha_max), t_final, last, prep
         return torch.from_numpy(img), torch.from_numpy(alpha)[..., None]
@@ -625,9 +653,9 @@ class _CompositeNumba(torch.autograd.Function):
         g_img = torch.zeros(C, H, W, D, dtype=means2d.dtype) if g_img is None else g_img
         g_alpha = torch.zeros(C, H, W, 1, dtype=means2d.dtype) if g_alpha is None else g_alpha
         pair_grad = np.zeros((plan.pairs, 6 + D), np.float64)  # slots past a tile's last pixel stay 0
-        set_threads()
-        _backward(_np(means2d), _np(conics), _np(opacities), _np(colors), ctx.prep, plan.starts, plan.ids, C, W, H,
-                  plan.tile_size, ctx.alpha_max, ctx.t_final, ctx.last, _np(g_img), _np(g_alpha[..., 0]), pair_grad)
+        par = set_threads() > 1
+        _backward(par, _np(means2d), _np(conics), _np(opacities), _np(colors), ctx.prep, plan.starts, plan.ids, C, W,
+                  H, plan.tile_size, ctx.alpha_max, ctx.t_final, ctx.last, _np(g_img), _np(g_alpha[..., 0]), pair_grad)
         grad = np.zeros((G, 6 + D), np.float64)
         _reduce(plan.ids, pair_grad, grad)
         grad = torch.from_numpy(grad).to(means2d.dtype)
@@ -772,14 +800,20 @@ _PF = 20  # per-Gaussian rows of _project_fwd's block buffer: 10 inputs to its v
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def _project_fwd(means, quats, scales, opac, viewmats, Ks, width, height, near, far, eps2d, radius_clip,
+def _project_fwd(parallel, means, quats, scales, opac, viewmats, Ks, width, height, near, far, eps2d, radius_clip,
                  antialiased, means2d, conics, depths, opac_out, comp, radii, visible):
     N = means.shape[0]
     cams = _cameras(viewmats, Ks, width, height)
-    for blk in prange((N + _BLOCK - 1) // _BLOCK):
-        _project_fwd_block(blk * _BLOCK, min(N - blk * _BLOCK, _BLOCK), means, quats, scales, opac, cams, width,
-                           height, near, far, eps2d, radius_clip, antialiased, means2d, conics, depths, opac_out,
-                           comp, radii, visible)
+    if parallel:
+        for blk in prange((N + _BLOCK - 1) // _BLOCK):
+            _project_fwd_block(blk * _BLOCK, min(N - blk * _BLOCK, _BLOCK), means, quats, scales, opac, cams, width,
+                               height, near, far, eps2d, radius_clip, antialiased, means2d, conics, depths, opac_out,
+                               comp, radii, visible)
+    else:  # as in _forward
+        for blk in range((N + _BLOCK - 1) // _BLOCK):
+            _project_fwd_block(blk * _BLOCK, min(N - blk * _BLOCK, _BLOCK), means, quats, scales, opac, cams, width,
+                               height, near, far, eps2d, radius_clip, antialiased, means2d, conics, depths, opac_out,
+                               comp, radii, visible)
 
 
 @njit(cache=True, error_model="numpy")
@@ -853,15 +887,21 @@ def _project_fwd_block(n0, m, means, quats, scales, opac, cams, width, height, n
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def _project_bwd(means, quats, scales, opac, viewmats, Ks, width, height, near, far, eps2d, antialiased, visible,
-                 g_m2, g_con, g_dep, g_op, g_comp, d_means, d_quats, d_scales, d_opac):
+def _project_bwd(parallel, means, quats, scales, opac, viewmats, Ks, width, height, near, far, eps2d, antialiased,
+                 visible, g_m2, g_con, g_dep, g_op, g_comp, d_means, d_quats, d_scales, d_opac):
     """Gradients of project.py's outputs (means2d, conics, depths, opacities, compensations) w.r.t. its inputs."""
     N = means.shape[0]
     cams = _cameras(viewmats, Ks, width, height)
-    for blk in prange((N + _BLOCK - 1) // _BLOCK):
-        _project_bwd_block(blk * _BLOCK, min(N - blk * _BLOCK, _BLOCK), means, quats, scales, opac, cams, near, far,
-                           eps2d, antialiased, visible, g_m2, g_con, g_dep, g_op, g_comp, d_means, d_quats, d_scales,
-                           d_opac)
+    if parallel:
+        for blk in prange((N + _BLOCK - 1) // _BLOCK):
+            _project_bwd_block(blk * _BLOCK, min(N - blk * _BLOCK, _BLOCK), means, quats, scales, opac, cams, near,
+                               far, eps2d, antialiased, visible, g_m2, g_con, g_dep, g_op, g_comp, d_means, d_quats,
+                               d_scales, d_opac)
+    else:  # as in _forward
+        for blk in range((N + _BLOCK - 1) // _BLOCK):
+            _project_bwd_block(blk * _BLOCK, min(N - blk * _BLOCK, _BLOCK), means, quats, scales, opac, cams, near,
+                               far, eps2d, antialiased, visible, g_m2, g_con, g_dep, g_op, g_comp, d_means, d_quats,
+                               d_scales, d_opac)
 
 
 _PB = 40  # rows of _project_bwd's block buffer, as in _project_fwd: inputs 0-10, camera c's 11-19, sums 20-32, out 33-39
@@ -1022,8 +1062,8 @@ class _ProjectNumba(torch.autograd.Function):
         m2, con = np.empty((C, N, 2), np.float64), np.empty((C, N, 3), np.float64)
         dep, op, comp = np.empty((C, N)), np.empty((C, N)), np.ones((C, N))
         radii, vis = np.empty((C, N, 2), np.int32), np.empty((C, N), np.bool_)
-        set_threads()
-        _project_fwd(*a, int(width), int(height), float(near), float(far), float(eps2d), float(radius_clip),
+        par = set_threads() > 1
+        _project_fwd(par, *a, int(width), int(height), float(near), float(far), float(eps2d), float(radius_clip),
                      bool(antialiased), m2, con, dep, op, comp, radii, vis)
         ctx.args = (int(width), int(height), float(near), float(far), float(eps2d), bool(antialiased))
         ctx.save_for_backward(means, quats, scales, opacities, viewmats, Ks)
@@ -1042,8 +1082,8 @@ class _ProjectNumba(torch.autograd.Function):
         for g, shape in ((g_m2, (C, N, 2)), (g_con, (C, N, 3)), (g_dep, (C, N)), (g_op, (C, N)), (g_comp, (C, N))):
             gs.append(np.zeros(shape) if g is None else _np(g.to(torch.float64)))
         d = [np.zeros(x.shape) for x in a[:4]]
-        set_threads()
-        _project_bwd(*a, *ctx.args, ctx.vis, *gs, *d)
+        par = set_threads() > 1
+        _project_bwd(par, *a, *ctx.args, ctx.vis, *gs, *d)
         dt = means.dtype
         return (*[torch.from_numpy(x).to(dt) for x in d], None, None, None, None, None, None, None, None, None)
 
