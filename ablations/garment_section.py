@@ -13,6 +13,10 @@ training frame it deforms the Gaussians (the training frame's own inputs, frame 
   hem (v, its 24 cells): median |du|, median du, median |dv|, median dv. A Gaussian whose material position has slid
   shows the colour of another cell. Columns band0..band4: the median distance to the cloth (cm) of the garment
   Gaussians in each fifth of the skirt's length, by their rest material position (band0 at the waist, band4 the hem).
+  cover, cover0..cover4: the share of the cloth's surface (samples, overall and per fifth of its length by texture v)
+  with the centre of some Gaussian of opacity > 0.1 within 2 cm, whichever Gaussian it is: a model may build the
+  flared skirt from Gaussians that sat elsewhere at rest (e.g. hidden under the skirt), which the distances above
+  do not see.
 """
 
 from __future__ import annotations
@@ -67,16 +71,20 @@ def section(run_dir: Path, threads: int = 1) -> dict:
         if f in frames or f not in gframes:
             continue
         b = default_collate([ds[i]])
-        x = module.deform(b["poses"], b["transl"], frame_idx=b["frame_idx"])["means"][0].double().numpy()
+        posed = module.deform(b["poses"], b["transl"], frame_idx=b["frame_idx"])
+        x = posed["means"][0].double().numpy()
         pts = np.einsum("pk,pkc->pc", bary, V[gframes.index(f)][F[tri]])
         d, j = cKDTree(pts).query(x)
-        frames[f] = {"x": x, "d": d, "uv": uv_s[j], "cloth": pts, "phase": phase_of(f, events, fps)}
+        seen = x[posed["opacities"].detach().numpy() > 0.1]
+        covered = cKDTree(seen).query(pts)[0] < CLOTH_NEAR if len(seen) else np.zeros(len(pts), bool)
+        frames[f] = {"x": x, "d": d, "uv": uv_s[j], "cloth": pts, "phase": phase_of(f, events, fps),
+                     "covered": covered}
     rest = [f for f in sorted(frames) if frames[f]["phase"] == "rest"] or sorted(frames)[:1]
     on = np.all([frames[f]["d"] < CLOTH_NEAR for f in rest], 0)
     if not on.any():
         raise ValueError(f"{run_dir}: no Gaussian lies within {CLOTH_NEAR} m of the cloth in every rest frame")
     home = np.mean([frames[f]["uv"][on] for f in rest], 0)
-    return {"frames": frames, "garment": on, "home": home}
+    return {"frames": frames, "garment": on, "home": home, "cloth_v": uv_s[:, 1]}
 
 
 def table(res: dict) -> list[dict]:
@@ -93,6 +101,10 @@ def table(res: dict) -> list[dict]:
         for k in range(5):
             sel = band == k
             rows[-1][f"band{k}"] = float(np.median(r["d"][on][sel]) * 100) if sel.any() else float("nan")
+        rows[-1]["cover"] = float(r["covered"].mean())
+        cband = np.minimum((res["cloth_v"] * 5).astype(int), 4)
+        for k in range(5):
+            rows[-1][f"cover{k}"] = float(r["covered"][cband == k].mean())
     return rows
 
 
@@ -156,7 +168,7 @@ def main(argv: list[str] | None = None) -> int:
         w = csv.DictWriter(fh, fieldnames=list(rows[0]))
         w.writeheader()
         w.writerows(rows)
-    keys = ("dist_cm", "abs_du_cells", "abs_dv_cells", "dv_cells")
+    keys = ("dist_cm", "abs_du_cells", "abs_dv_cells", "dv_cells", "cover", "cover4")
     print("run | phase | " + " | ".join(keys) + "  (medians over the phase's frames)")
     for label in labels:
         for ph in ("rest", "spin", "after", "settled"):
