@@ -483,3 +483,39 @@ def test_probe_garment_shape_change_ignores_the_turn(tmp_path):
     assert c[0][2] < 1e-9 and c[1][2] < 1e-6  # same shape, turned 115 degrees and moved
     assert abs(c[2][2] - 0.3) < 1e-6
     assert garment_curves(tmp_path / "g.npz", settled_frame=2)[2][2] < 1e-9
+
+
+def test_garment_section_table_measures_slide_distance_and_cover(tmp_path):
+    """ablations/garment_section.py's table: a garment Gaussian that slid one cell around the waist (across u's
+    wrap-around) and two cells up reads du = +1, dv = -2 cells; distances per fifth of the skirt by rest position;
+    the cloth's cover per fifth of its length; the section plot is written."""
+    import numpy as np
+
+    from ablations.garment_section import CELLS_U, CELLS_V, plot, table
+
+    # rest uv of 4 garment Gaussians, three next to u's seam: one cell further round wraps them past u = 1
+    home = np.array([[0.97, 0.10], [0.98, 0.30], [0.99, 0.50], [0.30, 0.90]])
+    moved = home + np.array([1 / CELLS_U, -2 / CELLS_V])
+    moved[:, 0] %= 1.0
+    d_rest, d_spin = np.full(5, 0.01), np.array([0.02, 0.04, 0.06, 0.20, 0.5])
+    garment = np.array([True, True, True, True, False])  # the fifth Gaussian is not the garment's
+    cloth_v = np.array([0.05, 0.15, 0.5, 0.95, 0.97])
+    cloth = np.array([[0.1, 0.0, 0.0], [0.2, -0.1, 0.0], [0.3, -0.2, 0.0], [0.4, -0.3, 0.0], [0.5, -0.3, 0.0]])
+    x = np.array([[0.1, -0.05, 0.0], [0.2, -0.15, 0.0], [0.3, -0.25, 0.0], [0.3, -0.4, 0.0], [0.0, 0.0, 0.0]])
+    uv_rest = np.vstack([home, [[0.0, 0.0]]])
+    uv_spin = np.vstack([moved, [[0.0, 0.0]]])
+    res = {"garment": garment, "home": home, "cloth_v": cloth_v, "frames": {
+        0: {"x": x, "d": d_rest, "uv": uv_rest, "cloth": cloth, "phase": "rest", "covered": np.ones(5, bool)},
+        1: {"x": x, "d": d_spin, "uv": uv_spin, "cloth": cloth, "phase": "spin",
+            "covered": np.array([True, False, True, False, False])}}}
+    rows = {r["frame"]: r for r in table(res)}
+    assert rows[0]["abs_du_cells"] == 0 and rows[0]["dist_cm"] == 1.0 and rows[0]["cover"] == 1.0
+    spin = rows[1]
+    assert np.isclose(spin["du_cells"], 1.0) and np.isclose(spin["abs_du_cells"], 1.0)  # not -15 across the wrap
+    assert np.isclose(spin["dv_cells"], -2.0) and np.isclose(spin["abs_dv_cells"], 2.0)
+    assert np.isclose(spin["dist_cm"], 5.0)  # median of the garment's 2, 4, 6, 20 cm
+    assert np.isclose(spin["band0"], 2.0) and np.isclose(spin["band1"], 4.0) and np.isclose(spin["band4"], 20.0)
+    assert np.isnan(spin["band3"])  # no garment Gaussian rests in that fifth
+    assert np.isclose(spin["cover"], 0.4) and spin["cover0"] == 0.5 and spin["cover2"] == 1.0 and spin["cover4"] == 0.0
+    plot(res, [0, 1], "test", tmp_path / "s.png")
+    assert (tmp_path / "s.png").stat().st_size > 1000
