@@ -935,6 +935,8 @@ def _project_bwd_block(n0, m, means, quats, scales, opac, cams, near, far, eps2d
             f[14 * B + j], f[15 * B + j], f[16 * B + j] = g_con[c, n, 0], g_con[c, n, 1], g_con[c, n, 2]
             f[17 * B + j], f[18 * B + j], f[19 * B + j] = g_dep[c, n], g_op[c, n], g_comp[c, n]
         for j in range(m):
+            # The forward's chain again (recomputed, not stored), in _project_fwd_block's expressions, so every
+            # intermediate value is the forward's bit for bit.
             w, x, y, z, _nrm, _ok = _quat(f[j], f[B + j], f[2 * B + j], f[3 * B + j])
             M = _scaled(_rotmat(w, x, y, z), f[4 * B + j], f[5 * B + j], f[6 * B + j])
             p, Sc = _cam_space(f[7 * B + j], f[8 * B + j], f[9 * B + j], _mul33(M, _t33(M)), W, t)
