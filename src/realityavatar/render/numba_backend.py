@@ -867,11 +867,14 @@ def _project_fwd_block(n0, m, means, quats, scales, opac, cams, width, height, n
             opac_out[c, n] = o
             vis = f[13 * B + j] != 0.0 and o >= ALPHA_THRESHOLD
             ext = min(math.sqrt(2.0 * math.log(max(o, ALPHA_THRESHOLD) / ALPHA_THRESHOLD)), 3.33)
-            rx = math.ceil(ext * f[18 * B + j])
-            ry = math.ceil(ext * f[19 * B + j])
+            ex, ey = ext * f[18 * B + j], ext * f[19 * B + j]
+            # tested before ceil: numba's ceil returns an integer, and a non-finite float has no integer value
+            finite = math.isfinite(ex) and math.isfinite(ey)
+            rx = math.ceil(ex if finite else 0.0)
+            ry = math.ceil(ey if finite else 0.0)
+            vis = vis and finite
             vis = vis and not (rx <= radius_clip and ry <= radius_clip)
             vis = vis and not (mx + rx <= 0 or mx - rx >= width or my + ry <= 0 or my - ry >= height)
-            vis = vis and math.isfinite(rx) and math.isfinite(ry)
             visible[c, n] = vis
             if vis:
                 means2d[c, n, 0], means2d[c, n, 1] = mx, my
