@@ -32,10 +32,10 @@ def build_module(cfg: DictConfig, body, num_train_frames: int, scene_extent: flo
     gaussians = instantiate(cfg.gaussians, body=body, **extra)
     encoder = instantiate(cfg.encoder)
     temporal = instantiate(cfg.temporal)
-    codes = int(cfg.deformer.get("frame_code_dim", 0) or 0) > 0  # per-frame codes need the frame count
-    deformer = instantiate(cfg.deformer, **({"num_frames": max(int(num_train_frames), 1)} if codes else {}))
+    n_frames = max(int(num_train_frames), 1)  # the per-frame tables' rows: Z_r, the decoder's frame codes
+    deformer = instantiate(cfg.deformer, num_frames=n_frames)
     skinning = instantiate(cfg.skinning)
-    color = instantiate(cfg.color, num_frames=max(int(num_train_frames), 1))
+    color = instantiate(cfg.color, num_frames=n_frames)
     density = instantiate(cfg.density)
     loss = instantiate(cfg.loss)
     silhouette = instantiate(cfg.silhouette) if cfg.get("silhouette") is not None else None

@@ -90,6 +90,10 @@ class MotionTrendDecoder(nn.Module):
         # HyperNeRF). It lets the decoder fit any training frame's shape, whether or not the pose window determines
         # it, so it is the diagnostic upper bound of what the inputs cannot explain; frames not trained on (novel
         # pose) take the mean code. Off by default: the paper's decoder sees h_t only.
+        if frame_code_dim < 0:
+            raise ValueError(f"deformer.frame_code_dim: expected >= 0, got {frame_code_dim}")
+        if gaussian_code_dim < 0:
+            raise ValueError(f"deformer.gaussian_code_dim: expected >= 0, got {gaussian_code_dim}")
         self.frame_code_dim = int(frame_code_dim)
         if self.frame_code_dim > 0:
             if num_frames < 1:
@@ -98,12 +102,8 @@ class MotionTrendDecoder(nn.Module):
             self.frame_codes = nn.Embedding(self.num_frames, self.frame_code_dim)
             nn.init.normal_(self.frame_codes.weight, std=0.01)
             self.in_code = nn.Linear(self.frame_code_dim, hidden_dim, bias=False)
-        elif self.frame_code_dim < 0:
-            raise ValueError(f"deformer.frame_code_dim: expected >= 0, got {frame_code_dim}")
         # gaussian_code_dim > 0: each Gaussian's learnt code (gaussians.deform_codes) joins its position encoding, so
         # the offset field can differ between Gaussians that share a canonical neighbourhood.
-        if gaussian_code_dim < 0:
-            raise ValueError(f"deformer.gaussian_code_dim: expected >= 0, got {gaussian_code_dim}")
         self.gaussian_code_dim = int(gaussian_code_dim)
         self.in_g = nn.Linear(self.gaussian_code_dim, hidden_dim, bias=False) if self.gaussian_code_dim else None
         with torch.no_grad():
@@ -266,9 +266,10 @@ class NodeDeformer(MotionTrendDecoder):
         self.sigma.fill_(float(spacing) * self.radius)
         self.nodes_fitted.fill_(1)
 
-    def forward(self, x_c: torch.Tensor, h_t: torch.Tensor, frame_idx: torch.Tensor | None = None
-                ) -> dict[str, torch.Tensor]:
-        """x_c [N,3], h_t [B,H], frame_idx [B] | None -> dict(dx [B,N,3], ds [B,N,3], dq [B,N,4], f_mt [B,N,F])."""
+    def forward(self, x_c: torch.Tensor, h_t: torch.Tensor, frame_idx: torch.Tensor | None = None,
+                codes: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+        """x_c [N,3], h_t [B,H], frame_idx [B] | None -> dict(dx [B,N,3], ds [B,N,3], dq [B,N,4], f_mt [B,N,F]).
+        codes: per-Gaussian codes, which the graph refuses at construction (always None here)."""
         if not bool(self.nodes_fitted):
             self.fit_nodes(x_c)
         return self.blend(x_c, super().forward(self.nodes, h_t, frame_idx))

@@ -215,8 +215,8 @@ class DensityControl:
             "log_scales": torch.log(scales / 1.6).repeat(2, 1),
             "quats": gaussians.quats[sel].repeat(2, 1),
             "opacity_logits": gaussians.opacity_logits[sel].repeat(2),
-            "features": gaussians.features[sel].repeat(2, 1),
         }
+        # every other attribute (features, deformation codes): each child takes its parent's value
         new.update({n: getattr(gaussians, n)[sel].repeat(2, 1) for n in gaussians.param_names if n not in new})
         params = {n: torch.cat([getattr(gaussians, n)[rest], new[n]]) for n in gaussians.param_names}
         swapped = gaussians.replace(params)

@@ -14,12 +14,13 @@ from torch import nn
 from realityavatar.body.base import BodyModel
 from realityavatar.geometry import camera_centres, sample_surface
 from realityavatar.model.deform import apply_deformation
+from realityavatar.model.gaussians import CODE_NAME, PARAM_NAMES
 from realityavatar.model.shading import NoShading
 from realityavatar.model.skinning import lbs_gaussians
 from realityavatar.render import rasterize
 
 # Per-Gaussian parameter groups; component groups use the component's name.
-GAUSSIAN_GROUPS = ("means", "log_scales", "quats", "opacity_logits", "features", "deform_codes")
+GAUSSIAN_GROUPS = PARAM_NAMES + (CODE_NAME,)
 COMPONENTS = ("encoder", "temporal", "deformer", "skinning", "color", "shading")
 
 
@@ -129,14 +130,9 @@ class AvatarModule(pl.LightningModule):
         f_p = self.encoder(poses, transl)  # [B,T,D]
         h_t = self.temporal(f_p)  # [B,H]
         # Canonical warm-up: before deform_start the decoder is skipped and the offsets are the identity.
-        if not deform:
-            out = identity_deformation(B, g.means, self.deformer.feature_dim)
-        elif getattr(self.deformer, "gaussian_code_dim", 0) > 0:
-            out = self.deformer(g.means, h_t, frame_idx, codes=g.deform_codes)
-        elif getattr(self.deformer, "frame_code_dim", 0) > 0:
-            out = self.deformer(g.means, h_t, frame_idx)
-        else:
-            out = self.deformer(g.means, h_t)
+        # frame_idx and the Gaussians' codes reach the decoder's per-frame / per-Gaussian codes when it has them
+        out = (self.deformer(g.means, h_t, frame_idx, codes=getattr(g, "deform_codes", None)) if deform
+               else identity_deformation(B, g.means, self.deformer.feature_dim))
         x_e, log_s_e, q_e = apply_deformation(g.means, g.log_scales, g.quats, out)  # [B,N,3],[B,N,3],[B,N,4]
         w = self.skinning(x_e)  # [B,N,24]
         A = self.body.canonical_transforms(poses[:, -1], transl[:, -1])  # [B,24,4,4]
