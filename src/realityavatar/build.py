@@ -41,7 +41,6 @@ def build_module(cfg: DictConfig, body, num_train_frames: int, scene_extent: flo
     silhouette = instantiate(cfg.silhouette) if cfg.get("silhouette") is not None else None
     shading = instantiate(cfg.shading) if cfg.get("shading") is not None else None  # configs from before the option
     flow = instantiate(cfg.flow) if cfg.get("flow") is not None else None  # configs from before the option: none
-    depth = instantiate(cfg.depth) if cfg.get("depth") is not None else None  # configs from before the option: none
     m = cfg.get("metrics", {}) or {}
     lpips, lpips_status = build_lpips("vgg", m.get("lpips_backbone_weights"), m.get("lpips_weights"))
     render = OmegaConf.to_container(cfg.render, resolve=True)
@@ -67,7 +66,6 @@ def build_module(cfg: DictConfig, body, num_train_frames: int, scene_extent: flo
         silhouette=silhouette,
         shading=shading,
         flow=flow,
-        depth=depth,
     )
     module.lpips_status = lpips_status  # "computed" or why not, recorded in metrics.json
     return module

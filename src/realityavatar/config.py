@@ -9,7 +9,7 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 CONFIG_DIR = Path(__file__).resolve().parents[2] / "conf"
 AXES = (
     "data", "body", "gaussians", "encoder", "temporal", "deformer", "skinning", "color", "shading", "density", "loss",
-    "silhouette", "depth", "render", "optim", "trainer", "variant", "ablation",
+    "silhouette", "render", "optim", "trainer", "variant", "ablation",
 )
 
 

@@ -223,36 +223,6 @@ class NoSilhouette(nn.Module):
         return torch.zeros(())  # never added by the module: forward returns no terms
 
 
-class DepthDistortion(nn.Module):
-    """Depth distortion (`depth=distortion`): the blend weights along each pixel's ray kept to a thin depth interval.
-
-    Mip-NeRF 360's distortion loss in its squared form (2DGS uses the same for Gaussians): per pixel
-    sum_ij w_i w_j (z_i - z_j)^2 / 2 = A * sum_i w_i z_i^2 - (sum_i w_i z_i)^2, with w_i the blend weights, A their
-    sum and z_i each Gaussian's camera-space depth (metres). The module renders z and z^2 as two extra channels of
-    the training image's own pass, so the term reaches depth (moving Gaussians along the ray) and the blend weights
-    (fading a Gaussian that sits behind or in front of the others); a surface seen through a layer of Gaussians a
-    few centimetres deep costs more than one thin layer of the same colour. The mean over the image's pixels, in m^2.
-    """
-
-    def __init__(self, weight: float = 100.0, blend_grad: bool = True) -> None:
-        super().__init__()
-        if not (weight >= 0):
-            raise ValueError(f"depth.weight: expected a number >= 0, got {weight!r}")
-        self.weight = float(weight)
-        self.blend_grad = bool(blend_grad)
-
-    def forward(self, moments: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
-        """moments [B,H,W,2] = (sum w z, sum w z^2) with depths shifted near 0, alpha [B,H,W,1] = sum w -> scalar."""
-        d1, d2 = moments[..., 0:1], moments[..., 1:2]
-        return (alpha * d2 - d1.square()).clamp_min(0.0).mean()
-
-
-class NoDepthDistortion(nn.Module):
-    """No depth term (the default): the training pass renders colour only."""
-
-    weight = 0.0
-
-
 class FlowLoss(nn.Module):
     """Image-flow supervision of the Gaussians' motion (`flow=dis`): against sliding over the garment.
 

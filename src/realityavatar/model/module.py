@@ -66,7 +66,6 @@ class AvatarModule(pl.LightningModule):
         silhouette: nn.Module | None = None,
         shading: nn.Module | None = None,
         flow: nn.Module | None = None,
-        depth: nn.Module | None = None,
     ):
         super().__init__()
         self.automatic_optimization = False  # density control edits parameters between optimizer steps
@@ -82,7 +81,6 @@ class AvatarModule(pl.LightningModule):
         self.loss_fn = loss
         self.silhouette = silhouette
         self.flow = flow if flow is not None and float(getattr(flow, "weight", 0.0)) > 0 else None
-        self.depth = depth if depth is not None and float(getattr(depth, "weight", 0.0)) > 0 else None
         self.optimizer_factory = optimizer
         self.lr = dict(lr)
         self.final_factor = dict(final_factor)
@@ -193,19 +191,12 @@ class AvatarModule(pl.LightningModule):
         """Rasterize sample b of `posed` with colours rgb [N,D] from one camera (viewmat [1,4,4], K [1,3,3]);
         D = 3 composites over the run's background, other values (render_batch's extra channels) over 0."""
         bg = torch.tensor(self.background, dtype=rgb.dtype, device=rgb.device)
-        if rgb.shape[-1] > bg.shape[0] == 3:  # colour + extra channels (depth moments): the extras over 0
-            bg = torch.cat([bg, bg.new_zeros(rgb.shape[-1] - 3)])
         bg = (bg if rgb.shape[-1] == bg.shape[0] else bg.new_zeros(rgb.shape[-1]))[None]
         return rasterize(posed["means"][b], posed["quats"][b], posed["scales"][b], posed["opacities"], rgb,
                          viewmat, K, W, H, backgrounds=bg, **self.render_cfg)
 
-    def render_batch(self, batch: dict, deform: bool = True, extra: Callable[[dict], torch.Tensor] | None = None,
-                     depth_moments: bool = False):
+    def render_batch(self, batch: dict, deform: bool = True, extra: Callable[[dict], torch.Tensor] | None = None):
         """Render every sample of a batch from its own camera. Returns rgb [B,H,W,3], alpha [B,H,W,1], metas, posed.
-
-        depth_moments: the same pass also composites each Gaussian's camera-space depth z and z^2 (shifted by the
-        Gaussians' mean depth, detached, so the two stay well conditioned), returned as posed["depth_moments"]
-        [B,H,W,2] with gradients to depth and blend weights (the depth distortion term, `depth=distortion`).
 
         extra(posed) -> [B,N,E]: per-Gaussian values composited with the image's blend weights in a second pass
         over detached geometry (background 0), returned as posed["extra_image"] [B,H,W,E] (the flow loss renders the
@@ -217,21 +208,12 @@ class AvatarModule(pl.LightningModule):
         W, H = int(batch["width"][0]), int(batch["height"][0])
         posed = self.deform_shared(poses, transl, deform=deform, frame_idx=frame_idx)
         rgb = self.shade(posed, viewmats, frame_idx)  # [B,N,3]
-        images, alphas, metas, moments = [], [], [], []
+        images, alphas, metas = [], [], []
         for b in range(posed["B"]):
-            cols = rgb[b]
-            if depth_moments:
-                vm = viewmats[b]
-                z = posed["means"][b] @ vm[2, :3] + vm[2, 3]  # [N] camera-space depth
-                z = z - z.detach().mean()
-                cols = torch.cat([cols, z[:, None], z[:, None].square()], dim=-1)
-            img, alpha, meta = self.splat(posed, b, cols, viewmats[b : b + 1], Ks[b : b + 1], W, H)
-            images.append(img[0, ..., :3])
-            moments.append(img[0, ..., 3:])
+            img, alpha, meta = self.splat(posed, b, rgb[b], viewmats[b : b + 1], Ks[b : b + 1], W, H)
+            images.append(img[0])
             alphas.append(alpha[0])
             metas.append(meta)
-        if depth_moments:
-            posed["depth_moments"] = torch.stack(moments)
         if extra is not None:
             # A second pass over detached geometry: the extra channels' loss reaches the per-Gaussian values only
             # (for the flow term: the Gaussians' motion), never opacity, scale or position through the blend
@@ -242,20 +224,6 @@ class AvatarModule(pl.LightningModule):
                 self.splat(fixed, b, values[b], viewmats[b : b + 1], Ks[b : b + 1], W, H)[0][0]
                 for b in range(posed["B"])])
         return torch.stack(images), torch.stack(alphas), metas, posed
-
-    def depth_values(self, batch: dict, inner: Callable[[dict], torch.Tensor] | None):
-        """For depth.blend_grad=false: per-Gaussian (z, z^2) in each sample's camera (shifted by the mean depth,
-        detached) appended to `inner`'s channels, composited over detached geometry, so the depth term moves
-        Gaussians along the view axis towards each pixel's mean depth and never fades them."""
-
-        def values(posed: dict) -> torch.Tensor:
-            vm = batch["viewmat"]  # [B,4,4]
-            z = (posed["means"] * vm[:, None, 2, :3]).sum(-1) + vm[:, 2, 3, None]  # [B,N]
-            z = z - z.detach().mean(-1, keepdim=True)
-            zz = torch.stack([z, z.square()], dim=-1)
-            return zz if inner is None else torch.cat([inner(posed), zz], dim=-1)
-
-        return values
 
     def image_motion(self, batch: dict, deform: bool) -> Callable[[dict], torch.Tensor]:
         """For the flow loss: a function posed -> [B,N,2], each Gaussian's displacement in its sample's image from
@@ -325,14 +293,7 @@ class AvatarModule(pl.LightningModule):
         deform = self.schedule.deform_on(step)
         use_flow = self.flow is not None and "flow" in batch
         extra = self.image_motion(batch, deform) if use_flow else None
-        depth_values = self.depth is not None and not self.depth.blend_grad
-        if depth_values:
-            extra = self.depth_values(batch, extra)
-        rgb, alpha, metas, posed = self.render_batch(batch, deform=deform, extra=extra,
-                                                     depth_moments=self.depth is not None and not depth_values)
-        if depth_values:
-            posed["depth_moments"] = posed["extra_image"][..., -2:]
-            posed["extra_image"] = posed["extra_image"][..., :-2]
+        rgb, alpha, metas, posed = self.render_batch(batch, deform=deform, extra=extra)
         skin_pts, skin_w = self._skin_targets()
         total, terms = self.loss_fn(
             rgb, alpha, batch["image"], batch["mask"], skinning=self.skinning, skin_points=skin_pts,
@@ -354,10 +315,6 @@ class AvatarModule(pl.LightningModule):
             term = self.flow(posed["extra_image"], alpha, batch["flow"], batch["flow_valid"])
             total = total + self.flow.weight * term
             terms["flow"] = term.detach()
-        if self.depth is not None:
-            term = self.depth(posed["depth_moments"], alpha if self.depth.blend_grad else alpha.detach())
-            total = total + self.depth.weight * term
-            terms["depth"] = term.detach()
         if not torch.isfinite(total):
             raise FloatingPointError(f"training loss became non-finite at step {step}: {terms}")
         self.manual_backward(total)
