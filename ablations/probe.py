@@ -148,7 +148,8 @@ def probe_run(run_dir: Path, threads: int = 1, kinds: tuple[str, ...] = ("train"
             batch = default_collate([ds[i]])
             rgb, alpha, _, posed = module.render_batch(batch)
             if rec.frame not in offsets:
-                dx = (posed["x_e"][0] - module.gaussians.means).norm(dim=-1)
+                n = module.gaussians.num_points  # the free Gaussians (a garment sheet's follow after them)
+                dx = (posed["x_e"][0][:n] - module.gaussians.means).norm(dim=-1)
                 q = torch.quantile(dx, torch.tensor([0.5, 0.99], dtype=dx.dtype))
                 offsets[rec.frame] = (float(q[0]), float(q[1]), float(dx.max()))
                 if tracker is not None and int(rec.frame) in tracker.frames:

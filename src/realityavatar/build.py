@@ -41,6 +41,15 @@ def build_module(cfg: DictConfig, body, num_train_frames: int, scene_extent: flo
     silhouette = instantiate(cfg.silhouette) if cfg.get("silhouette") is not None else None
     shading = instantiate(cfg.shading) if cfg.get("shading") is not None else None  # configs from before the option
     flow = instantiate(cfg.flow) if cfg.get("flow") is not None else None  # configs from before the option: none
+    sheet_cfg = cfg.get("sheet")
+    sheet = None
+    if sheet_cfg is not None and sheet_cfg.get("_target_"):
+        kw = {}
+        if data is not None and sheet_cfg.get("profile", "rest") == "rest":  # laid out in a rest frame (its masks)
+            from realityavatar.model.hull import hull_views
+
+            kw["views"] = hull_views(data, sheet_cfg.get("hull_frame"))
+        sheet = instantiate(sheet_cfg, body=body, **kw)
     m = cfg.get("metrics", {}) or {}
     lpips, lpips_status = build_lpips("vgg", m.get("lpips_backbone_weights"), m.get("lpips_weights"))
     render = OmegaConf.to_container(cfg.render, resolve=True)
@@ -66,6 +75,7 @@ def build_module(cfg: DictConfig, body, num_train_frames: int, scene_extent: flo
         silhouette=silhouette,
         shading=shading,
         flow=flow,
+        sheet=sheet,
     )
     module.lpips_status = lpips_status  # "computed" or why not, recorded in metrics.json
     return module

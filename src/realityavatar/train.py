@@ -111,7 +111,9 @@ def _run(cfg: DictConfig, choices: dict | None, out_dir: Path, resume_from: Path
         "scene": getattr(dm, "sequence", None),
         "train_seconds": state.train_seconds(),
         "iterations": int(trainer.global_step),
-        "num_gaussians": int(module.gaussians.num_points),
+        "num_gaussians": int(module.gaussians.num_points),  # the free Gaussians (density control's)
+        **({"num_sheet_gaussians": int(module.sheet.num_points), "sheet": module.run_info.get("sheet", {})}
+           if getattr(module, "sheet", None) is not None else {}),
         "num_parameters": module.num_parameters(),
         "perceptual": getattr(module.loss_fn, "perceptual_kind", "unknown"),
         "lpips": module.lpips_status,

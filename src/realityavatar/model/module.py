@@ -66,6 +66,7 @@ class AvatarModule(pl.LightningModule):
         silhouette: nn.Module | None = None,
         shading: nn.Module | None = None,
         flow: nn.Module | None = None,
+        sheet: nn.Module | None = None,
     ):
         super().__init__()
         self.automatic_optimization = False  # density control edits parameters between optimizer steps
@@ -81,6 +82,7 @@ class AvatarModule(pl.LightningModule):
         self.loss_fn = loss
         self.silhouette = silhouette
         self.flow = flow if flow is not None and float(getattr(flow, "weight", 0.0)) > 0 else None
+        self.sheet = sheet  # sheet=skirt: Gaussians bound to a deformable garment surface, after the free ones
         self.optimizer_factory = optimizer
         self.lr = dict(lr)
         self.final_factor = dict(final_factor)
@@ -137,7 +139,7 @@ class AvatarModule(pl.LightningModule):
         w = self.skinning(x_e)  # [B,N,24]
         A = self.body.canonical_transforms(poses[:, -1], transl[:, -1])  # [B,24,4,4]
         means_o, quats_o, rot = lbs_gaussians(x_e, q_e, w, A)
-        return {
+        posed = {
             "means": means_o,
             "quats": quats_o,
             "scales": torch.exp(log_s_e),
@@ -147,7 +149,44 @@ class AvatarModule(pl.LightningModule):
             "weights": w,
             "x_e": x_e,
             "B": B,
+            "num_free": g.num_points,
         }
+        if self.sheet is not None:
+            posed = self._with_sheet(posed, h_t, A, deform, frame_idx)
+        return posed
+
+    def _with_sheet(self, posed: dict, h_t: torch.Tensor, A: torch.Tensor, deform: bool,
+                    frame_idx: torch.Tensor | None) -> dict:
+        """Append the garment sheet's Gaussians: its vertices go through the same decoder and skinning as the free
+        Gaussians, the sheet's Gaussians follow their cells (model/sheet.py)."""
+        sh = self.sheet
+        V = sh.vertices
+        B = A.shape[0]
+        code_dim = int(getattr(self.deformer, "gaussian_code_dim", 0))
+        codes = V.new_zeros(V.shape[0], code_dim) if code_dim > 0 else None
+        out = (self.deformer(V, h_t, frame_idx, codes=codes) if deform
+               else identity_deformation(B, V, self.deformer.feature_dim))
+        x_e = V + out["dx"]  # [B,P,3]
+        w = self.skinning(x_e)
+        q_id = torch.zeros_like(x_e[..., :1]).expand(B, V.shape[0], 4).clone()
+        q_id[..., 0] = 1.0
+        verts_o, _, rot_v = lbs_gaussians(x_e, q_id, w, A)
+        placed = sh.place(verts_o)
+        first = sh.corners[:, 0]
+        extra = {
+            "means": placed["means"],
+            "quats": placed["quats"],
+            "scales": placed["scales"],
+            "rot": rot_v[:, first],
+            "f_mt": None if out.get("f_mt") is None else sh.interpolate(out["f_mt"]),
+            "weights": sh.interpolate(w),
+            "x_e": sh.interpolate(x_e),
+        }
+        for k, v in extra.items():
+            if v is not None and posed.get(k) is not None:
+                posed[k] = torch.cat([posed[k], v.to(posed[k])], dim=1)
+        posed["opacities"] = torch.cat([posed["opacities"], sh.opacities().to(posed["opacities"])])
+        return posed
 
     _PER_SAMPLE = ("means", "quats", "scales", "rot", "f_mt", "weights", "x_e")
 
@@ -183,7 +222,10 @@ class AvatarModule(pl.LightningModule):
         d = F.normalize(posed["means"] - cam_centre[:, None, :], dim=-1)  # [B,N,3] posed view dir
         # Canonicalise: undo each Gaussian's blended skinning rotation.
         d_c = (posed["rot"].transpose(-1, -2) @ d[..., None]).squeeze(-1)
-        rgb = self.color(self.gaussians.features, F.normalize(d_c, dim=-1), posed["f_mt"], frame_idx)
+        feats = self.gaussians.features
+        if self.sheet is not None:
+            feats = torch.cat([feats, self.sheet.features.to(feats)])
+        rgb = self.color(feats, F.normalize(d_c, dim=-1), posed["f_mt"], frame_idx)
         light = self.shading(posed["x_e"], posed["rot"])  # world-fixed light (shading=irradiance), or None
         return rgb if light is None else rgb * light
 
@@ -275,6 +317,9 @@ class AvatarModule(pl.LightningModule):
                                               self.body.skin_weights, steps=self.schedule.skin_pretrain_steps)
         if record is not None:
             self.run_info["skin_pretrain"] = {**record, "seconds": time.perf_counter() - t0}
+        if self.sheet is not None:
+            record = self.sheet.canonicalise(self.body, self.skinning)  # profile=rest, once per run
+            self.run_info["sheet"] = {**self.sheet.layout, **({"canonicalise": record} if record else {})}
 
     def _skin_targets(self):
         if self._surface is None or self._surface[0].device != self.device or self._surface[0].dtype != self.dtype:
@@ -307,6 +352,7 @@ class AvatarModule(pl.LightningModule):
                     sil[k] = sil.get(k, 0.0) + v / rgb.shape[0]
                 pulled = getattr(self.silhouette, "last_pulled", None)
                 if pulled is not None and hasattr(self.density, "observe_coverage"):
+                    pulled = pulled[pulled < self.gaussians.num_points]  # the sheet's Gaussians are a fixed set
                     self.density.observe_coverage(pulled, self.gaussians.num_points)
             if sil:
                 total = total + self.silhouette.total(sil)
@@ -326,6 +372,8 @@ class AvatarModule(pl.LightningModule):
         H, W = rgb.shape[1:3]
         # What actually rendered (gsplat may have fallen back to torch), reported in metrics.json.
         self.run_info["render"] = {"backend": metas[0]["backend"], "device": str(rgb.device), "dtype": str(rgb.dtype)}
+        if self.sheet is not None:
+            metas = [_free_part(m, self.gaussians.num_points) for m in metas]
         stats = self.density.step_post_backward(self.gaussians, opt.optimizer if hasattr(opt, "optimizer") else opt, metas, step, (W, H))
         bs = rgb.shape[0]
         self.log("train/loss", total.detach(), prog_bar=True, batch_size=bs)
@@ -346,15 +394,17 @@ class AvatarModule(pl.LightningModule):
         """Optimizer groups as each component names them (`param_groups()`, else one group under its own name); a
         group without its own entry in optim.lr (e.g. deformer_encoding) takes its component's rate."""
         groups = []
-        for name in ("gaussians",) + COMPONENTS:
+        for name in ("gaussians",) + COMPONENTS + (("sheet",) if self.sheet is not None else ()):
             comp = getattr(self, name)
             named = comp.param_groups() if hasattr(comp, "param_groups") else {name: list(comp.parameters())}
             for gname, params in named.items():
                 params = [p for p in params if p.requires_grad]
                 if not params:  # an ablated component (e.g. SH colour) contributes no group
                     continue
-                lr = self.lr.get(gname, self.lr.get(name))
-                if gname == "means":
+                # the sheet's groups take the free Gaussians' rates (its normal offset the means')
+                base = {"sheet_normal_offset": "means"}.get(gname, gname.removeprefix("sheet_"))
+                lr = self.lr.get(gname, self.lr.get(base, self.lr.get(name)))
+                if gname in ("means", "sheet_normal_offset"):
                     lr = lr * self.scene_extent
                 groups.append({"params": params, "lr": lr, "name": gname})
         return groups
@@ -458,6 +508,21 @@ def check_single_process(trainer: Any) -> None:
             "for one run; RealityAvatar trains one avatar per process. Scale with one run per GPU through a hydra "
             "launcher (hydra/launcher=joblib, hydra/launcher=slurm_gpu) and keep trainer.devices=1"
         )
+
+
+def _free_part(meta: dict, n: int) -> dict:
+    """A render's meta cut to the first n Gaussians (the free ones, which density control edits), means2d's
+    gradient with it."""
+    out = dict(meta)
+    m2d = meta["means2d"]
+    part = m2d.detach()[..., :n, :].clone()
+    if m2d.grad is not None:
+        part.grad = m2d.grad[..., :n, :].clone()
+    out["means2d"] = part
+    for k in ("radii", "radii_xy", "visible", "depths", "conics", "opacities", "compensations"):
+        if torch.is_tensor(meta.get(k)) and meta[k].dim() >= 2:
+            out[k] = meta[k][:, :n]
+    return out
 
 
 def identity_deformation(B: int, means: torch.Tensor, feature_dim: int) -> dict:

@@ -1,0 +1,258 @@
+"""A garment sheet (`sheet=skirt`): Gaussians bound to a deformable surface of revolution around the hips and legs.
+
+The free Gaussians of the default model build a flared skirt from whatever Gaussians end up there, a few cm off the
+cloth and sliding over it (README, "Why the spin stays below rest"). The sheet gives the garment a surface instead:
+a grid of (rows + 1) x cols vertices on rings about the body's vertical axis (pelvis -> neck), from a little above
+the pelvis down to the garment's hem (see GarmentSheet for the layout). The motion-trend decoder moves the vertices
+(the same decoder and h_t as the free Gaussians), the skinning field poses them, and every sheet Gaussian follows
+its grid cell bilinearly: its position is the cell's bilinear point plus a learnt offset along the normal, its
+rotation the cell's tangent frame, its scale along the two tangents stretches with the cell. A Gaussian keeps its
+place in the cloth (its colour is material, not wherever it slid), the sheet has no holes as it opens, and one
+covered hem pixel moves the cells around it. The sheet's Gaussians are a fixed set beside the free ones: density
+control acts on the free Gaussians only.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from realityavatar.body.base import BodyModel
+from realityavatar.geometry import matrix_to_quat
+
+
+class GarmentSheet(nn.Module):
+    """rows x cols cells, `per_cell` Gaussians each, on a surface of revolution around the hips and legs.
+
+    profile="rest" (the config's default): the sheet is laid out in the rest frame of the training sequence (the
+    first training frame, or `hull_frame`), about that frame's posed body axis, from `top_offset` above the pelvis
+    down to the garment's hem, found in that frame's visual hull (its training masks) as the height where the
+    hull's radius steps in most (garment -> legs). Each ring's radius is the rest body's own extent at that height
+    (`radius_from="body"`: a lower quantile over azimuth of the body's farthest point, i.e. around the legs) or the
+    hull's (`"hull"`), plus `margin`. `canonicalise` then takes it to canonical space through the module's own
+    skinning field (a fixed point of the inverse LBS), so at the rest frame the sheet poses back onto its layout.
+    Measured: a sheet that starts around the legs, inside the garment, fits far better than one at the hull's
+    radius, which four views leave loose where no silhouette grazes it (README, "A garment sheet").
+    profile="canonical": the canonical body, from `top_offset` to the `bottom_joints` (the knees) + `bottom_offset`,
+    radii from the canonical body's widest points; also what profile="rest" falls back to without views (a run
+    rebuilt from its checkpoint, whose vertices then replace it).
+    """
+
+    def __init__(self, body: BodyModel, rows: int = 16, cols: int = 48, per_cell: int = 6, profile: str = "rest",
+                 top_offset: float = 0.08, margin: float = 0.02, radius_from: str = "body",
+                 bottom_joints: tuple[int, ...] = (4, 5), bottom_offset: float = 0.0, hull_frame: int | None = None,
+                 hull_voxel: float = 0.015, hull_quantile: float = 0.25, feature_dim: int = 32,
+                 init_opacity: float = 0.1, normal_scale: float = 0.005, feature_init_std: float = 0.01,
+                 seed: int = 0, views=None) -> None:
+        super().__init__()
+        if rows < 1 or cols < 3 or per_cell < 1:
+            raise ValueError(f"sheet: expected rows >= 1, cols >= 3, per_cell >= 1, got {rows}, {cols}, {per_cell}")
+        if profile not in ("rest", "canonical"):
+            raise ValueError(f"sheet.profile: expected 'rest' or 'canonical', got {profile!r}")
+        if radius_from not in ("body", "hull"):
+            raise ValueError(f"sheet.radius_from: expected 'body' or 'hull', got {radius_from!r}")
+        if not 0.0 < init_opacity < 1.0:
+            raise ValueError(f"sheet.init_opacity: expected a value in (0,1), got {init_opacity}")
+        if not 0.0 <= hull_quantile <= 1.0:
+            raise ValueError(f"sheet.hull_quantile: expected a value in [0,1], got {hull_quantile}")
+        self.rows, self.cols, self.per_cell = int(rows), int(cols), int(per_cell)
+        self.feature_dim = int(feature_dim)
+        self.profile, self.hull_frame = profile, hull_frame  # hull_frame: read by build_module
+        # profile=rest keeps its layout (posed) and that frame's pose for `canonicalise`; both are checkpointed
+        self.register_buffer("posed_rest", torch.zeros(0, 3))
+        self.register_buffer("rest_pose", torch.zeros(0, 3))
+        self.register_buffer("rest_transl", torch.zeros(3))
+        self.register_buffer("canonical_done", torch.tensor(True))
+        self.layout: dict = {"profile": "canonical"}
+        if profile == "rest" and views is not None:
+            grid = self._rest_layout(body, views, float(top_offset), float(margin), radius_from, float(hull_voxel),
+                                     float(hull_quantile))
+        else:
+            grid = self._canonical_layout(body, float(top_offset), tuple(bottom_joints), float(bottom_offset),
+                                          float(margin))
+        self.register_buffer("vertices", grid.reshape(-1, 3).contiguous())  # [P,3] canonical
+        # every Gaussian: its cell's four corner indices and its bilinear place (a along the ring, b down the skirt)
+        gen = torch.Generator().manual_seed(seed)
+        j, i = torch.meshgrid(torch.arange(self.rows), torch.arange(self.cols), indexing="ij")
+        j, i = j.reshape(-1).repeat_interleave(self.per_cell), i.reshape(-1).repeat_interleave(self.per_cell)
+        i1 = (i + 1) % self.cols
+        corners = torch.stack([j * self.cols + i, j * self.cols + i1, (j + 1) * self.cols + i,
+                               (j + 1) * self.cols + i1], dim=-1)  # [M,4]: 00, 10, 01, 11
+        self.register_buffer("corners", corners)
+        self.register_buffer("ab", torch.rand(corners.shape[0], 2, generator=gen))
+        M = corners.shape[0]
+        # scales: along the tangents in units of the cell's edge (a Gaussian's share of its cell), along the normal in m
+        rel_scale = 0.5 / math.sqrt(self.per_cell)
+        self.log_scales = nn.Parameter(torch.tensor([math.log(rel_scale)] * 2 + [math.log(normal_scale)]).repeat(M, 1))
+        self.normal_offset = nn.Parameter(torch.zeros(M))
+        p = torch.tensor(init_opacity)
+        self.opacity_logits = nn.Parameter(torch.full((M,), float(torch.log(p / (1 - p)))))
+        self.features = nn.Parameter(torch.randn(M, self.feature_dim, generator=gen) * feature_init_std)
+        self.register_load_state_dict_pre_hook(self._take_layout_buffers)
+
+    def _take_layout_buffers(self, module, state_dict, prefix, *args) -> None:
+        """A module rebuilt without the rest frame's views loads a profile=rest checkpoint's layout buffers."""
+        for name in ("posed_rest", "rest_pose"):
+            key = prefix + name
+            if key in state_dict and state_dict[key].shape != getattr(self, name).shape:
+                setattr(self, name, torch.zeros_like(state_dict[key]))
+
+    @staticmethod
+    def _frame(origin: torch.Tensor, axis: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Two unit vectors spanning the plane normal to `axis`."""
+        ref = torch.tensor([0.0, 0.0, 1.0]) if abs(float(axis[2])) < 0.9 else torch.tensor([1.0, 0.0, 0.0])
+        e1 = F.normalize(torch.linalg.cross(axis, ref.to(axis)), dim=0)
+        return e1, torch.linalg.cross(axis, e1)
+
+    def _rings(self, origin, axis, heights, radii) -> torch.Tensor:
+        e1, e2 = self._frame(origin, axis)
+        phi = torch.arange(self.cols, dtype=origin.dtype) * (2 * math.pi / self.cols)
+        ring = torch.cos(phi)[:, None] * e1 + torch.sin(phi)[:, None] * e2  # [cols,3]
+        return origin + heights[:, None, None] * axis + radii[:, None, None] * ring[None]  # [R+1,C,3]
+
+    def _canonical_layout(self, body: BodyModel, top: float, bottom_joints: tuple[int, ...], bottom_offset: float,
+                          margin: float) -> torch.Tensor:
+        verts = body.canonical_vertices().detach().float().cpu()  # [V,3]
+        J = body.joints(body.canonical_pose()[None])[0].detach().float().cpu()  # [24,3]
+        origin, axis = J[0], F.normalize(J[12] - J[0], dim=0)
+        bottom = float(((J[list(bottom_joints)] - origin) @ axis).mean()) + bottom_offset
+        if not bottom < top:
+            raise ValueError(f"sheet: the bottom ({bottom:.3f} m along the body axis) must lie below the top ({top:.3f})")
+        rel = verts - origin
+        h_v = rel @ axis
+        r_v = (rel - h_v[:, None] * axis).norm(dim=-1)
+        heights = torch.linspace(top, bottom, self.rows + 1)
+        band = max(abs(top - bottom) / self.rows, 0.02)
+        radii = []
+        for h in heights:
+            near = (h_v - h).abs() < band
+            radii.append((float(torch.quantile(r_v[near], 0.98)) if near.any() else float(r_v.median())) + margin)
+        self.layout = {"profile": "canonical", "bottom": bottom, "radii": [round(x, 4) for x in radii]}
+        return self._rings(origin, axis, heights, torch.tensor(radii))
+
+    def _rest_layout(self, body: BodyModel, views, top: float, margin: float, radius_from: str, voxel: float,
+                     quantile: float) -> torch.Tensor:
+        """The layout in the rest frame's posed space (see the class doc), and a first guess of its canonical
+        vertices by inverse LBS with the nearest body vertex's weights (`canonicalise` refines it)."""
+        import numpy as np
+        from scipy.spatial import cKDTree
+
+        from realityavatar.model.hull import carve
+
+        with torch.no_grad():
+            pose, transl = views.pose.float(), views.transl.float()
+            verts = body.posed_vertices(pose, transl).cpu().double()
+            J = body.joints(pose, transl).cpu().double()
+            pad = torch.tensor([0.45, 0.05, 0.45], dtype=torch.float64)
+            surf = carve(views, (verts.min(0).values - pad).numpy(), (verts.max(0).values + pad).numpy(), voxel)
+            if len(surf) == 0:
+                raise ValueError(f"sheet.profile=rest: the visual hull of frame {views.frame} is empty; check the "
+                                 "masks and cameras of the training split")
+            origin, axis = J[0], F.normalize(J[12] - J[0], dim=0)
+            e1, e2 = self._frame(origin, axis)
+            bins = torch.linspace(-math.pi, math.pi, 17, dtype=torch.float64)
+
+            def cylindrical(pts: torch.Tensor):
+                rel = pts - origin
+                h = rel @ axis
+                return h, (rel - h[:, None] * axis).norm(dim=-1), torch.atan2(rel @ e2, rel @ e1)
+
+            def radius(pts_c, hj: float, band: float) -> float:
+                """Per height: the `quantile` over 16 azimuth sectors of each sector's farthest point."""
+                h, r, az = pts_c
+                sel = ((h - hj).abs() < band) & (r < 0.8)
+                far = [float(r[sel & (az >= a0) & (az < a1)].max()) for a0, a1 in itertools.pairwise(bins)
+                       if bool((sel & (az >= a0) & (az < a1)).any())]
+                return float(np.quantile(far, quantile)) if far else 0.0
+
+            hull_c = cylindrical(torch.from_numpy(surf))
+            # the hem: where the hull's radius steps in most (garment -> legs), searched 0.15-1.0 m below the top
+            fine = np.arange(top - 0.15, top - 1.0, -voxel)
+            prof = np.array([radius(hull_c, x, voxel) for x in fine])
+            k = 3  # radii compared 3 voxels apart
+            if len(prof) <= k or prof.max() <= 0:
+                raise ValueError(f"sheet.profile=rest: frame {views.frame}'s hull has no garment below the top ring")
+            bottom = float(fine[int(np.argmax(prof[:-k] - prof[k:]))])
+            heights = torch.linspace(top, bottom, self.rows + 1, dtype=torch.float64)
+            band = max(abs(top - bottom) / self.rows, voxel, 0.03)
+            shape_c = hull_c if radius_from == "hull" else cylindrical(verts)
+            radii = torch.tensor([radius(shape_c, float(hj), band) + margin for hj in heights], dtype=torch.float64)
+            posed = self._rings(origin, axis, heights, radii).reshape(-1, 3).float()
+            nearest = torch.from_numpy(cKDTree(verts.numpy()).query(posed.numpy())[1])
+            A = body.canonical_transforms(pose, transl).cpu().float()  # [24,4,4] canonical -> posed
+            T = torch.einsum("nj,jab->nab", body.skin_weights.cpu().float()[nearest], A)
+            canon = (torch.linalg.inv(T) @ torch.cat([posed, torch.ones(len(posed), 1)], -1)[..., None])[:, :3, 0]
+            self.posed_rest = posed
+            self.rest_pose, self.rest_transl = pose.detach().clone(), transl.detach().clone()
+            self.canonical_done = torch.tensor(False)
+            self.layout = {"profile": "rest", "frame": int(views.frame), "bottom": bottom,
+                           "radius_from": radius_from, "radii": [round(float(x), 4) for x in radii]}
+            return canon.reshape(self.rows + 1, self.cols, 3)
+
+    @torch.no_grad()
+    def canonicalise(self, body: BodyModel, skinning: nn.Module, iterations: int = 60) -> dict | None:
+        """profile=rest: canonical vertices x_c with LBS(x_c; skinning(x_c)) = the rest-frame layout, by the
+        damped fixed point x_c <- (x_c + T(x_c)^-1 x_posed) / 2. Once per run (a checkpoint carries the result). Returns a record."""
+        if bool(self.canonical_done) or self.posed_rest.shape[0] == 0:
+            return None
+        A = body.canonical_transforms(self.rest_pose.to(self.vertices), self.rest_transl.to(self.vertices))  # [24,4,4]
+        target = self.posed_rest.to(self.vertices)
+        x = self.vertices.clone()
+        ones = torch.ones(len(x), 1, dtype=x.dtype, device=x.device)
+        for _ in range(iterations):
+            w = skinning(x[None])[0]  # [P,24]
+            T = torch.einsum("pj,jab->pab", w, A)
+            # damped: between the legs the blended weights change fast and the plain iteration can cycle
+            x = x + 0.5 * ((torch.linalg.inv(T) @ torch.cat([target, ones], -1)[..., None])[:, :3, 0] - x)
+        w = skinning(x[None])[0]
+        T = torch.einsum("pj,jab->pab", w, A)
+        resid = ((T @ torch.cat([x, ones], -1)[..., None])[:, :3, 0] - target).norm(dim=-1)
+        self.vertices.copy_(x)
+        self.canonical_done.fill_(True)
+        return {"iterations": iterations, "residual_max_m": float(resid.max()), "residual_median_m": float(resid.median())}
+
+    @property
+    def num_points(self) -> int:
+        return int(self.corners.shape[0])
+
+    def param_groups(self) -> dict[str, list[nn.Parameter]]:
+        """Optimizer groups: sheet_<name>, whose rates default to the free Gaussians' of the same name (module)."""
+        return {"sheet_features": [self.features], "sheet_opacity_logits": [self.opacity_logits],
+                "sheet_log_scales": [self.log_scales], "sheet_normal_offset": [self.normal_offset]}
+
+    def opacities(self) -> torch.Tensor:
+        return torch.sigmoid(self.opacity_logits)
+
+    def interpolate(self, values: torch.Tensor) -> torch.Tensor:
+        """Per-vertex values [B,P,D] -> each Gaussian's bilinear blend of its cell's corners [B,M,D]."""
+        c = values[:, self.corners]  # [B,M,4,D]
+        a, b = self.ab[:, 0:1].to(values), self.ab[:, 1:2].to(values)
+        w = torch.cat([(1 - a) * (1 - b), a * (1 - b), (1 - a) * b, a * b], dim=-1)  # [M,4]
+        return (c * w[None, :, :, None]).sum(2)
+
+    def place(self, verts: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Vertex positions [B,P,3] -> the Gaussians' means [B,M,3], quats [B,M,4] (the cell's tangent frame) and
+        scales [B,M,3] (stretched with the cell)."""
+        c = verts[:, self.corners]  # [B,M,4,3]
+        a, b = self.ab[:, 0, None].to(verts), self.ab[:, 1, None].to(verts)
+        t_u = (1 - b) * (c[:, :, 1] - c[:, :, 0]) + b * (c[:, :, 3] - c[:, :, 2])  # [B,M,3]
+        t_v = (1 - a) * (c[:, :, 2] - c[:, :, 0]) + a * (c[:, :, 3] - c[:, :, 1])
+        u_len = t_u.norm(dim=-1, keepdim=True).clamp_min(1e-8)
+        e1 = t_u / u_len
+        v_perp = t_v - (t_v * e1).sum(-1, keepdim=True) * e1
+        v_len = v_perp.norm(dim=-1, keepdim=True).clamp_min(1e-8)
+        e2 = v_perp / v_len
+        e3 = torch.linalg.cross(e1, e2, dim=-1)
+        R = torch.stack([e1, e2, e3], dim=-1)  # [B,M,3,3], columns = the frame
+        means = self.interpolate(verts) + self.normal_offset[None, :, None] * e3
+        s = self.log_scales.exp()
+        scales = torch.cat([s[None, :, 0:1] * u_len, s[None, :, 1:2] * v_len, s[None, :, 2:3].expand_as(u_len)], -1)
+        return {"means": means, "quats": matrix_to_quat(R), "scales": scales}
+
+    def extra_repr(self) -> str:
+        return f"rows={self.rows}, cols={self.cols}, per_cell={self.per_cell}, gaussians={self.num_points}"
+

@@ -1,0 +1,125 @@
+"""The garment sheet (`sheet=skirt`): Gaussians bound to a deformable surface, beside the free Gaussians."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from hydra.utils import instantiate
+
+from realityavatar.body import build_body
+from realityavatar.config import compose
+from realityavatar.model.sheet import GarmentSheet
+
+
+@pytest.fixture(scope="module")
+def sheet():
+    return GarmentSheet(build_body("mannequin"), rows=3, cols=8, per_cell=3, profile="canonical")
+
+
+def test_sheet_gaussians_sit_on_their_cells_in_the_cells_frame(sheet):
+    V = sheet.vertices[None].double()
+    with torch.no_grad():
+        sheet.normal_offset.zero_()
+    placed = sheet.place(V)
+    c = V[0, sheet.corners]  # [M,4,3]
+    a, b = sheet.ab[:, 0:1].double(), sheet.ab[:, 1:2].double()
+    expect = (1 - a) * (1 - b) * c[:, 0] + a * (1 - b) * c[:, 1] + (1 - a) * b * c[:, 2] + a * b * c[:, 3]
+    assert torch.allclose(placed["means"][0], expect, atol=1e-12)
+    from realityavatar.geometry import quat_to_matrix
+
+    R = quat_to_matrix(placed["quats"][0])
+    assert torch.allclose(R.transpose(-1, -2) @ R, torch.eye(3, dtype=R.dtype).expand_as(R), atol=1e-6)
+    t_u = (1 - b) * (c[:, 1] - c[:, 0]) + b * (c[:, 3] - c[:, 2])
+    assert torch.allclose((R[..., 2] * t_u).sum(-1), torch.zeros(len(t_u), dtype=R.dtype), atol=1e-6)  # normal ⟂ ring
+    # the sheet opens: scaled by 2 about its centre, every tangent scale doubles, the normal scale does not
+    centre = V[0].mean(0)
+    wide = sheet.place(centre + 2 * (V - centre))
+    ratio = wide["scales"][0] / placed["scales"][0]
+    assert torch.allclose(ratio[:, :2], torch.full_like(ratio[:, :2], 2.0), rtol=1e-6)
+    assert torch.allclose(ratio[:, 2], torch.ones_like(ratio[:, 2]))
+
+
+def test_moving_one_vertex_moves_only_the_gaussians_of_its_cells(sheet):
+    V = sheet.vertices[None].clone()
+    k = sheet.cols + 2  # a vertex of the second ring
+    moved = V.clone()
+    moved[0, k] += torch.tensor([0.0, 0.0, 0.1])
+    d = (sheet.place(moved)["means"] - sheet.place(V)["means"]).norm(dim=-1)[0].detach()
+    touches = (sheet.corners == k).any(-1)
+    assert touches.sum() == 4 * sheet.per_cell  # a vertex inside the grid belongs to four cells
+    assert float(d[~touches].max()) == 0.0 and float(d[touches].min()) > 0.0
+
+
+def test_canonical_sheet_spans_the_hips_to_the_knees_around_the_body(sheet):
+    body = build_body("mannequin")
+    J = body.joints(body.canonical_pose()[None])[0]
+    axis = torch.nn.functional.normalize(J[12] - J[0], dim=0)
+    rel = sheet.vertices.reshape(sheet.rows + 1, sheet.cols, 3) - J[0]
+    h = rel @ axis
+    assert float(h[0].mean()) == pytest.approx(0.08, abs=1e-5)
+    assert float(h[-1].mean()) == pytest.approx(float(((J[[4, 5]] - J[0]) @ axis).mean()), abs=1e-5)
+    r = (rel - h[..., None] * axis).norm(dim=-1)
+    assert float(r.std(1).max()) < 1e-5  # each ring is a circle about the axis
+    verts = body.canonical_vertices()
+    hv = (verts - J[0]) @ axis
+    rv = (verts - J[0] - hv[:, None] * axis).norm(dim=-1)
+    knee = (hv - h[-1, 0]).abs() < 0.05
+    assert float(r[-1, 0]) > float(torch.quantile(rv[knee], 0.9))  # outside the legs
+    with pytest.raises(ValueError, match="bottom"):
+        GarmentSheet(body, profile="canonical", top_offset=-1.0)
+    with pytest.raises(ValueError, match="sheet.profile"):
+        GarmentSheet(body, profile="hull")
+
+
+def test_rest_sheet_is_laid_out_at_the_hem_and_poses_back_onto_its_layout(scenes_root):
+    """profile=rest on the CI scene's skirt: hem found in the rest frame's hull below the top ring, radii around
+    the legs; after canonicalise the module's own skinning poses the vertices back onto the layout."""
+    from realityavatar.build import build_data, build_module
+    from realityavatar.model.skinning import lbs_gaussians
+
+    cfg = compose(["data=synthetic_ci", "trainer=ci", "gaussians.num_points=300", "sheet=skirt", "sheet.rows=6",
+                   "sheet.cols=12", "sheet.per_cell=1"])
+    body = instantiate(cfg.body)
+    dm = build_data(cfg, body)
+    module = build_module(cfg, body, dm.num_train_frames, dm.scene_extent, data=dm)
+    sh = module.sheet
+    lay = sh.layout
+    assert lay["profile"] == "rest" and -0.9 < lay["bottom"] < 0.08 - 0.15
+    assert all(0.05 < r < 0.4 for r in lay["radii"])
+    assert not bool(sh.canonical_done)
+    module.on_fit_start()
+    assert bool(sh.canonical_done) and module.run_info["sheet"]["canonicalise"]["residual_max_m"] < 1e-3
+    A = body.canonical_transforms(sh.rest_pose[None], sh.rest_transl[None])
+    q = torch.zeros(1, sh.vertices.shape[0], 4)
+    q[..., 0] = 1.0
+    posed = lbs_gaussians(sh.vertices[None], q, module.skinning(sh.vertices[None]), A)[0][0]
+    assert float((posed - sh.posed_rest).norm(dim=-1).max()) < 1e-3
+    first = sh.vertices.clone()
+    module.on_fit_start()  # once per run
+    assert torch.equal(first, sh.vertices)
+
+
+def test_sheet_trains_beside_the_free_gaussians_and_reloads(scenes_root, tmp_path):
+    from realityavatar.build import load_run
+    from realityavatar.config import prepare_run
+    from realityavatar.train import run
+
+    assert compose([]).sheet.get("_target_") is None  # off by default
+    cfg, choices = prepare_run(compose(["data=synthetic_ci", "trainer=ci", "iterations=30", "sheet=skirt",
+                                        "sheet.rows=4", "sheet.cols=12", "sheet.per_cell=2",
+                                        "gaussians.num_points=300", "density.refine_start=5", "density.refine_every=5",
+                                        "eval.max_frames_per_split=1", "eval.save_video=false",
+                                        "eval.save_images=0"]), tmp_path / "run")
+    run(cfg, choices)
+    _, module, _ = load_run(tmp_path / "run")
+    assert module.sheet is not None and module.sheet.num_points == 4 * 12 * 2
+    import json
+
+    m = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    assert np.isfinite(m["test/novel_view/psnr"])
+    assert m["num_gaussians"] == module.gaussians.num_points  # density control edited the free Gaussians only
+    assert m["num_sheet_gaussians"] == 96 and m["sheet"]["profile"] == "rest"
+    assert not math.isclose(float(module.sheet.opacity_logits.std()), 0.0)  # the sheet was trained
