@@ -131,11 +131,20 @@ class AvatarModule(pl.LightningModule):
         B = poses.shape[0]
         f_p = self.encoder(poses, transl)  # [B,T,D]
         h_t = self.temporal(f_p)  # [B,H]
+        means, log_scales, quats, codes = g.means, g.log_scales, g.quats, getattr(g, "deform_codes", None)
+        N = g.num_points
+        if self.sheet is not None:
+            # the sheet's vertices ride along the free Gaussians through one decoder, skinning and LBS pass
+            V = self.sheet.vertices.to(means)
+            means = torch.cat([means, V])
+            log_scales = torch.cat([log_scales, V.new_zeros(V.shape)])
+            quats = torch.cat([quats, F.pad(V.new_ones(len(V), 1), (0, 3))])
+            codes = None if codes is None else torch.cat([codes, codes.new_zeros(len(V), codes.shape[1])])
         # Canonical warm-up: before deform_start the decoder is skipped and the offsets are the identity.
         # frame_idx and the Gaussians' codes reach the decoder's per-frame / per-Gaussian codes when it has them
-        out = (self.deformer(g.means, h_t, frame_idx, codes=getattr(g, "deform_codes", None)) if deform
-               else identity_deformation(B, g.means, self.deformer.feature_dim))
-        x_e, log_s_e, q_e = apply_deformation(g.means, g.log_scales, g.quats, out)  # [B,N,3],[B,N,3],[B,N,4]
+        out = (self.deformer(means, h_t, frame_idx, codes=codes) if deform
+               else identity_deformation(B, means, self.deformer.feature_dim))
+        x_e, log_s_e, q_e = apply_deformation(means, log_scales, quats, out)  # [B,N,3],[B,N,3],[B,N,4]
         w = self.skinning(x_e)  # [B,N,24]
         A = self.body.canonical_transforms(poses[:, -1], transl[:, -1])  # [B,24,4,4]
         means_o, quats_o, rot = lbs_gaussians(x_e, q_e, w, A)
@@ -149,42 +158,31 @@ class AvatarModule(pl.LightningModule):
             "weights": w,
             "x_e": x_e,
             "B": B,
-            "num_free": g.num_points,
+            "num_free": N,
         }
         if self.sheet is not None:
-            posed = self._with_sheet(posed, h_t, A, deform, frame_idx)
+            posed = self._sheet_gaussians(posed, N)
         return posed
 
-    def _with_sheet(self, posed: dict, h_t: torch.Tensor, A: torch.Tensor, deform: bool,
-                    frame_idx: torch.Tensor | None) -> dict:
-        """Append the garment sheet's Gaussians: its vertices go through the same decoder and skinning as the free
-        Gaussians, the sheet's Gaussians follow their cells (model/sheet.py)."""
+    def _sheet_gaussians(self, posed: dict, N: int) -> dict:
+        """Replace the sheet's vertices (entries N: of the per-point outputs) by the sheet's Gaussians, which
+        follow their cells (model/sheet.py): position, tangent frame and stretch from the posed vertices, the
+        canonical-to-posed rotation of the cell's first corner, the rest interpolated bilinearly."""
         sh = self.sheet
-        V = sh.vertices
-        B = A.shape[0]
-        code_dim = int(getattr(self.deformer, "gaussian_code_dim", 0))
-        codes = V.new_zeros(V.shape[0], code_dim) if code_dim > 0 else None
-        out = (self.deformer(V, h_t, frame_idx, codes=codes) if deform
-               else identity_deformation(B, V, self.deformer.feature_dim))
-        x_e = V + out["dx"]  # [B,P,3]
-        w = self.skinning(x_e)
-        q_id = torch.zeros_like(x_e[..., :1]).expand(B, V.shape[0], 4).clone()
-        q_id[..., 0] = 1.0
-        verts_o, _, rot_v = lbs_gaussians(x_e, q_id, w, A)
-        placed = sh.place(verts_o)
         first = sh.corners[:, 0]
-        extra = {
+        placed = sh.place(posed["means"][:, N:])
+        vert = {
             "means": placed["means"],
             "quats": placed["quats"],
             "scales": placed["scales"],
-            "rot": rot_v[:, first],
-            "f_mt": None if out.get("f_mt") is None else sh.interpolate(out["f_mt"]),
-            "weights": sh.interpolate(w),
-            "x_e": sh.interpolate(x_e),
+            "rot": posed["rot"][:, N:][:, first],
+            "f_mt": None if posed["f_mt"] is None else sh.interpolate(posed["f_mt"][:, N:]),
+            "weights": sh.interpolate(posed["weights"][:, N:]),
+            "x_e": sh.interpolate(posed["x_e"][:, N:]),
         }
-        for k, v in extra.items():
-            if v is not None and posed.get(k) is not None:
-                posed[k] = torch.cat([posed[k], v.to(posed[k])], dim=1)
+        for k, v in vert.items():
+            if v is not None:
+                posed[k] = torch.cat([posed[k][:, :N], v.to(posed[k])], dim=1)
         posed["opacities"] = torch.cat([posed["opacities"], sh.opacities().to(posed["opacities"])])
         return posed
 
