@@ -39,21 +39,23 @@ EXPECTED = {
     "scenes": (8, {"+variant": {"full", "no_lstm"}, "seed": {"0"},
                    "data": {"synthetic_sweep", "synthetic_sweep_dress_spin", "synthetic_sweep_skirt_flap",
                             "synthetic_sweep_dress_walk"}}),
-    "dynamics": (21, {"+garment": {"default", "no_silhouette", "no_grid", "no_shading", "no_hard_frames", "plus_hull",
-                                   "plus_graph"},
+    "dynamics": (24, {"+garment": {"default", "no_silhouette", "no_grid", "no_shading", "no_hard_frames", "plus_hull",
+                                   "plus_graph", "plus_sheet"},
                       "seed": SEEDS,
                       "data": {"synthetic_sweep"}}),
 }
-# conf/garment option -> (silhouette, skinning, gaussians, deformer, shading, sampler) it selects
-GARMENT_CHOICES = {"default": ("chamfer", "grid", "default", "motion_trend", "irradiance", "hard_frames"),
-                   "no_silhouette": ("none", "grid", "default", "motion_trend", "irradiance", "hard_frames"),
-                   "no_grid": ("chamfer", "mlp", "default", "motion_trend", "irradiance", "hard_frames"),
-                   "no_shading": ("chamfer", "grid", "default", "motion_trend", "none", "hard_frames"),
-                   "no_hard_frames": ("chamfer", "grid", "default", "motion_trend", "irradiance", "uniform"),
-                   "plus_hull": ("chamfer", "grid", "hull", "motion_trend", "irradiance", "hard_frames"),
-                   "plus_graph": ("chamfer", "grid", "default", "motion_trend_nodes", "irradiance", "hard_frames"),
-                   "all": ("chamfer", "grid", "hull", "motion_trend_nodes", "irradiance", "hard_frames"),
-                   "none": ("none", "mlp", "default", "motion_trend", "none", "uniform")}
+# conf/garment option -> (silhouette, skinning, gaussians, deformer, shading, sampler, sheet) it selects
+GARMENT_CHOICES = {"default": ("chamfer", "grid", "default", "motion_trend", "irradiance", "hard_frames", "none"),
+                   "no_silhouette": ("none", "grid", "default", "motion_trend", "irradiance", "hard_frames", "none"),
+                   "no_grid": ("chamfer", "mlp", "default", "motion_trend", "irradiance", "hard_frames", "none"),
+                   "no_shading": ("chamfer", "grid", "default", "motion_trend", "none", "hard_frames", "none"),
+                   "no_hard_frames": ("chamfer", "grid", "default", "motion_trend", "irradiance", "uniform", "none"),
+                   "plus_hull": ("chamfer", "grid", "hull", "motion_trend", "irradiance", "hard_frames", "none"),
+                   "plus_graph": ("chamfer", "grid", "default", "motion_trend_nodes", "irradiance", "hard_frames",
+                                  "none"),
+                   "plus_sheet": ("chamfer", "grid", "default", "motion_trend", "irradiance", "hard_frames", "skirt"),
+                   "all": ("chamfer", "grid", "hull", "motion_trend_nodes", "irradiance", "hard_frames", "skirt"),
+                   "none": ("none", "mlp", "default", "motion_trend", "none", "uniform", "none")}
 VARIANT_CHOICES = {"full": ("latentbone", "lstm"), "no_zc": ("no_zc", "lstm"),
                    "no_lstm": ("latentbone", "none"), "no_split": ("no_split", "lstm")}
 # Option names fixed by the project; a stand-in tree with exactly these lets the sweep files be checked on
@@ -63,7 +65,7 @@ GROUPS = {
              "synthetic_sweep_skirt_flap", "synthetic_sweep_dress_walk"], "sampler": ["uniform", "hard_frames"], "body": ["mannequin", "smpl"],
     "gaussians": ["default", "hull"], "encoder": ["latentbone", "no_split", "no_zc"], "temporal": ["lstm", "gru", "none"],
     "deformer": ["motion_trend", "motion_trend_nodes"], "silhouette": ["chamfer", "none"], "skinning": ["mlp", "grid"], "color": ["mlp", "sh"],
-    "shading": ["irradiance", "none"], "density": ["default", "off"],
+    "shading": ["irradiance", "none"], "density": ["default", "off"], "sheet": ["none", "skirt"],
     "loss": ["default"], "render": ["torch", "gsplat", "auto"], "optim": ["default"], "trainer": ["cpu", "gpu", "ci"],
 }
 
@@ -135,7 +137,7 @@ def test_sweep_expands_to_expected_jobs(standin_conf, name):
             assert (choices["encoder"], choices["temporal"]) == VARIANT_CHOICES[ov["+variant"]]
         if "+garment" in ov:
             assert (choices["silhouette"], choices["skinning"], choices["gaussians"], choices["deformer"],
-                    choices["shading"], choices["sampler"]) == GARMENT_CHOICES[ov["+garment"]]
+                    choices["shading"], choices["sampler"], choices["sheet"]) == GARMENT_CHOICES[ov["+garment"]]
         for key in ("temporal", "color", "density", "render", "trainer", "data"):
             if key in ov:
                 assert choices[key] == ov[key]
@@ -171,7 +173,7 @@ def test_sweep_jobs_compose_in_the_real_tree(name):
             assert (choices["encoder"], choices["temporal"]) == VARIANT_CHOICES[ov["+variant"]]
         if "+garment" in ov:
             assert (choices["silhouette"], choices["skinning"], choices["gaussians"], choices["deformer"],
-                    choices["shading"], choices["sampler"]) == GARMENT_CHOICES[ov["+garment"]]
+                    choices["shading"], choices["sampler"], choices["sheet"]) == GARMENT_CHOICES[ov["+garment"]]
         for key in ("temporal", "color", "density", "render", "trainer", "data"):
             if key in ov:
                 assert choices[key] == ov[key]
