@@ -123,3 +123,24 @@ def test_sheet_trains_beside_the_free_gaussians_and_reloads(scenes_root, tmp_pat
     assert m["num_gaussians"] == module.gaussians.num_points  # density control edited the free Gaussians only
     assert m["num_sheet_gaussians"] == 96 and m["sheet"]["profile"] == "rest"
     assert not math.isclose(float(module.sheet.opacity_logits.std()), 0.0)  # the sheet was trained
+
+
+def test_export_and_viewer_frames_carry_the_sheet(scenes_root):
+    """A run with a sheet exports (and the viewer streams) the free Gaussians and the sheet's, canonical and posed,
+    every field with the same count."""
+    from realityavatar.build import build_data, build_module
+    from realityavatar.export import gaussians_for_export
+
+    cfg = compose(["data=synthetic_ci", "trainer=ci", "gaussians.num_points=300", "sheet=skirt", "sheet.rows=4",
+                   "sheet.cols=12", "sheet.per_cell=2"])
+    body = instantiate(cfg.body)
+    dm = build_data(cfg, body)
+    module = build_module(cfg, body, dm.num_train_frames, dm.scene_extent, data=dm)
+    n = module.gaussians.num_points + module.sheet.num_points
+    batch = next(iter(dm.train_dataloader()))
+    for poses, transl in ((None, None), (batch["poses"][0], batch["transl"][0])):
+        out = gaussians_for_export(module, poses, transl)
+        assert {k: v.shape[0] for k, v in out.items()} == {k: n for k in out}, {k: v.shape for k, v in out.items()}
+        assert np.isfinite(out["means"]).all() and np.isfinite(out["rgb"]).all()
+    can = gaussians_for_export(module)["means"][module.gaussians.num_points:]
+    assert np.allclose(can, module.sheet.place(module.sheet.vertices[None])["means"][0].detach().numpy(), atol=1e-6)

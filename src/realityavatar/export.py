@@ -100,28 +100,31 @@ def gaussians_for_export(module, poses: torch.Tensor | None = None, transl: torc
     g = module.gaussians
     dev, dt = g.means.device, g.means.dtype
     frame_idx = torch.full((1,), -1, dtype=torch.long, device=dev)
+    feats = module.all_features()  # the free Gaussians, then a garment sheet's (sheet=skirt)
     if poses is None:
-        means, quats, scales = g.means, g.quats, torch.exp(g.log_scales)
-        rot = torch.eye(3, device=dev, dtype=dt).expand(g.num_points, 3, 3)[None]
-        f_mt = g.means.new_zeros(1, g.num_points, module.deformer.feature_dim)  # canonical: no motion-trend feature
-        x_e = g.means[None]
+        can = module.canonical_gaussians()
+        means, quats, scales, opacities = can["means"], can["quats"], can["scales"], can["opacities"]
+        N = means.shape[0]
+        rot = torch.eye(3, device=dev, dtype=dt).expand(N, 3, 3)[None]
+        f_mt = g.means.new_zeros(1, N, module.deformer.feature_dim)  # canonical: no motion-trend feature
+        x_e = means[None]
     else:
         posed = module.deform(poses[None].to(dev, dt), transl[None].to(dev, dt))
         means, quats, scales, rot, f_mt = posed["means"][0], posed["quats"][0], posed["scales"][0], posed["rot"], posed["f_mt"]
-        x_e = posed["x_e"]
+        x_e, opacities, N = posed["x_e"], posed["opacities"], posed["means"].shape[1]
     light = module.shading(x_e, rot)  # world-fixed light [1,N,3] (shading=irradiance), or None
-    out = {"means": means, "quats": quats, "scales": scales, "opacities": g.opacities()}
+    out = {"means": means, "quats": quats, "scales": scales, "opacities": opacities}
     sh_coeffs = getattr(module.color, "sh_coefficients", None)
     if callable(sh_coeffs) and poses is None and light is None:
-        out["sh"] = sh_coeffs(g.features)
+        out["sh"] = sh_coeffs(feats)
     else:
         # One direction at a time: a [6,N,hidden] batch is slower on the CPU at 35k Gaussians (cache), not faster.
         dirs = torch.tensor([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], dtype=dt, device=dev)
         rgb = 0
         for d in dirs:
             d_c = (rot.transpose(-1, -2) @ d[:, None]).squeeze(-1)  # canonical view dir per Gaussian [1,N,3]
-            d_c = torch.nn.functional.normalize(d_c.expand(1, g.num_points, 3), dim=-1)
-            rgb = rgb + module.color(g.features, d_c, f_mt, frame_idx)[0]
+            d_c = torch.nn.functional.normalize(d_c.expand(1, N, 3), dim=-1)
+            rgb = rgb + module.color(feats, d_c, f_mt, frame_idx)[0]
         rgb = rgb / len(dirs)
         out["rgb"] = (rgb if light is None else rgb * light[0]).clamp(0, 1)
     return {k: v.detach().cpu().float().numpy() for k, v in out.items()}

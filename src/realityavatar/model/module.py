@@ -220,12 +220,26 @@ class AvatarModule(pl.LightningModule):
         d = F.normalize(posed["means"] - cam_centre[:, None, :], dim=-1)  # [B,N,3] posed view dir
         # Canonicalise: undo each Gaussian's blended skinning rotation.
         d_c = (posed["rot"].transpose(-1, -2) @ d[..., None]).squeeze(-1)
-        feats = self.gaussians.features
-        if self.sheet is not None:
-            feats = torch.cat([feats, self.sheet.features.to(feats)])
-        rgb = self.color(feats, F.normalize(d_c, dim=-1), posed["f_mt"], frame_idx)
+        rgb = self.color(self.all_features(), F.normalize(d_c, dim=-1), posed["f_mt"], frame_idx)
         light = self.shading(posed["x_e"], posed["rot"])  # world-fixed light (shading=irradiance), or None
         return rgb if light is None else rgb * light
+
+    def all_features(self) -> torch.Tensor:
+        """Colour features of every rendered Gaussian: the free ones, then the garment sheet's [N(+M),F]."""
+        feats = self.gaussians.features
+        return feats if self.sheet is None else torch.cat([feats, self.sheet.features.to(feats)])
+
+    def canonical_gaussians(self) -> dict:
+        """Every rendered Gaussian in canonical space (the free ones, then the sheet's placed on its canonical
+        vertices): means [N,3], quats [N,4], scales [N,3], opacities [N]."""
+        g = self.gaussians
+        out = {"means": g.means, "quats": g.quats, "scales": torch.exp(g.log_scales),
+               "opacities": g.opacities()}
+        if self.sheet is not None:
+            placed = self.sheet.place(self.sheet.vertices[None].to(g.means))
+            out = {k: torch.cat([v, (placed[k][0] if k in placed else self.sheet.opacities()).to(v)])
+                   for k, v in out.items()}
+        return out
 
     def splat(self, posed: dict, b: int, rgb: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor, W: int, H: int):
         """Rasterize sample b of `posed` with colours rgb [N,D] from one camera (viewmat [1,4,4], K [1,3,3]);
