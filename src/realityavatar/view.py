@@ -429,7 +429,7 @@ def main(argv: list[str] | None = None, block: bool = True) -> int:
     except ViewerError as e:
         print(f"realityavatar-view: {e}", file=sys.stderr)
         return 2
-    print(f"realityavatar-view: {viewer.url}  ({len(viewer.module.canonical_gaussians()["means"])} Gaussians, ready in "
+    print(f"realityavatar-view: {viewer.url}  ({len(viewer.module.canonical_gaussians()['means'])} Gaussians, ready in "
           f"{time.perf_counter() - t0:.1f} s; Ctrl-C stops)", flush=True)
     if not block:
         viewer.close()
