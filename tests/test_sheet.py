@@ -144,3 +144,18 @@ def test_export_and_viewer_frames_carry_the_sheet(scenes_root):
         assert np.isfinite(out["means"]).all() and np.isfinite(out["rgb"]).all()
     can = gaussians_for_export(module)["means"][module.gaussians.num_points:]
     assert np.allclose(can, module.sheet.place(module.sheet.vertices[None])["means"][0].detach().numpy(), atol=1e-6)
+
+
+def test_a_cell_torn_open_caps_its_gaussians_stretch():
+    """Under a pose the garment cannot follow (a cell pulled 20x its size) the tangent scales stop at max_stretch
+    times the canonical cell's; below the cap they follow the cell."""
+    sh = GarmentSheet(build_body("mannequin"), rows=3, cols=8, per_cell=2, profile="canonical", max_stretch=5.0)
+    V = sh.vertices[None]
+    centre = V[0].mean(0)
+    base = sh.place(V)["scales"][0].detach()
+    for k, expect in ((3.0, 3.0), (20.0, 5.0)):
+        got = sh.place(centre + k * (V - centre))["scales"][0].detach()
+        assert torch.allclose(got[:, :2] / base[:, :2], torch.full_like(got[:, :2], expect), rtol=1e-5)
+    free = GarmentSheet(build_body("mannequin"), rows=3, cols=8, per_cell=2, profile="canonical", max_stretch=0)
+    got = free.place(centre + 20.0 * (V - centre))["scales"][0].detach()
+    assert torch.allclose(got[:, :2] / base[:, :2], torch.full_like(got[:, :2], 20.0), rtol=1e-5)

@@ -47,7 +47,7 @@ class GarmentSheet(nn.Module):
                  bottom_joints: tuple[int, ...] = (4, 5), bottom_offset: float = 0.0, hull_frame: int | None = None,
                  hull_voxel: float = 0.015, hull_quantile: float = 0.25, feature_dim: int = 32,
                  init_opacity: float = 0.1, normal_scale: float = 0.005, feature_init_std: float = 0.01,
-                 seed: int = 0, views=None) -> None:
+                 seed: int = 0, max_stretch: float = 5.0, views=None) -> None:
         super().__init__()
         if rows < 1 or cols < 3 or per_cell < 1:
             raise ValueError(f"sheet: expected rows >= 1, cols >= 3, per_cell >= 1, got {rows}, {cols}, {per_cell}")
@@ -60,6 +60,7 @@ class GarmentSheet(nn.Module):
         if not 0.0 <= hull_quantile <= 1.0:
             raise ValueError(f"sheet.hull_quantile: expected a value in [0,1], got {hull_quantile}")
         self.rows, self.cols, self.per_cell = int(rows), int(cols), int(per_cell)
+        self.max_stretch = float(max_stretch)  # <= 0: unbounded
         self.feature_dim = int(feature_dim)
         self.profile, self.hull_frame = profile, hull_frame  # hull_frame: read by build_module
         # profile=rest keeps its layout (posed) and that frame's pose for `canonicalise`; both are checkpointed
@@ -234,21 +235,32 @@ class GarmentSheet(nn.Module):
         w = torch.cat([(1 - a) * (1 - b), a * (1 - b), (1 - a) * b, a * b], dim=-1)  # [M,4]
         return (c * w[None, :, :, None]).sum(2)
 
-    def place(self, verts: torch.Tensor) -> dict[str, torch.Tensor]:
-        """Vertex positions [B,P,3] -> the Gaussians' means [B,M,3], quats [B,M,4] (the cell's tangent frame) and
-        scales [B,M,3] (stretched with the cell)."""
+    def _cell_frame(self, verts: torch.Tensor):
+        """Each Gaussian's tangent frame at its place in its cell (e1 along the ring, e2 down the sheet, e3 the
+        normal, each [B,M,3]) and the cell's extent along e1 and e2 there [B,M,1]."""
         c = verts[:, self.corners]  # [B,M,4,3]
         a, b = self.ab[:, 0, None].to(verts), self.ab[:, 1, None].to(verts)
-        t_u = (1 - b) * (c[:, :, 1] - c[:, :, 0]) + b * (c[:, :, 3] - c[:, :, 2])  # [B,M,3]
+        t_u = (1 - b) * (c[:, :, 1] - c[:, :, 0]) + b * (c[:, :, 3] - c[:, :, 2])
         t_v = (1 - a) * (c[:, :, 2] - c[:, :, 0]) + a * (c[:, :, 3] - c[:, :, 1])
         u_len = t_u.norm(dim=-1, keepdim=True).clamp_min(1e-8)
         e1 = t_u / u_len
         v_perp = t_v - (t_v * e1).sum(-1, keepdim=True) * e1
         v_len = v_perp.norm(dim=-1, keepdim=True).clamp_min(1e-8)
         e2 = v_perp / v_len
-        e3 = torch.linalg.cross(e1, e2, dim=-1)
+        return e1, e2, torch.linalg.cross(e1, e2, dim=-1), u_len, v_len
+
+    def place(self, verts: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Vertex positions [B,P,3] -> the Gaussians' means [B,M,3], quats [B,M,4] (the cell's tangent frame) and
+        scales [B,M,3] (stretched with the cell, at most `max_stretch` times the canonical cell's: a cell torn open
+        by a pose the garment cannot follow, legs spread far apart, leaves a gap instead of a metre-long smear)."""
+        e1, e2, e3, u_len, v_len = self._cell_frame(verts)
         R = torch.stack([e1, e2, e3], dim=-1)  # [B,M,3,3], columns = the frame
         means = self.interpolate(verts) + self.normal_offset[None, :, None] * e3
+        if self.max_stretch > 0:
+            with torch.no_grad():
+                cu, cv = self._cell_frame(self.vertices[None].to(verts))[3:]
+            u_len = torch.minimum(u_len, self.max_stretch * cu)
+            v_len = torch.minimum(v_len, self.max_stretch * cv)
         s = self.log_scales.exp()
         scales = torch.cat([s[None, :, 0:1] * u_len, s[None, :, 1:2] * v_len, s[None, :, 2:3].expand_as(u_len)], -1)
         return {"means": means, "quats": matrix_to_quat(R), "scales": scales}
