@@ -47,7 +47,7 @@ class GarmentSheet(nn.Module):
                  bottom_joints: tuple[int, ...] = (4, 5), bottom_offset: float = 0.0, hull_frame: int | None = None,
                  hull_voxel: float = 0.015, hull_quantile: float = 0.25, feature_dim: int = 32,
                  init_opacity: float = 0.1, normal_scale: float = 0.005, feature_init_std: float = 0.01,
-                 seed: int = 0, max_stretch: float = 5.0, views=None) -> None:
+                 seed: int = 0, max_stretch: float = 16.0, views=None) -> None:
         super().__init__()
         if rows < 1 or cols < 3 or per_cell < 1:
             raise ValueError(f"sheet: expected rows >= 1, cols >= 3, per_cell >= 1, got {rows}, {cols}, {per_cell}")
