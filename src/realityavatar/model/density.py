@@ -122,19 +122,23 @@ class DensityControl:
         W, H = image_size
         # gsplat's rule: the loss is a mean over the batch's images, so each image's means2d gradient is scaled back
         # by their number (C cameras in one meta, or one meta per sample of a multi-image batch: frame_views).
-        n_images = sum(int(m["means2d"].reshape(-1, N, 2).shape[0]) for m in metas if m["means2d"].grad is not None)
+        # A render may hold more Gaussians than these N (a garment sheet's follow the free ones): the first N are
+        # the ones density control edits.
+        n_images = sum(int(m["means2d"].reshape(-1, m["means2d"].shape[-2], 2).shape[0]) for m in metas
+                       if m["means2d"].grad is not None)
         for meta in metas:
             m2d = meta["means2d"]
             if m2d.grad is None:
                 continue
-            g = m2d.grad.detach().reshape(-1, N, 2).clone()  # [C,N,2]
+            P = m2d.shape[-2]  # Gaussians rendered
+            g = m2d.grad.detach().reshape(-1, P, 2)[:, :N].clone()  # [C,N,2]
             C = g.shape[0]
             g[..., 0] *= W / 2.0 * n_images
             g[..., 1] *= H / 2.0 * n_images
             if "radii" in meta:
-                vis = meta["radii"].reshape(C, N, -1).amax(-1) > 0  # [C,N]
+                vis = meta["radii"].reshape(C, P, -1)[:, :N].amax(-1) > 0  # [C,N]
             else:
-                vis = meta["visible"].reshape(C, N)
+                vis = meta["visible"].reshape(C, P)[:, :N]
             self.grad2d += (g.norm(dim=-1) * vis).sum(0)
             self.count += vis.sum(0).to(self.count.dtype)
 

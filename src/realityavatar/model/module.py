@@ -158,7 +158,6 @@ class AvatarModule(pl.LightningModule):
             "weights": w,
             "x_e": x_e,
             "B": B,
-            "num_free": N,
         }
         if self.sheet is not None:
             posed = self._sheet_gaussians(posed, N)
@@ -364,8 +363,7 @@ class AvatarModule(pl.LightningModule):
                     sil[k] = sil.get(k, 0.0) + v / rgb.shape[0]
                 pulled = getattr(self.silhouette, "last_pulled", None)
                 if pulled is not None and hasattr(self.density, "observe_coverage"):
-                    pulled = pulled[pulled < self.gaussians.num_points]  # the sheet's Gaussians are a fixed set
-                    self.density.observe_coverage(pulled, self.gaussians.num_points)
+                    self.density.observe_coverage(pulled, self.gaussians.num_points)  # counts the free ones only
             if sil:
                 total = total + self.silhouette.total(sil)
                 terms.update({k: v.detach() for k, v in sil.items()})
@@ -384,8 +382,6 @@ class AvatarModule(pl.LightningModule):
         H, W = rgb.shape[1:3]
         # What actually rendered (gsplat may have fallen back to torch), reported in metrics.json.
         self.run_info["render"] = {"backend": metas[0]["backend"], "device": str(rgb.device), "dtype": str(rgb.dtype)}
-        if self.sheet is not None:
-            metas = [_free_part(m, self.gaussians.num_points) for m in metas]
         stats = self.density.step_post_backward(self.gaussians, opt.optimizer if hasattr(opt, "optimizer") else opt, metas, step, (W, H))
         bs = rgb.shape[0]
         self.log("train/loss", total.detach(), prog_bar=True, batch_size=bs)
@@ -520,21 +516,6 @@ def check_single_process(trainer: Any) -> None:
             "for one run; RealityAvatar trains one avatar per process. Scale with one run per GPU through a hydra "
             "launcher (hydra/launcher=joblib, hydra/launcher=slurm_gpu) and keep trainer.devices=1"
         )
-
-
-def _free_part(meta: dict, n: int) -> dict:
-    """A render's meta cut to the first n Gaussians (the free ones, which density control edits), means2d's
-    gradient with it."""
-    out = dict(meta)
-    m2d = meta["means2d"]
-    part = m2d.detach()[..., :n, :].clone()
-    if m2d.grad is not None:
-        part.grad = m2d.grad[..., :n, :].clone()
-    out["means2d"] = part
-    for k in ("radii", "radii_xy", "visible", "depths", "conics", "opacities", "compensations"):
-        if torch.is_tensor(meta.get(k)) and meta[k].dim() >= 2:
-            out[k] = meta[k][:, :n]
-    return out
 
 
 def identity_deformation(B: int, means: torch.Tensor, feature_dim: int) -> dict:
