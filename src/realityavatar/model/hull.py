@@ -65,6 +65,31 @@ def carve(views: HullViews, lo: np.ndarray, hi: np.ndarray, voxel: float) -> np.
     return X[grid & ~interior]
 
 
+def body_and_hull(body, views: HullViews, voxel: float, margin: float = 0.45,
+                  what: str = "gaussians=hull") -> tuple[np.ndarray, np.ndarray]:
+    """The views' frame: its posed body vertices [V,3] and the surface voxels of its visual hull inside the body's
+    box widened by `margin` (0.05 m up and down) [P,3], both float64; an empty hull raises, naming `what`."""
+    pose, transl = views.pose.float(), views.transl.float()
+    verts = body.posed_vertices(pose, transl).cpu().numpy().astype(np.float64)  # [V,3]
+    lo = verts.min(0) - np.array([margin, 0.05, margin])
+    hi = verts.max(0) + np.array([margin, 0.05, margin])
+    surf = carve(views, lo, hi, voxel)
+    if len(surf) == 0:
+        raise ValueError(f"{what}: the visual hull of frame {views.frame} is empty; check the masks "
+                         "and cameras of the training split")
+    return verts, surf
+
+
+def to_canonical(body, views: HullViews, x: torch.Tensor, nearest) -> torch.Tensor:
+    """Points x [n,3] posed in the views' frame -> canonical space [n,3], by inverse LBS with the weights of each
+    point's nearest body vertex (indices `nearest` [n])."""
+    A = body.canonical_transforms(views.pose.float(), views.transl.float())  # [24,4,4] canonical -> posed
+    w = body.skin_weights.cpu()[torch.as_tensor(nearest)]  # [n,24]
+    T = torch.einsum("nj,jab->nab", w, A.cpu())  # [n,4,4]
+    xh = torch.cat([x, torch.ones(len(x), 1)], -1)[..., None]
+    return (torch.linalg.inv(T) @ xh)[:, :3, 0]
+
+
 def garment_points(body, views: HullViews, n: int, voxel: float = 0.015, min_body_distance: float = 0.02,
                    max_body_distance: float = 0.6, exclude_bones=(), margin: float = 0.45,
                    generator: torch.Generator | None = None) -> torch.Tensor:
@@ -78,14 +103,7 @@ def garment_points(body, views: HullViews, n: int, voxel: float = 0.015, min_bod
     from scipy.spatial import cKDTree
 
     with torch.no_grad():
-        pose, transl = views.pose.float(), views.transl.float()
-        verts = body.posed_vertices(pose, transl).cpu().numpy().astype(np.float64)  # [V,3]
-        lo = verts.min(0) - np.array([margin, 0.05, margin])
-        hi = verts.max(0) + np.array([margin, 0.05, margin])
-        surf = carve(views, lo, hi, voxel)
-        if len(surf) == 0:
-            raise ValueError(f"gaussians=hull: the visual hull of frame {views.frame} is empty; check the masks "
-                             "and cameras of the training split")
+        verts, surf = body_and_hull(body, views, voxel, margin)
         dist, nearest = cKDTree(verts).query(surf)
         keep = (dist > min_body_distance) & (dist < max_body_distance)
         if len(exclude_bones):
@@ -97,8 +115,4 @@ def garment_points(body, views: HullViews, n: int, voxel: float = 0.015, min_bod
         pick = torch.randint(0, len(surf), (n,), generator=generator).numpy()
         jitter = (torch.rand(n, 3, generator=generator).numpy() - 0.5) * voxel
         x = torch.from_numpy(surf[pick] + jitter).float()  # [n,3] posed
-        A = body.canonical_transforms(pose, transl)  # [24,4,4] canonical -> posed
-        w = body.skin_weights.cpu()[torch.from_numpy(nearest[pick])]  # [n,24]
-        T = torch.einsum("nj,jab->nab", w, A.cpu())  # [n,4,4]
-        xh = torch.cat([x, torch.ones(n, 1)], -1)[..., None]
-        return (torch.linalg.inv(T) @ xh)[:, :3, 0]
+        return to_canonical(body, views, x, nearest[pick])

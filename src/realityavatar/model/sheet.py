@@ -142,17 +142,13 @@ class GarmentSheet(nn.Module):
         import numpy as np
         from scipy.spatial import cKDTree
 
-        from realityavatar.model.hull import carve
+        from realityavatar.model.hull import body_and_hull, to_canonical
 
         with torch.no_grad():
             pose, transl = views.pose.float(), views.transl.float()
-            verts = body.posed_vertices(pose, transl).cpu().double()
+            verts_np, surf = body_and_hull(body, views, voxel, what="sheet.profile=rest")
+            verts = torch.from_numpy(verts_np)
             J = body.joints(pose, transl).cpu().double()
-            pad = torch.tensor([0.45, 0.05, 0.45], dtype=torch.float64)
-            surf = carve(views, (verts.min(0).values - pad).numpy(), (verts.max(0).values + pad).numpy(), voxel)
-            if len(surf) == 0:
-                raise ValueError(f"sheet.profile=rest: the visual hull of frame {views.frame} is empty; check the "
-                                 "masks and cameras of the training split")
             origin, axis = J[0], F.normalize(J[12] - J[0], dim=0)
             e1, e2 = self._frame(origin, axis)
             bins = torch.linspace(-math.pi, math.pi, 17, dtype=torch.float64)
@@ -183,10 +179,7 @@ class GarmentSheet(nn.Module):
             shape_c = hull_c if radius_from == "hull" else cylindrical(verts)
             radii = torch.tensor([radius(shape_c, float(hj), band) + margin for hj in heights], dtype=torch.float64)
             posed = self._rings(origin, axis, heights, radii).reshape(-1, 3).float()
-            nearest = torch.from_numpy(cKDTree(verts.numpy()).query(posed.numpy())[1])
-            A = body.canonical_transforms(pose, transl).cpu().float()  # [24,4,4] canonical -> posed
-            T = torch.einsum("nj,jab->nab", body.skin_weights.cpu().float()[nearest], A)
-            canon = (torch.linalg.inv(T) @ torch.cat([posed, torch.ones(len(posed), 1)], -1)[..., None])[:, :3, 0]
+            canon = to_canonical(body, views, posed, cKDTree(verts_np).query(posed.numpy())[1])
             self.posed_rest = posed
             self.rest_pose, self.rest_transl = pose.detach().clone(), transl.detach().clone()
             self.canonical_done = torch.tensor(False)
