@@ -75,10 +75,11 @@ def per_frame_sequence(module, dm, split: str, view: int | None):
 
 
 @torch.no_grad()
-def extreme_poses(module, dm, n: int = 48, seed: int = 0) -> dict:
-    """Joint-limit poses and very fast spins: finite output, Gaussian scale/opacity/offset statistics."""
+def extreme_poses(module, dm, n: int = 48, seed: int = 0, show: int = 6) -> dict:
+    """Joint-limit poses and very fast spins: finite output, Gaussian scale/opacity/offset statistics, and renders
+    of the first `show` joint-limit poses (`_renders`, uint8 [show,H,W,3]; not written to the JSON)."""
     g = torch.Generator().manual_seed(seed)
-    T, s = dm.window_len, max(dm.window_step, 1)
+    T = dm.window_len
     _, poses, transl = dm.pose_sequence("train")
     base, base_t = poses[0], transl[0]
     windows, trans = [], []
@@ -98,22 +99,62 @@ def extreme_poses(module, dm, n: int = 48, seed: int = 0) -> dict:
         windows.append(w)
         trans.append(base_t.expand(T, 3))
     poses_w, transl_w = torch.stack(windows), torch.stack(trans)
+    renders = render_poses(module, dm, poses_w[0:2 * show:2], transl_w[0:2 * show:2])  # the first joint-limit poses
     posed = module.deform(poses_w, transl_w)
     joints = module.body.joints(poses_w[:, -1], transl_w[:, -1])  # [n,24,3]
     dist = torch.cdist(posed["means"], joints).min(-1).values  # [n,N] distance to the nearest joint
     finite = bool(torch.isfinite(posed["means"]).all() and torch.isfinite(posed["scales"]).all())
     canonical_scale = float(module.canonical_gaussians()["scales"].max())  # free Gaussians and a sheet's
+    trained_scale = training_scale_max(module, dm)
     return {
         "poses": n,
         "finite": finite,
         "max_scale_m": float(posed["scales"].max()),
         "max_canonical_scale_m": canonical_scale,
         "scale_growth": float(posed["scales"].max() / max(canonical_scale, 1e-12)),
+        "max_training_scale_m": trained_scale,
+        "scale_growth_vs_training": float(posed["scales"].max() / max(trained_scale, 1e-12)),
         "opacity_mean": float(posed["opacities"].mean()),
         "opacity_p99": float(posed["opacities"].quantile(0.99)),
         "max_dist_to_joint_m": float(dist.max()),
         "frac_gaussians_over_0.6m_from_joints": float((dist > 0.6).float().mean()),
+        "_renders": renders,
     }
+
+
+@torch.no_grad()
+def render_poses(module, dm, poses_w: torch.Tensor, transl_w: torch.Tensor) -> np.ndarray:
+    """Pose windows [K,T,24,3] / [K,T,3] rendered from the first held-out camera (else a training one), with the
+    mean appearance latent (frame_idx -1, as a novel pose): uint8 [K,H,W,3]."""
+    ds = dm.datasets["novel_view" if "novel_view" in dm.datasets else "train"]
+    batch = default_collate([ds[0]])
+    out = []
+    for w, t in zip(poses_w, transl_w):
+        b = {**batch, "poses": w[None], "transl": t[None], "frame_idx": torch.full_like(batch["frame_idx"], -1)}
+        rgb = module.render_batch(b)[0][0].clamp(0, 1)
+        out.append((rgb.numpy() * 255).round().astype(np.uint8))
+    return np.stack(out)
+
+
+@torch.no_grad()
+def training_scales(module, dm, batch: int = 16) -> dict[int, float]:
+    """The largest posed Gaussian scale of every training frame (its own pose window): what the model itself does
+    with the poses it was trained on (a garment sheet stretches its cells at peak flare), the reference for the
+    extreme poses."""
+    ds = dm.datasets["train"]
+    first: dict[int, int] = {}
+    for i, rec in enumerate(ds.records):
+        first.setdefault(int(rec.frame), i)
+    frames, out = list(first), {}
+    for k in range(0, len(frames), batch):
+        b = default_collate([ds[first[f]] for f in frames[k:k + batch]])
+        s = module.deform(b["poses"], b["transl"])["scales"].flatten(1).max(1).values
+        out.update({f: float(v) for f, v in zip(frames[k:k + batch], s)})
+    return out
+
+
+def training_scale_max(module, dm) -> float:
+    return max(training_scales(module, dm).values())
 
 
 @torch.no_grad()
@@ -140,7 +181,7 @@ def pose_noise(module, dm, view: int | None, sigmas=NOISE_SIGMAS, seed: int = 0)
 def analyse_run(run: Path, view: int | None, window: int) -> dict:
     from realityavatar.build import build_data, load_run
 
-    cfg, module, info = load_run(run)
+    cfg, module, _ = load_run(run)
     torch.manual_seed(0)
     dm = build_data(cfg, module.body)
     metrics = json.loads((run / "metrics.json").read_text())
@@ -186,7 +227,22 @@ def write_report(results: list[dict], out: Path, command: str) -> None:
     import matplotlib.pyplot as plt
 
     out.mkdir(parents=True, exist_ok=True)
+    renders = [r["extreme"].pop("_renders", None) for r in results]
     (out / "stability.json").write_text(json.dumps(results, indent=1))
+    shown = [(r, im) for r, im in zip(results, renders) if im is not None and len(im)]
+    if shown:  # the first joint-limit poses of every run: where a model breaks, it shows here
+        k = max(len(im) for _, im in shown)
+        fig, axes = plt.subplots(len(shown), k, figsize=(2 * k, 2.1 * len(shown)), squeeze=False)
+        for row, (r, im) in enumerate(shown):
+            for c in range(k):
+                ax = axes[row, c]
+                ax.axis("off")
+                if c < len(im):
+                    ax.imshow(im[c])
+            axes[row, 0].set_title(f"{r['label']} seed {r['seed']}", fontsize=8, loc="left")
+        fig.tight_layout()
+        fig.savefig(out / "extreme_poses.png", dpi=90)
+        plt.close(fig)
     by = defaultdict(list)
     for r in results:
         by[r["label"]].append(r)
@@ -208,9 +264,10 @@ def write_report(results: list[dict], out: Path, command: str) -> None:
     fig.savefig(out / "stability.png", dpi=110)
     plt.close(fig)
 
-    L = ["# Stability report", "", f"Generated by `{command}` from {len(results)} runs "
-         f"(commits: {', '.join(sorted({json.loads(Path(r['run'], 'metrics.json').read_text()).get('commit', '?') for r in results}))}).", "",
+    commits = ", ".join(sorted({json.loads(Path(r["run"], "metrics.json").read_text()).get("commit", "?") for r in results}))
+    L = ["# Stability report", "", f"Generated by `{command}` from {len(results)} runs (commits: {commits}).", "",
          "![stability](stability.png)", "",
+         "Renders of the first joint-limit poses: [extreme_poses.png](extreme_poses.png).", "",
          "## Abrupt stops (held-out camera, frames within the window around each stop)", "",
          "| variant | seeds | PSNR all frames | PSNR around stops | flicker around stops | flicker all frames |",
          "|---|---|---|---|---|---|"]
@@ -222,12 +279,13 @@ def write_report(results: list[dict], out: Path, command: str) -> None:
         L.append(f"| {label} | {len(rs)} | {a[0]:.2f} ± {a[1]:.2f} | {b[0]:.2f} ± {b[1]:.2f} | {c[0]:.4f} ± {c[1]:.4f} | {d[0]:.4f} ± {d[1]:.4f} |")
     L += ["", "Flicker = mean |(pred_t − pred_{t−1}) − (gt_t − gt_{t−1})| over consecutive frames (lower is better).", "",
           "## Extreme unseen poses (joint limits ±1.6 rad, spins of 1–3 turns per window)", "",
-          "| variant | all finite | max scale (m) | scale growth vs canonical | opacity mean / p99 | max dist to a joint (m) | share > 0.6 m from joints |",
-          "|---|---|---|---|---|---|---|"]
+          "| variant | all finite | max scale (m) | scale growth vs canonical | max scale over the training frames (m) | growth vs training | opacity mean / p99 | max dist to a joint (m) | share > 0.6 m from joints |",
+          "|---|---|---|---|---|---|---|---|---|"]
     for label, rs in by.items():
         e = [r["extreme"] for r in rs]
         L.append(f"| {label} | {all(x['finite'] for x in e)} | {max(x['max_scale_m'] for x in e):.4f} | "
-                 f"{max(x['scale_growth'] for x in e):.2f} | {np.mean([x['opacity_mean'] for x in e]):.3f} / "
+                 f"{max(x['scale_growth'] for x in e):.2f} | {max(x.get('max_training_scale_m', float('nan')) for x in e):.4f} | "
+                 f"{max(x.get('scale_growth_vs_training', float('nan')) for x in e):.2f} | {np.mean([x['opacity_mean'] for x in e]):.3f} / "
                  f"{np.mean([x['opacity_p99'] for x in e]):.3f} | {max(x['max_dist_to_joint_m'] for x in e):.3f} | "
                  f"{np.mean([x['frac_gaussians_over_0.6m_from_joints'] for x in e]):.4f} |")
     # No long-rollout row: the temporal state is rebuilt from a fixed pose window every frame, so "cycle 1 vs cycle

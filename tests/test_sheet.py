@@ -100,6 +100,18 @@ def test_rest_sheet_is_laid_out_at_the_hem_and_poses_back_onto_its_layout(scenes
     first = sh.vertices.clone()
     module.on_fit_start()  # once per run
     assert torch.equal(first, sh.vertices)
+    # the stretch cap is measured against the rest layout's cells, not the canonical ones, which the star pose's
+    # spread legs widen (a cap against those bound nothing under poses spreading the legs further)
+    rest_u, rest_v = sh._cell_frame(sh.posed_rest[None])[3:]
+    can_u = sh._cell_frame(sh.vertices[None])[3:][0]
+    assert float((can_u / rest_u).max()) > 2.0  # the canonical cells between the legs are wider than at rest
+    V = sh.vertices[None]
+    centre = V[0].mean(0)
+    with torch.no_grad():
+        torn = sh.place(centre + 20.0 * (V - centre))["scales"][0]
+    rel = sh.log_scales.exp().detach()
+    assert torch.all(torn[:, 0:1] <= sh.max_stretch * rest_u[0] * rel[:, 0:1] * (1 + 1e-5))
+    assert torch.all(torn[:, 1:2] <= sh.max_stretch * rest_v[0] * rel[:, 1:2] * (1 + 1e-5))
 
 
 def test_sheet_trains_beside_the_free_gaussians_and_reloads(scenes_root, tmp_path):
@@ -159,3 +171,41 @@ def test_a_cell_torn_open_caps_its_gaussians_stretch():
     free = GarmentSheet(build_body("mannequin"), rows=3, cols=8, per_cell=2, profile="canonical", max_stretch=0)
     got = free.place(centre + 20.0 * (V - centre))["scales"][0].detach()
     assert torch.allclose(got[:, :2] / base[:, :2], torch.full_like(got[:, :2], 20.0), rtol=1e-5)
+
+
+def test_stability_report_measures_extreme_poses_against_the_training_frames(scenes_root):
+    """ablations/stability.py's extreme-pose check reports the largest scale over the training frames' own pose
+    windows (every training frame, not only the first) as the reference its growth is measured against."""
+    import sys
+    from pathlib import Path
+
+    from torch.utils.data import default_collate
+
+    from realityavatar.build import build_data, build_module
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    from ablations.stability import extreme_poses, training_scale_max, training_scales
+
+    cfg = compose(["data=synthetic_ci", "trainer=ci", "gaussians.num_points=300", "sheet=skirt", "sheet.rows=6",
+                   "sheet.cols=12", "sheet.per_cell=1"])
+    body = instantiate(cfg.body)
+    dm = build_data(cfg, body)
+    module = build_module(cfg, body, dm.num_train_frames, dm.scene_extent, data=dm)
+    module.on_fit_start()
+    ds = dm.datasets["train"]
+    per_frame = {}
+    with torch.no_grad():
+        for i, rec in enumerate(ds.records):
+            if rec.frame not in per_frame:
+                b = default_collate([ds[i]])
+                per_frame[rec.frame] = float(module.deform(b["poses"], b["transl"])["scales"].max())
+    assert len(per_frame) > 1 and max(per_frame.values()) > min(per_frame.values())  # the sheet stretches per frame
+    got = training_scales(module, dm, batch=5)
+    assert got.keys() == per_frame.keys()
+    assert all(got[f] == pytest.approx(per_frame[f], rel=1e-5) for f in per_frame)
+    assert training_scale_max(module, dm) == pytest.approx(max(per_frame.values()), rel=1e-5)
+    e = extreme_poses(module, dm, n=4)
+    assert e["finite"] and e["max_training_scale_m"] == pytest.approx(max(per_frame.values()), rel=1e-5)
+    assert e["scale_growth_vs_training"] == pytest.approx(e["max_scale_m"] / e["max_training_scale_m"], rel=1e-6)
+    r = e["_renders"]  # the joint-limit poses (every second one of n), drawn for the report's extreme_poses.png
+    assert r.shape[0] == 2 and r.dtype == np.uint8 and r.shape[-1] == 3 and r.max() > 0

@@ -242,16 +242,25 @@ class GarmentSheet(nn.Module):
         e2 = v_perp / v_len
         return e1, e2, torch.linalg.cross(e1, e2, dim=-1), u_len, v_len
 
+    @torch.no_grad()
+    def reference_cells(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Each Gaussian's cell extent along the ring and down the sheet [1,M,1] in the layout the stretch cap is
+        measured against: the rest frame's layout (profile=rest), else the canonical one. Not the canonical cells
+        of a rest layout: canonicalised into the star pose, the cells between the legs span up to 37 cm, and a cap
+        of 16x that bound nothing under poses that spread the legs further (README, "Stability report")."""
+        ref = self.posed_rest if self.posed_rest.shape[0] == self.vertices.shape[0] else self.vertices
+        return self._cell_frame(ref[None])[3:]
+
     def place(self, verts: torch.Tensor) -> dict[str, torch.Tensor]:
         """Vertex positions [B,P,3] -> the Gaussians' means [B,M,3], quats [B,M,4] (the cell's tangent frame) and
-        scales [B,M,3] (stretched with the cell, at most `max_stretch` times the canonical cell's: a cell torn open
-        by a pose the garment cannot follow, legs spread far apart, leaves a gap instead of a metre-long smear)."""
+        scales [B,M,3] (stretched with the cell, at most `max_stretch` times the reference cell's, see
+        `reference_cells`: a cell torn open by a pose the garment cannot follow, legs spread far apart, leaves a gap
+        instead of a half-metre-long smear)."""
         e1, e2, e3, u_len, v_len = self._cell_frame(verts)
         R = torch.stack([e1, e2, e3], dim=-1)  # [B,M,3,3], columns = the frame
         means = self.interpolate(verts) + self.normal_offset[None, :, None] * e3
         if self.max_stretch > 0:
-            with torch.no_grad():
-                cu, cv = self._cell_frame(self.vertices[None].to(verts))[3:]
+            cu, cv = (c.to(verts) for c in self.reference_cells())
             u_len = torch.minimum(u_len, self.max_stretch * cu)
             v_len = torch.minimum(v_len, self.max_stretch * cv)
         s = self.log_scales.exp()
