@@ -121,7 +121,8 @@ def test_sheet_trains_beside_the_free_gaussians_and_reloads(scenes_root, tmp_pat
 
     assert compose([]).sheet.get("_target_") is None  # off by default
     cfg, choices = prepare_run(compose(["data=synthetic_ci", "trainer=ci", "iterations=30", "sheet=skirt",
-                                        "sheet.rows=4", "sheet.cols=12", "sheet.per_cell=2",
+                                        "sheet.rows=4", "sheet.cols=12", "sheet.per_cell=2", "sheet.basis=4",
+                                        "sheet.strain_weight=0.1",
                                         "gaussians.num_points=300", "density.refine_start=5", "density.refine_every=5",
                                         "eval.max_frames_per_split=1", "eval.save_video=false",
                                         "eval.save_images=0"]), tmp_path / "run")
@@ -135,6 +136,27 @@ def test_sheet_trains_beside_the_free_gaussians_and_reloads(scenes_root, tmp_pat
     assert m["num_gaussians"] == module.gaussians.num_points  # density control edited the free Gaussians only
     assert m["num_sheet_gaussians"] == 96 and m["sheet"]["profile"] == "rest"
     assert not math.isclose(float(module.sheet.opacity_logits.std()), 0.0)  # the sheet was trained
+    assert float(module.sheet.basis.abs().max()) > 0  # its motion basis too (zero at the start), and it reloads
+    groups = {g["name"]: g["lr"] for g in module.param_groups()}
+    assert groups["sheet_basis"] == groups["sheet_coeff"] == groups["deformer"]
+    # ablations/sheet_freeform.py on this run: a per-frame offset of the sheet's vertices fitted to one training
+    # frame's images lowers its training loss and moves only that frame (the run itself is left as it was)
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    from ablations.sheet_freeform import fit_frame
+    from realityavatar.build import build_data
+
+    cfg_run, module, _ = load_run(tmp_path / "run")
+    for p in module.parameters():
+        p.requires_grad_(False)
+    dm = build_data(cfg_run, module.body)
+    frame = dm.datasets["train"].records[0].frame
+    state = {k: v.clone() for k, v in module.state_dict().items()}
+    r = fit_frame(module, dm, frame, steps=40, lr=5e-3)
+    assert r["after"]["train"]["psnr"] > r["before"]["train"]["psnr"] and r["offset_max_m"] > 0
+    assert all(torch.equal(v, module.state_dict()[k]) for k, v in state.items())
 
 
 def test_export_and_viewer_frames_carry_the_sheet(scenes_root):
@@ -209,3 +231,47 @@ def test_stability_report_measures_extreme_poses_against_the_training_frames(sce
     assert e["scale_growth_vs_training"] == pytest.approx(e["max_scale_m"] / e["max_training_scale_m"], rel=1e-6)
     r = e["_renders"]  # the joint-limit poses (every second one of n), drawn for the report's extreme_poses.png
     assert r.shape[0] == 2 and r.dtype == np.uint8 and r.shape[-1] == 3 and r.max() > 0
+
+
+def test_strain_penalises_stretch_down_the_sheet_not_around_it():
+    """sheet.strain: zero for the reference layout, for rings widened 3x (a flare) and for columns within
+    strain_free; positive, and pulling the vertices back together, for columns stretched beyond it."""
+    sh = GarmentSheet(build_body("mannequin"), rows=3, cols=8, per_cell=1, profile="canonical", strain_free=0.2)
+    V = sh.vertices[None].double()
+    G = V.reshape(1, sh.rows + 1, sh.cols, 3)
+    axis_xz = G.mean(2, keepdim=True)[..., [0, 2]]  # each ring's centre
+    wide = G.clone()
+    wide[..., [0, 2]] = axis_xz + 3.0 * (G[..., [0, 2]] - axis_xz)  # every ring 3x wider, heights kept
+    assert float(sh.strain(V)) == 0.0
+    top = G[:, :1]
+    within = (top + 1.15 * (G - top)).reshape(1, -1, 3)  # 15 % longer down the sheet (and around it)
+    assert float(sh.strain(within)) == 0.0
+    long = (top + 2.0 * (G - top)).reshape(1, -1, 3).requires_grad_(True)  # columns 2x long
+    s = sh.strain(long)
+    assert float(s.detach()) == pytest.approx(0.8**2, rel=1e-9)  # every edge down the sheet: excess 2 - 1.2
+    s.backward()
+    down = (long.grad.reshape(1, sh.rows + 1, sh.cols, 3)[:, -1] * (G[:, -1] - G[:, -2])).sum(-1)
+    assert torch.all(down > 0)  # descending the loss moves the hem ring back up its column
+    assert float(sh.strain(wide.reshape(1, -1, 3))) < float(s.detach())  # a 3x flare costs less than 2x long columns
+    with pytest.raises(ValueError, match="strain"):
+        GarmentSheet(build_body("mannequin"), rows=3, cols=8, per_cell=1, profile="canonical", strain_weight=-1.0)
+
+
+def test_motion_basis_is_a_linear_map_of_the_temporal_state():
+    """sheet.basis: zero offsets at the start, a gradient that reaches the basis there, offsets sum_k c_k(h) B_k
+    that differ between temporal states; basis=0 adds no parameters."""
+    body = build_body("mannequin")
+    assert not hasattr(GarmentSheet(body, rows=3, cols=8, per_cell=1, profile="canonical"), "basis")
+    sh = GarmentSheet(body, rows=3, cols=8, per_cell=1, profile="canonical", basis=4, cond_dim=8)
+    h = torch.randn(3, 8, generator=torch.Generator().manual_seed(0))
+    o = sh.basis_offsets(h)
+    assert o.shape == (3, sh.vertices.shape[0], 3) and float(o.abs().max()) == 0.0
+    sh.basis_offsets(h).sum().backward()
+    assert float(sh.basis.grad.abs().max()) > 0
+    with torch.no_grad():
+        sh.basis.normal_(generator=torch.Generator().manual_seed(1))
+        o = sh.basis_offsets(h)
+        expect = torch.einsum("bk,kpd->bpd", sh.coeff(h), sh.basis)
+    assert torch.allclose(o, expect) and not torch.allclose(o[0], o[1])
+    with pytest.raises(ValueError, match="basis"):
+        GarmentSheet(body, rows=3, cols=8, per_cell=1, profile="canonical", basis=-1)

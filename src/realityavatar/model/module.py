@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 import pytorch_lightning as pl
 import torch
@@ -144,6 +145,8 @@ class AvatarModule(pl.LightningModule):
         # frame_idx and the Gaussians' codes reach the decoder's per-frame / per-Gaussian codes when it has them
         out = (self.deformer(means, h_t, frame_idx, codes=codes) if deform
                else identity_deformation(B, means, self.deformer.feature_dim))
+        if self.sheet is not None and self.sheet.num_basis and deform:  # the sheet's motion basis (sheet.basis)
+            out = {**out, "dx": torch.cat([out["dx"][:, :N], out["dx"][:, N:] + self.sheet.basis_offsets(h_t)], 1)}
         x_e, log_s_e, q_e = apply_deformation(means, log_scales, quats, out)  # [B,N,3],[B,N,3],[B,N,4]
         w = self.skinning(x_e)  # [B,N,24]
         A = self.body.canonical_transforms(poses[:, -1], transl[:, -1])  # [B,24,4,4]
@@ -169,7 +172,8 @@ class AvatarModule(pl.LightningModule):
         canonical-to-posed rotation of the cell's first corner, the rest interpolated bilinearly."""
         sh = self.sheet
         first = sh.corners[:, 0]
-        placed = sh.place(posed["means"][:, N:])
+        posed["sheet_verts"] = posed["means"][:, N:]  # one row per distinct pose window (sheet.strain's input)
+        placed = sh.place(posed["sheet_verts"])
         vert = {
             "means": placed["means"],
             "quats": placed["quats"],
@@ -367,6 +371,10 @@ class AvatarModule(pl.LightningModule):
             if sil:
                 total = total + self.silhouette.total(sil)
                 terms.update({k: v.detach() for k, v in sil.items()})
+        if self.sheet is not None and self.sheet.strain_weight > 0 and "sheet_verts" in posed:
+            term = self.sheet.strain(posed["sheet_verts"])
+            total = total + self.sheet.strain_weight * term
+            terms["sheet_strain"] = term.detach()
         if use_flow:
             term = self.flow(posed["extra_image"], alpha, batch["flow"], batch["flow_valid"])
             total = total + self.flow.weight * term
@@ -410,7 +418,8 @@ class AvatarModule(pl.LightningModule):
                 if not params:  # an ablated component (e.g. SH colour) contributes no group
                     continue
                 # the sheet's groups take the free Gaussians' rates (its normal offset the means')
-                base = {"sheet_normal_offset": "means"}.get(gname, gname.removeprefix("sheet_"))
+                base = {"sheet_normal_offset": "means", "sheet_basis": "deformer", "sheet_coeff": "deformer"}.get(
+                    gname, gname.removeprefix("sheet_"))
                 lr = self.lr.get(gname, self.lr.get(base, self.lr.get(name)))
                 if gname in ("means", "sheet_normal_offset"):
                     lr = lr * self.scene_extent

@@ -47,7 +47,8 @@ class GarmentSheet(nn.Module):
                  bottom_joints: tuple[int, ...] = (4, 5), bottom_offset: float = 0.0, hull_frame: int | None = None,
                  hull_voxel: float = 0.015, hull_quantile: float = 0.25, feature_dim: int = 32,
                  init_opacity: float = 0.1, normal_scale: float = 0.005, feature_init_std: float = 0.01,
-                 seed: int = 0, max_stretch: float = 16.0, views=None) -> None:
+                 seed: int = 0, max_stretch: float = 16.0, strain_weight: float = 0.0, strain_free: float = 0.2,
+                 basis: int = 0, cond_dim: int = 128, views=None) -> None:
         super().__init__()
         if rows < 1 or cols < 3 or per_cell < 1:
             raise ValueError(f"sheet: expected rows >= 1, cols >= 3, per_cell >= 1, got {rows}, {cols}, {per_cell}")
@@ -61,6 +62,9 @@ class GarmentSheet(nn.Module):
             raise ValueError(f"sheet.hull_quantile: expected a value in [0,1], got {hull_quantile}")
         self.rows, self.cols, self.per_cell = int(rows), int(cols), int(per_cell)
         self.max_stretch = float(max_stretch)  # <= 0: unbounded
+        if strain_weight < 0 or strain_free < 0:
+            raise ValueError(f"sheet.strain_weight and sheet.strain_free must be >= 0, got {strain_weight}, {strain_free}")
+        self.strain_weight, self.strain_free = float(strain_weight), float(strain_free)  # see `strain`
         self.feature_dim = int(feature_dim)
         self.profile, self.hull_frame = profile, hull_frame  # hull_frame: read by build_module
         # profile=rest keeps its layout (posed) and that frame's pose for `canonicalise`; both are checkpointed
@@ -93,6 +97,14 @@ class GarmentSheet(nn.Module):
         p = torch.tensor(init_opacity)
         self.opacity_logits = nn.Parameter(torch.full((M,), float(torch.log(p / (1 - p)))))
         self.features = nn.Parameter(torch.randn(M, self.feature_dim, generator=gen) * feature_init_std)
+        # basis > 0: a garment motion basis, per-vertex canonical offsets B [K,P,3] weighted by K coefficients that
+        # are a linear function of the temporal state h_t (`basis_offsets`); starts at zero offset
+        self.num_basis = int(basis)
+        if self.num_basis < 0:
+            raise ValueError(f"sheet.basis: expected >= 0 basis shapes, got {basis}")
+        if self.num_basis:
+            self.basis = nn.Parameter(torch.zeros(self.num_basis, self.vertices.shape[0], 3))
+            self.coeff = nn.Linear(int(cond_dim), self.num_basis)
         self.register_load_state_dict_pre_hook(self._take_layout_buffers)
 
     def _take_layout_buffers(self, module, state_dict, prefix, *args) -> None:
@@ -214,9 +226,20 @@ class GarmentSheet(nn.Module):
         return int(self.corners.shape[0])
 
     def param_groups(self) -> dict[str, list[nn.Parameter]]:
-        """Optimizer groups: sheet_<name>, whose rates default to the free Gaussians' of the same name (module)."""
-        return {"sheet_features": [self.features], "sheet_opacity_logits": [self.opacity_logits],
-                "sheet_log_scales": [self.log_scales], "sheet_normal_offset": [self.normal_offset]}
+        """Optimizer groups: sheet_<name>, whose rates default to the free Gaussians' of the same name (module;
+        the motion basis and its coefficients the decoder's)."""
+        groups = {"sheet_features": [self.features], "sheet_opacity_logits": [self.opacity_logits],
+                  "sheet_log_scales": [self.log_scales], "sheet_normal_offset": [self.normal_offset]}
+        if self.num_basis:
+            groups.update(sheet_basis=[self.basis], sheet_coeff=list(self.coeff.parameters()))
+        return groups
+
+    def basis_offsets(self, h_t: torch.Tensor) -> torch.Tensor:
+        """Temporal state [B,H] -> canonical offsets of the vertices [B,P,3]: sum_k c_k(h_t) B_k. One coefficient
+        vector moves every vertex, so a frame's gradient shapes the whole garment's motion (a low-rank cloth model,
+        as a PCA of simulated cloth), and each basis shape is free per vertex, unlike the decoder's smooth field."""
+        c = self.coeff(h_t)  # [B,K]
+        return torch.einsum("bk,kpd->bpd", c, self.basis.to(c))
 
     def opacities(self) -> torch.Tensor:
         return torch.sigmoid(self.opacity_logits)
@@ -250,6 +273,24 @@ class GarmentSheet(nn.Module):
         of 16x that bound nothing under poses that spread the legs further (README, "Stability report")."""
         ref = self.posed_rest if self.posed_rest.shape[0] == self.vertices.shape[0] else self.vertices
         return self._cell_frame(ref[None])[3:]
+
+    def _column_edges(self, verts: torch.Tensor) -> torch.Tensor:
+        """Lengths of the edges down the sheet (ring j to ring j + 1, every column) [B,rows,cols]."""
+        G = verts.reshape(verts.shape[0], self.rows + 1, self.cols, 3)
+        return (G[:, 1:] - G[:, :-1]).norm(dim=-1)
+
+    def strain(self, verts: torch.Tensor) -> torch.Tensor:
+        """Stretch down the garment beyond what cloth allows: the mean over the edges down the sheet of
+        max(0, length / reference length - 1 - strain_free)^2, the reference being the rest layout's (else the
+        canonical) edge. Posed vertices [B,P,3] -> a scalar. Cloth barely stretches along its length (the simulated
+        skirt's edges at most 1.08x), while without this term the trained sheet stretched its columns 2.1x (median)
+        at peak flare and hung its hem below the cloth's (README, "A garment sheet"). Around the rings the sheet is free:
+        it starts around the legs, inside the garment, and must widen to follow a flare."""
+        with torch.no_grad():
+            ref = self.posed_rest if self.posed_rest.shape[0] == self.vertices.shape[0] else self.vertices
+            L0 = self._column_edges(ref[None].to(verts)).clamp_min(1e-6)
+        excess = (self._column_edges(verts) / L0 - 1.0 - self.strain_free).clamp_min(0.0)
+        return (excess * excess).mean()
 
     def place(self, verts: torch.Tensor) -> dict[str, torch.Tensor]:
         """Vertex positions [B,P,3] -> the Gaussians' means [B,M,3], quats [B,M,4] (the cell's tangent frame) and
