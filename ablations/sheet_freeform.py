@@ -1,14 +1,15 @@
 """How far a per-frame correction of a trained garment sheet gets: a bound on what the decoder could still learn.
 
-Usage: python ablations/sheet_freeform.py <run_dir> --frames 32 [40 ...] [--steps 400] [--lr 2e-3] [--oracle] [--out <dir>]
+Usage: python ablations/sheet_freeform.py <run_dir> --frames 32 [40 ...] [--steps 400] [--lr 2e-3] [--oracle] [--colour]
+       [--out <dir>]
 
 For each frame, every network and Gaussian of a trained `sheet=skirt` run is frozen and only a free offset per sheet
 vertex (posed space, [P,3]) is fitted to that frame's training images with the run's own training loss (L1 +
-D-SSIM/perceptual + mask, plus the silhouette chamfer). It prints and writes (freeform.json; freeform_oracle.json
-with --oracle) the training- and held-out-camera PSNR and IoU of that frame before and after, and the offsets'
+D-SSIM/perceptual + mask, plus the silhouette chamfer). It prints and writes the training- and held-out-camera PSNR and IoU of that frame before and after, and the offsets'
 size. If the held-out cameras gain little while the training cameras gain much, what is left of the frame's error
 is what its training views leave open, not what the decoder failed to learn (README, "A garment sheet"). --oracle fits the held-out cameras' images
-as well: how far the sheet's geometry alone could take the held-out cameras if they had been seen.
+as well: how far the sheet's geometry alone could take the held-out cameras if they had been seen; --colour adds a
+per-frame RGB offset of every Gaussian (the appearance's share). Written as freeform[_oracle][_colour].json.
 """
 
 from __future__ import annotations
@@ -36,7 +37,8 @@ def evaluate(module, batches) -> dict:
     return {"psnr": float(v[0]), "iou": float(v[1]), "images": len(batches)}
 
 
-def fit_frame(module, dm, frame: int, steps: int, lr: float, seed: int = 0, oracle: bool = False) -> dict:
+def fit_frame(module, dm, frame: int, steps: int, lr: float, seed: int = 0, oracle: bool = False,
+              colour: bool = False) -> dict:
     sheet = module.sheet
     train = [default_collate([dm.datasets["train"][i]]) for i, r in enumerate(dm.datasets["train"].records) if r.frame == frame]
     held = [default_collate([dm.datasets["novel_view"][i]]) for i, r in enumerate(dm.datasets["novel_view"].records)
@@ -44,12 +46,17 @@ def fit_frame(module, dm, frame: int, steps: int, lr: float, seed: int = 0, orac
     if not train:
         raise ValueError(f"frame {frame} is not a training frame of this run")
     delta = torch.zeros(sheet.vertices.shape[0], 3, requires_grad=True)
-    place = sheet.place
+    place, shade = sheet.place, module.shade
     sheet.place = lambda v: place(v + delta[None].to(v))  # the correction rides on the posed vertices
+    # colour: a per-frame RGB offset of every rendered Gaussian (free and sheet) as well, after the colour MLP
+    n_all = module.gaussians.num_points + sheet.num_points
+    drgb = torch.zeros(n_all, 3, requires_grad=True)
+    if colour:
+        module.shade = lambda posed, *a: shade(posed, *a) + drgb[None].to(posed["means"])
     try:
         before = {"train": evaluate(module, train), "heldout": evaluate(module, held) if held else None}
         fit = train + held if oracle else train  # oracle: the held-out cameras' images too (a bound, not a result)
-        opt = torch.optim.Adam([delta], lr=lr)
+        opt = torch.optim.Adam([{"params": [delta], "lr": lr}, {"params": [drgb], "lr": 1e-2}])
         gen = torch.Generator().manual_seed(seed)
         skin_pts, skin_w = module._skin_targets()
         for _ in range(steps):
@@ -66,9 +73,9 @@ def fit_frame(module, dm, frame: int, steps: int, lr: float, seed: int = 0, orac
             opt.step()
         after = {"train": evaluate(module, train), "heldout": evaluate(module, held) if held else None}
     finally:
-        sheet.place = place
+        sheet.place, module.shade = place, shade
     n = delta.detach().norm(dim=-1)
-    return {"frame": frame, "steps": steps, "lr": lr, "oracle": oracle, "before": before, "after": after,
+    return {"frame": frame, "steps": steps, "lr": lr, "oracle": oracle, "colour": colour, "before": before, "after": after,
             "offset_p50_m": float(n.median()), "offset_max_m": float(n.max())}
 
 
@@ -80,6 +87,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--lr", type=float, default=2e-3, help="Adam step on the offsets, metres")
     ap.add_argument("--oracle", action="store_true",
                     help="fit the held-out cameras' images too: how far the sheet's geometry alone could go with views")
+    ap.add_argument("--colour", action="store_true",
+                    help="fit a per-frame RGB offset of every Gaussian as well (appearance, not only the sheet's shape)")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--out", default=None, help="folder for freeform.json (default: print only)")
     args = ap.parse_args(argv)
@@ -94,7 +103,7 @@ def main(argv: list[str] | None = None) -> int:
     print("| frame | train PSNR / IoU before → after | held-out PSNR / IoU before → after | offset p50 / max (cm) |")
     print("|---|---|---|---|")
     for f in args.frames:
-        r = fit_frame(module, dm, f, args.steps, args.lr, oracle=args.oracle)
+        r = fit_frame(module, dm, f, args.steps, args.lr, oracle=args.oracle, colour=args.colour)
         rows.append(r)
         h0, h1 = r["before"]["heldout"], r["after"]["heldout"]
         held = f"{h0['psnr']:.2f} / {h0['iou']:.3f} → {h1['psnr']:.2f} / {h1['iou']:.3f}" if h0 else "—"
@@ -104,7 +113,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.out:
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
-        name = "freeform_oracle.json" if args.oracle else "freeform.json"
+        name = "freeform" + ("_oracle" if args.oracle else "") + ("_colour" if args.colour else "") + ".json"
         (out / name).write_text(json.dumps({"run": str(args.run), "rows": rows}, indent=1))
         print(f"wrote {out / name}")
     return 0
