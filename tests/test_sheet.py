@@ -114,8 +114,7 @@ def test_rest_sheet_is_laid_out_at_the_hem_and_poses_back_onto_its_layout(scenes
     assert torch.all(torn[:, 1:2] <= sh.max_stretch * rest_v[0] * rel[:, 1:2] * (1 + 1e-5))
 
 
-@pytest.mark.parametrize("appearance", [[], ["sheet.texture=2", "sheet.slide=2"]], ids=["features", "texture_slide"])
-def test_sheet_trains_beside_the_free_gaussians_and_reloads(scenes_root, tmp_path, appearance):
+def test_sheet_trains_beside_the_free_gaussians_and_reloads(scenes_root, tmp_path):
     from realityavatar.build import load_run
     from realityavatar.config import prepare_run
     from realityavatar.train import run
@@ -126,7 +125,7 @@ def test_sheet_trains_beside_the_free_gaussians_and_reloads(scenes_root, tmp_pat
                                         "sheet.strain_weight=0.1",
                                         "gaussians.num_points=300", "density.refine_start=5", "density.refine_every=5",
                                         "eval.max_frames_per_split=1", "eval.save_video=false",
-                                        "eval.save_images=0", *appearance]), tmp_path / "run")
+                                        "eval.save_images=0"]), tmp_path / "run")
     run(cfg, choices)
     _, module, _ = load_run(tmp_path / "run")
     assert module.sheet is not None and module.sheet.num_points == 4 * 12 * 2
@@ -137,8 +136,6 @@ def test_sheet_trains_beside_the_free_gaussians_and_reloads(scenes_root, tmp_pat
     assert m["num_gaussians"] == module.gaussians.num_points  # density control edited the free Gaussians only
     assert m["num_sheet_gaussians"] == 96 and m["sheet"]["profile"] == "rest"
     assert not math.isclose(float(module.sheet.opacity_logits.std()), 0.0)  # the sheet was trained
-    if appearance:  # its texture and the texture's slide trained too (the slide starts at zero)
-        assert module.sheet.texels == 2 and float(module.sheet.slide_basis.abs().max()) > 0
     assert float(module.sheet.basis.abs().max()) > 0  # its motion basis too (zero at the start), and it reloads
     groups = {g["name"]: g["lr"] for g in module.param_groups()}
     assert groups["sheet_basis"] == groups["sheet_coeff"] == groups["deformer"]
@@ -278,34 +275,3 @@ def test_motion_basis_is_a_linear_map_of_the_temporal_state():
     assert torch.allclose(o, expect) and not torch.allclose(o[0], o[1])
     with pytest.raises(ValueError, match="basis"):
         GarmentSheet(body, rows=3, cols=8, per_cell=1, profile="canonical", basis=-1)
-
-
-def test_sheet_texture_samples_its_texels_and_slides_with_the_motion():
-    """sheet.texture: a Gaussian on a texel takes that texel's features, the ring wraps around, between texels
-    the features blend; sheet.slide: zero shift at the start, a gradient that reaches the slide's shapes through the
-    texture, and features that move with the shift."""
-    body = build_body("mannequin")
-    sh = GarmentSheet(body, rows=3, cols=8, per_cell=2, profile="canonical", texture=2, slide=4, cond_dim=8)
-    assert sh.gaussian_features().shape == (sh.num_points, sh.feature_dim)
-    with torch.no_grad():
-        sh.uv[0] = torch.tensor([1.5, 2.0])  # u 1.5 cells -> texel column 3, v 2 cells -> texel row 4
-        sh.uv[1] = torch.tensor([8.0, 0.0])  # once around the ring: column 0
-        sh.uv[2] = torch.tensor([7.75, 0.0])  # half-way between the last column and the first
-    f = sh.gaussian_features().detach()
-    T = sh.texture.detach()
-    assert torch.allclose(f[0], T[:, 4, 3]) and torch.allclose(f[1], T[:, 0, 0])
-    assert torch.allclose(f[2], 0.5 * (T[:, 0, -1] + T[:, 0, 0]), atol=1e-6)
-    h = torch.randn(2, 8, generator=torch.Generator().manual_seed(0))
-    shift = sh.slide_offsets(h)
-    assert shift.shape == (2, sh.num_points, 2) and float(shift.abs().max()) == 0.0
-    sh.gaussian_features(shift).square().sum().backward()
-    assert float(sh.slide_basis.grad.abs().max()) > 0
-    with torch.no_grad():
-        moved = sh.gaussian_features(torch.full((1, sh.num_points, 2), 0.5))[0]
-    assert not torch.allclose(moved, f)
-    with pytest.raises(ValueError, match="slide"):
-        GarmentSheet(body, rows=3, cols=8, per_cell=1, profile="canonical", slide=2)
-    from realityavatar.model.color import SHColor
-
-    with pytest.raises(ValueError, match="color=mlp"):
-        SHColor(sh_degree=0)(torch.zeros(2, 5, 3), torch.zeros(2, 5, 3), None, torch.zeros(2))

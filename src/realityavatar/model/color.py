@@ -58,10 +58,8 @@ class MLPColor(nn.Module):
     def forward(
         self, features: torch.Tensor, view_dirs: torch.Tensor, f_mt: torch.Tensor | None, frame_idx: torch.Tensor
     ) -> torch.Tensor:
-        """features [N,F] (or [B,N,F] per sample), view_dirs [B,N,3] (canonical), f_mt [B,N,Fm] | None, frame_idx
-        [B] -> rgb [B,N,3]."""
-        h = self.in_feat(features)
-        h = h[None] if h.dim() == 2 else h  # [1|B,N,H]
+        """features [N,F], view_dirs [B,N,3] (canonical), f_mt [B,N,Fm] | None, frame_idx [B] -> rgb [B,N,3]."""
+        h = self.in_feat(features)[None]  # [1,N,H]
         if self.in_dir is not None:
             h = h + self.in_dir(sh_basis(self.sh_degree, view_dirs)[..., 1:])
         if self.in_fmt is not None:
@@ -93,8 +91,6 @@ class SHColor(nn.Module):
         self, features: torch.Tensor, view_dirs: torch.Tensor, f_mt: torch.Tensor | None, frame_idx: torch.Tensor
     ) -> torch.Tensor:
         """features [N,K*3], view_dirs [B,N,3] -> rgb [B,N,3]."""
-        if features.dim() != 2:
-            raise ValueError("color=sh: features must be [N,K*3] (a garment sheet's sliding texture needs color=mlp)")
         coeffs = self.sh_coefficients(features)  # [N,K,3]
         return torch.clamp_min(eval_sh(self.sh_degree, coeffs[None], view_dirs) + 0.5, 0.0)
 

@@ -164,8 +164,6 @@ class AvatarModule(pl.LightningModule):
         }
         if self.sheet is not None:
             posed = self._sheet_gaussians(posed, N)
-            if self.sheet.num_slide and deform:
-                posed["sheet_uv_shift"] = self.sheet.slide_offsets(h_t)  # [B,M,2]
         return posed
 
     def _sheet_gaussians(self, posed: dict, N: int) -> dict:
@@ -191,7 +189,7 @@ class AvatarModule(pl.LightningModule):
         posed["opacities"] = torch.cat([posed["opacities"], sh.opacities().to(posed["opacities"])])
         return posed
 
-    _PER_SAMPLE = ("means", "quats", "scales", "rot", "f_mt", "weights", "x_e", "sheet_uv_shift")
+    _PER_SAMPLE = ("means", "quats", "scales", "rot", "f_mt", "weights", "x_e")
 
     def deform_shared(self, poses: torch.Tensor, transl: torch.Tensor, deform: bool = True,
                       frame_idx: torch.Tensor | None = None) -> dict:
@@ -225,24 +223,14 @@ class AvatarModule(pl.LightningModule):
         d = F.normalize(posed["means"] - cam_centre[:, None, :], dim=-1)  # [B,N,3] posed view dir
         # Canonicalise: undo each Gaussian's blended skinning rotation.
         d_c = (posed["rot"].transpose(-1, -2) @ d[..., None]).squeeze(-1)
-        rgb = self.color(self.sample_features(posed), F.normalize(d_c, dim=-1), posed["f_mt"], frame_idx)
+        rgb = self.color(self.all_features(), F.normalize(d_c, dim=-1), posed["f_mt"], frame_idx)
         light = self.shading(posed["x_e"], posed["rot"])  # world-fixed light (shading=irradiance), or None
         return rgb if light is None else rgb * light
 
     def all_features(self) -> torch.Tensor:
         """Colour features of every rendered Gaussian: the free ones, then the garment sheet's [N(+M),F]."""
         feats = self.gaussians.features
-        return feats if self.sheet is None else torch.cat([feats, self.sheet.gaussian_features().to(feats)])
-
-    def sample_features(self, posed: dict) -> torch.Tensor:
-        """Colour features for this deformation: all_features() [N(+M),F], or [B,N+M,F] when a garment sheet's
-        texture slides with the motion (sheet.slide > 0)."""
-        shift = posed.get("sheet_uv_shift")
-        if shift is None:
-            return self.all_features()
-        feats = self.gaussians.features
-        sheet = self.sheet.gaussian_features(shift).to(feats)
-        return torch.cat([feats[None].expand(shift.shape[0], -1, -1), sheet], dim=1)
+        return feats if self.sheet is None else torch.cat([feats, self.sheet.features.to(feats)])
 
     def canonical_gaussians(self) -> dict:
         """Every rendered Gaussian in canonical space (the free ones, then the sheet's placed on its canonical
@@ -430,8 +418,7 @@ class AvatarModule(pl.LightningModule):
                 if not params:  # an ablated component (e.g. SH colour) contributes no group
                     continue
                 # the sheet's groups take the free Gaussians' rates (its normal offset the means')
-                base = {"sheet_normal_offset": "means", "sheet_basis": "deformer", "sheet_coeff": "deformer",
-                        "sheet_slide": "deformer"}.get(
+                base = {"sheet_normal_offset": "means", "sheet_basis": "deformer", "sheet_coeff": "deformer"}.get(
                     gname, gname.removeprefix("sheet_"))
                 lr = self.lr.get(gname, self.lr.get(base, self.lr.get(name)))
                 if gname in ("means", "sheet_normal_offset"):

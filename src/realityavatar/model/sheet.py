@@ -48,7 +48,7 @@ class GarmentSheet(nn.Module):
                  hull_voxel: float = 0.015, hull_quantile: float = 0.25, feature_dim: int = 32,
                  init_opacity: float = 0.1, normal_scale: float = 0.005, feature_init_std: float = 0.01,
                  seed: int = 0, max_stretch: float = 16.0, strain_weight: float = 0.0, strain_free: float = 0.2,
-                 basis: int = 0, cond_dim: int = 128, texture: int = 0, slide: int = 0, views=None) -> None:
+                 basis: int = 0, cond_dim: int = 128, views=None) -> None:
         super().__init__()
         if rows < 1 or cols < 3 or per_cell < 1:
             raise ValueError(f"sheet: expected rows >= 1, cols >= 3, per_cell >= 1, got {rows}, {cols}, {per_cell}")
@@ -96,24 +96,7 @@ class GarmentSheet(nn.Module):
         self.normal_offset = nn.Parameter(torch.zeros(M))
         p = torch.tensor(init_opacity)
         self.opacity_logits = nn.Parameter(torch.full((M,), float(torch.log(p / (1 - p)))))
-        # appearance: a colour feature per Gaussian, or (texture > 0) a feature texture over the sheet's (u, v) with
-        # `texture` texels per cell side that each Gaussian samples at its place (u along the ring, v down the sheet,
-        # in cells), which a motion-driven slide (slide > 0, `slide_offsets`) can shift per frame
-        self.texels = int(texture)
-        self.num_slide = int(slide)
-        if self.texels < 0 or self.num_slide < 0 or (self.num_slide and not self.texels):
-            raise ValueError(f"sheet.texture and sheet.slide: expected >= 0, and slide only with a texture, got "
-                             f"{texture}, {slide}")
-        if self.texels:
-            t = self.texels
-            self.texture = nn.Parameter(torch.randn(self.feature_dim, self.rows * t + 1, self.cols * t, generator=gen)
-                                        * feature_init_std)
-            self.register_buffer("uv", torch.stack([i + self.ab[:, 0], j + self.ab[:, 1]], -1).float())
-        else:
-            self.features = nn.Parameter(torch.randn(M, self.feature_dim, generator=gen) * feature_init_std)
-        if self.num_slide:
-            self.slide_basis = nn.Parameter(torch.zeros(self.num_slide, self.vertices.shape[0], 2))
-            self.slide_coeff = nn.Linear(int(cond_dim), self.num_slide)
+        self.features = nn.Parameter(torch.randn(M, self.feature_dim, generator=gen) * feature_init_std)
         # basis > 0: a garment motion basis, per-vertex canonical offsets B [K,P,3] weighted by K coefficients that
         # are a linear function of the temporal state h_t (`basis_offsets`); starts at zero offset
         self.num_basis = int(basis)
@@ -245,37 +228,11 @@ class GarmentSheet(nn.Module):
     def param_groups(self) -> dict[str, list[nn.Parameter]]:
         """Optimizer groups: sheet_<name>, whose rates default to the free Gaussians' of the same name (module;
         the motion basis and its coefficients the decoder's)."""
-        groups = {"sheet_features": [self.texture if self.texels else self.features],
-                  "sheet_opacity_logits": [self.opacity_logits],
+        groups = {"sheet_features": [self.features], "sheet_opacity_logits": [self.opacity_logits],
                   "sheet_log_scales": [self.log_scales], "sheet_normal_offset": [self.normal_offset]}
         if self.num_basis:
             groups.update(sheet_basis=[self.basis], sheet_coeff=list(self.coeff.parameters()))
-        if self.num_slide:
-            groups.update(sheet_slide=[self.slide_basis, *self.slide_coeff.parameters()])
         return groups
-
-    def gaussian_features(self, shift: torch.Tensor | None = None) -> torch.Tensor:
-        """Colour features [M,F]; with a texture and a per-Gaussian (u, v) shift [B,M,2] (cells) [B,M,F], sampled
-        bilinearly at the shifted place (periodic around the ring, clamped at the top and the hem)."""
-        if not self.texels:
-            if shift is not None:
-                raise ValueError("sheet: a (u, v) shift needs sheet.texture > 0")
-            return self.features
-        uv = self.uv[None] if shift is None else self.uv[None] + shift  # [B,M,2]
-        tex = torch.cat([self.texture, self.texture[:, :, :1]], dim=2)[None]  # the ring closes: [1,F,H,W+1]
-        u = torch.remainder(uv[..., 0], float(self.cols)) / self.cols * 2 - 1
-        v = uv[..., 1] / self.rows * 2 - 1
-        grid = torch.stack([u, v], -1)[:, None]  # [B,1,M,2]
-        out = F.grid_sample(tex.expand(grid.shape[0], -1, -1, -1), grid.to(tex), mode="bilinear",
-                            padding_mode="border", align_corners=True)[:, :, 0].transpose(1, 2)  # [B,M,F]
-        return out[0] if shift is None else out
-
-    def slide_offsets(self, h_t: torch.Tensor) -> torch.Tensor:
-        """Temporal state [B,H] -> each Gaussian's (u, v) shift in cells [B,M,2]: a low-rank slide of the texture
-        over the sheet (per-vertex shapes weighted by a linear map of h_t, starting at zero), so the appearance can
-        follow the cloth where the sheet's geometry slides over it."""
-        c = self.slide_coeff(h_t)
-        return self.interpolate(torch.einsum("bk,kpd->bpd", c, self.slide_basis.to(c)))
 
     def basis_offsets(self, h_t: torch.Tensor) -> torch.Tensor:
         """Temporal state [B,H] -> canonical offsets of the vertices [B,P,3]: sum_k c_k(h_t) B_k. One coefficient
