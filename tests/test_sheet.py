@@ -182,7 +182,7 @@ def test_export_and_viewer_frames_carry_the_sheet(scenes_root):
 
 def test_a_cell_torn_open_caps_its_gaussians_stretch():
     """Under a pose the garment cannot follow (a cell pulled 20x its size) the tangent scales stop at max_stretch
-    times the canonical cell's; below the cap they follow the cell."""
+    times the reference cell's (here, profile=canonical, the canonical one); below the cap they follow the cell."""
     sh = GarmentSheet(build_body("mannequin"), rows=3, cols=8, per_cell=2, profile="canonical", max_stretch=5.0)
     V = sh.vertices[None]
     centre = V[0].mean(0)
