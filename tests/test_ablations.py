@@ -39,8 +39,8 @@ EXPECTED = {
     "scenes": (8, {"+variant": {"full", "no_lstm"}, "seed": {"0"},
                    "data": {"synthetic_sweep", "synthetic_sweep_dress_spin", "synthetic_sweep_skirt_flap",
                             "synthetic_sweep_dress_walk"}}),
-    "dynamics": (24, {"+garment": {"default", "no_silhouette", "no_grid", "no_shading", "no_hard_frames", "plus_hull",
-                                   "plus_graph", "plus_sheet"},
+    "dynamics": (27, {"+garment": {"default", "no_silhouette", "no_grid", "no_shading", "no_hard_frames", "plus_hull",
+                                   "plus_graph", "plus_sheet", "plus_sheet_basis"},
                       "seed": SEEDS,
                       "data": {"synthetic_sweep"}}),
 }
@@ -54,6 +54,8 @@ GARMENT_CHOICES = {"default": ("chamfer", "grid", "default", "motion_trend", "ir
                    "plus_graph": ("chamfer", "grid", "default", "motion_trend_nodes", "irradiance", "hard_frames",
                                   "none"),
                    "plus_sheet": ("chamfer", "grid", "default", "motion_trend", "irradiance", "hard_frames", "skirt"),
+                   "plus_sheet_basis": ("chamfer", "grid", "default", "motion_trend", "irradiance", "hard_frames",
+                                        "skirt"),
                    "all": ("chamfer", "grid", "hull", "motion_trend_nodes", "irradiance", "hard_frames", "skirt"),
                    "none": ("none", "mlp", "default", "motion_trend", "none", "uniform", "none")}
 VARIANT_CHOICES = {"full": ("latentbone", "lstm"), "no_zc": ("no_zc", "lstm"),
@@ -174,6 +176,8 @@ def test_sweep_jobs_compose_in_the_real_tree(name):
         if "+garment" in ov:
             assert (choices["silhouette"], choices["skinning"], choices["gaussians"], choices["deformer"],
                     choices["shading"], choices["sampler"], choices["sheet"]) == GARMENT_CHOICES[ov["+garment"]]
+        if ov.get("+garment", "").startswith("plus_sheet"):  # the sheet's motion basis only where named
+            assert cfg.sheet.basis == (64 if ov["+garment"] == "plus_sheet_basis" else 0)
         for key in ("temporal", "color", "density", "render", "trainer", "data"):
             if key in ov:
                 assert choices[key] == ov[key]
