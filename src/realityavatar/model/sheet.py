@@ -265,14 +265,17 @@ class GarmentSheet(nn.Module):
         e2 = v_perp / v_len
         return e1, e2, torch.linalg.cross(e1, e2, dim=-1), u_len, v_len
 
+    def _reference_layout(self) -> torch.Tensor:
+        """The layout stretch is measured against [P,3]: the rest frame's (profile=rest), else the canonical one."""
+        return self.posed_rest if self.posed_rest.shape[0] == self.vertices.shape[0] else self.vertices
+
     @torch.no_grad()
     def reference_cells(self) -> tuple[torch.Tensor, torch.Tensor]:
         """Each Gaussian's cell extent along the ring and down the sheet [1,M,1] in the layout the stretch cap is
         measured against: the rest frame's layout (profile=rest), else the canonical one. Not the canonical cells
         of a rest layout: canonicalised into the star pose, the cells between the legs span up to 37 cm, and a cap
         of 16x that bound nothing under poses that spread the legs further (README, "Stability report")."""
-        ref = self.posed_rest if self.posed_rest.shape[0] == self.vertices.shape[0] else self.vertices
-        return self._cell_frame(ref[None])[3:]
+        return self._cell_frame(self._reference_layout()[None])[3:]
 
     def _column_edges(self, verts: torch.Tensor) -> torch.Tensor:
         """Lengths of the edges down the sheet (ring j to ring j + 1, every column) [B,rows,cols]."""
@@ -287,8 +290,7 @@ class GarmentSheet(nn.Module):
         at peak flare and hung its hem below the cloth's (README, "A garment sheet"). Around the rings the sheet is free:
         it starts around the legs, inside the garment, and must widen to follow a flare."""
         with torch.no_grad():
-            ref = self.posed_rest if self.posed_rest.shape[0] == self.vertices.shape[0] else self.vertices
-            L0 = self._column_edges(ref[None].to(verts)).clamp_min(1e-6)
+            L0 = self._column_edges(self._reference_layout()[None].to(verts)).clamp_min(1e-6)
         excess = (self._column_edges(verts) / L0 - 1.0 - self.strain_free).clamp_min(0.0)
         return (excess * excess).mean()
 
