@@ -23,7 +23,7 @@ import torch
 from torch.utils.data import default_collate
 
 from realityavatar.build import build_data, load_run
-from realityavatar.metrics import psnr
+from realityavatar.metrics import psnr, silhouette_iou
 
 
 @torch.no_grad()
@@ -31,8 +31,7 @@ def evaluate(module, batches) -> dict:
     vals = []
     for b in batches:
         rgb, alpha, _, _ = module.render_batch(b)
-        m, a = b["mask"][0, ..., 0] > 0.5, alpha[0, ..., 0] > 0.5
-        vals.append((float(psnr(rgb[0].clamp(0, 1), b["image"][0])), float((m & a).sum() / (m | a).sum().clamp_min(1))))
+        vals.append((float(psnr(rgb[0].clamp(0, 1), b["image"][0])), float(silhouette_iou(alpha[0], b["mask"][0]))))
     v = np.mean(vals, 0)
     return {"psnr": float(v[0]), "iou": float(v[1]), "images": len(batches)}
 

@@ -371,7 +371,7 @@ class AvatarModule(pl.LightningModule):
             if sil:
                 total = total + self.silhouette.total(sil)
                 terms.update({k: v.detach() for k, v in sil.items()})
-        if self.sheet is not None and self.sheet.strain_weight > 0 and "sheet_verts" in posed:
+        if self.sheet is not None and self.sheet.strain_weight > 0:  # deform put the posed vertices in "sheet_verts"
             term = self.sheet.strain(posed["sheet_verts"])
             total = total + self.sheet.strain_weight * term
             terms["sheet_strain"] = term.detach()
