@@ -74,17 +74,24 @@ def test_canonical_sheet_spans_the_hips_to_the_knees_around_the_body(sheet):
         GarmentSheet(body, profile="hull")
 
 
+def _ci_sheet_module(rows: int = 6, per_cell: int = 1):
+    """body, data module and an untrained module with a rest-layout sheet (12 columns) on the CI scene; a fresh one
+    per call (canonicalise changes the sheet)."""
+    from realityavatar.build import build_data, build_module
+
+    cfg = compose(["data=synthetic_ci", "trainer=ci", "gaussians.num_points=300", "sheet=skirt", f"sheet.rows={rows}",
+                   "sheet.cols=12", f"sheet.per_cell={per_cell}"])
+    body = instantiate(cfg.body)
+    dm = build_data(cfg, body)
+    return body, dm, build_module(cfg, body, dm.num_train_frames, dm.scene_extent, data=dm)
+
+
 def test_rest_sheet_is_laid_out_at_the_hem_and_poses_back_onto_its_layout(scenes_root):
     """profile=rest on the CI scene's skirt: hem found in the rest frame's hull below the top ring, radii around
     the legs; after canonicalise the module's own skinning poses the vertices back onto the layout."""
-    from realityavatar.build import build_data, build_module
     from realityavatar.model.skinning import lbs_gaussians
 
-    cfg = compose(["data=synthetic_ci", "trainer=ci", "gaussians.num_points=300", "sheet=skirt", "sheet.rows=6",
-                   "sheet.cols=12", "sheet.per_cell=1"])
-    body = instantiate(cfg.body)
-    dm = build_data(cfg, body)
-    module = build_module(cfg, body, dm.num_train_frames, dm.scene_extent, data=dm)
+    body, _, module = _ci_sheet_module()
     sh = module.sheet
     lay = sh.layout
     assert lay["profile"] == "rest" and -0.9 < lay["bottom"] < 0.08 - 0.15
@@ -162,14 +169,9 @@ def test_sheet_trains_beside_the_free_gaussians_and_reloads(scenes_root, tmp_pat
 def test_export_and_viewer_frames_carry_the_sheet(scenes_root):
     """A run with a sheet exports (and the viewer streams) the free Gaussians and the sheet's, canonical and posed,
     every field with the same count."""
-    from realityavatar.build import build_data, build_module
     from realityavatar.export import gaussians_for_export
 
-    cfg = compose(["data=synthetic_ci", "trainer=ci", "gaussians.num_points=300", "sheet=skirt", "sheet.rows=4",
-                   "sheet.cols=12", "sheet.per_cell=2"])
-    body = instantiate(cfg.body)
-    dm = build_data(cfg, body)
-    module = build_module(cfg, body, dm.num_train_frames, dm.scene_extent, data=dm)
+    _, dm, module = _ci_sheet_module(rows=4, per_cell=2)
     n = module.gaussians.num_points + module.sheet.num_points
     batch = next(iter(dm.train_dataloader()))
     for poses, transl in ((None, None), (batch["poses"][0], batch["transl"][0])):
@@ -203,16 +205,10 @@ def test_stability_report_measures_extreme_poses_against_the_training_frames(sce
 
     from torch.utils.data import default_collate
 
-    from realityavatar.build import build_data, build_module
-
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
     from ablations.stability import extreme_poses, training_scale_max, training_scales
 
-    cfg = compose(["data=synthetic_ci", "trainer=ci", "gaussians.num_points=300", "sheet=skirt", "sheet.rows=6",
-                   "sheet.cols=12", "sheet.per_cell=1"])
-    body = instantiate(cfg.body)
-    dm = build_data(cfg, body)
-    module = build_module(cfg, body, dm.num_train_frames, dm.scene_extent, data=dm)
+    _, dm, module = _ci_sheet_module()
     module.on_fit_start()
     ds = dm.datasets["train"]
     per_frame = {}
