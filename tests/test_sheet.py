@@ -271,3 +271,44 @@ def test_motion_basis_is_a_linear_map_of_the_temporal_state():
     assert torch.allclose(o, expect) and not torch.allclose(o[0], o[1])
     with pytest.raises(ValueError, match="basis"):
         GarmentSheet(body, rows=3, cols=8, per_cell=1, profile="canonical", basis=-1)
+
+
+def test_surface_shading_lights_the_sheet_by_its_own_two_sided_normal(scenes_root):
+    """sheet.shade=surface: the sheet's Gaussians take E of their cell's posed normal turned towards the camera (a
+    skirt flared into a disc faces the sky), the free Gaussians keep the body's grid; shade=body (the default) lights
+    the sheet by the grid too. The light moves no geometry."""
+    from realityavatar.geometry import camera_centres
+
+    _, dm, module = _ci_sheet_module(rows=4, per_cell=1)
+    module.on_fit_start()
+    with torch.no_grad():
+        module.shading.coeffs[1, :] = 1.0  # the y band (gsplat order: -C1 y): E grows with n_y, so up and down differ
+    batch = next(iter(dm.train_dataloader()))
+    posed = module.deform(batch["poses"][:1], batch["transl"][:1])
+    N, M = module.gaussians.num_points, module.sheet.num_points
+    n = posed["sheet_normals"]
+    assert n.shape == (1, M, 3) and torch.allclose(n.norm(dim=-1), torch.ones(1, M), atol=1e-5)
+    body_light = module.light(posed, camera_centres(batch["viewmat"][:1]))
+    grid = module.shading(posed["x_e"], posed["rot"])
+    assert torch.equal(body_light, grid)  # shade=body: the grid for every Gaussian
+
+    module.sheet.shade = "surface"
+    means = posed["means"].detach().clone()
+    means[:, N:] = torch.tensor([0.0, 0.0, 0.0])
+    flat = torch.zeros(1, M, 3)
+    flat[..., 1] = torch.where(torch.arange(M) % 2 == 0, 1.0, -1.0)  # half the cells one-sided up, half down
+    probe = {**posed, "means": means, "sheet_normals": flat.requires_grad_()}
+    up = module.shading.irradiance(torch.tensor([[0.0, 1.0, 0.0]]))[0]
+    down = module.shading.irradiance(torch.tensor([[0.0, -1.0, 0.0]]))[0]
+    assert not torch.allclose(up, down)
+    for cam_y, want in ((2.0, up), (-2.0, down)):  # a camera above sees the top face, one below the underside
+        light = module.light(probe, torch.tensor([[0.0, cam_y, 0.0]]))
+        assert torch.allclose(light[0, N:], want.expand(M, 3), atol=1e-6)
+        assert torch.equal(light[:, :N], grid[:, :N])
+    light.sum().backward()
+    assert probe["sheet_normals"].grad is None  # detached: the light does not turn the cells
+
+    rgb = module.shade(posed, batch["viewmat"][:1], batch["frame_idx"][:1])
+    assert rgb.shape == (1, N + M, 3) and torch.isfinite(rgb).all()
+    with pytest.raises(ValueError, match="sheet.shade"):
+        GarmentSheet(module.body, rows=2, cols=4, per_cell=1, profile="canonical", shade="normal")
