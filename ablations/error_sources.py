@@ -31,7 +31,6 @@ from omegaconf import OmegaConf
 from torch.utils.data import default_collate
 
 from realityavatar.build import build_data, load_run
-from realityavatar.geometry import camera_centres
 from realityavatar.metrics import psnr
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
@@ -72,7 +71,7 @@ def error_sources(run: Path, unlit_root: Path, threads: int = 1) -> dict:
         posed = module.deform(b["poses"], b["transl"])
         W, H = int(b["width"][0]), int(b["height"][0])
         rgb = module.shade(posed, b["viewmat"], b["frame_idx"])[0]
-        light = module.light(posed, camera_centres(b["viewmat"]))[0]
+        light = module.shading(posed["x_e"], posed["rot"])[0]
         img, a, _ = module.splat(posed, 0, rgb, b["viewmat"], b["K"], W, H)
         e_img, _, _ = module.splat(posed, 0, light, b["viewmat"], b["K"], W, H)
         base, _, _ = module.splat(posed, 0, rgb / light, b["viewmat"], b["K"], W, H)

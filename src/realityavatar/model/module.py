@@ -183,14 +183,13 @@ class AvatarModule(pl.LightningModule):
             "weights": sh.interpolate(posed["weights"][:, N:]),
             "x_e": sh.interpolate(posed["x_e"][:, N:]),
         }
-        posed["sheet_normals"] = placed["normals"]  # [B,M,3] posed, one-sided: what sheet.shade=surface lights
         for k, v in vert.items():
             if v is not None:
                 posed[k] = torch.cat([posed[k][:, :N], v.to(posed[k])], dim=1)
         posed["opacities"] = torch.cat([posed["opacities"], sh.opacities().to(posed["opacities"])])
         return posed
 
-    _PER_SAMPLE = ("means", "quats", "scales", "rot", "f_mt", "weights", "x_e", "sheet_normals")
+    _PER_SAMPLE = ("means", "quats", "scales", "rot", "f_mt", "weights", "x_e")
 
     def deform_shared(self, poses: torch.Tensor, transl: torch.Tensor, deform: bool = True,
                       frame_idx: torch.Tensor | None = None) -> dict:
@@ -225,29 +224,8 @@ class AvatarModule(pl.LightningModule):
         # Canonicalise: undo each Gaussian's blended skinning rotation.
         d_c = (posed["rot"].transpose(-1, -2) @ d[..., None]).squeeze(-1)
         rgb = self.color(self.all_features(), F.normalize(d_c, dim=-1), posed["f_mt"], frame_idx)
-        light = self.light(posed, cam_centre)  # world-fixed light (shading=irradiance), or None
+        light = self.shading(posed["x_e"], posed["rot"])  # world-fixed light (shading=irradiance), or None
         return rgb if light is None else rgb * light
-
-    def light(self, posed: dict, cam_centre: torch.Tensor | None = None) -> torch.Tensor | None:
-        """The world-fixed light's factor on every Gaussian [B,N,3] (shading=irradiance), or None (shading=none).
-
-        Each Gaussian is lit by the body's normal grid at its deformed canonical position, posed by its LBS rotation
-        (`IrradianceShading`). With a garment sheet and `sheet.shade=surface` the sheet's Gaussians are lit by their
-        own cell's posed normal instead: a skirt flared into a disc faces the sky, while the body's normal there is
-        the hips' (horizontal). The cloth is two-sided, so the normal is turned towards the camera (cam_centre [B,3]);
-        without a camera (export) away from the sheet's centre. The normal is detached, as the grid's is: the light
-        does not move the geometry."""
-        light = self.shading(posed["x_e"], posed["rot"])
-        if light is None or self.sheet is None or self.sheet.shade == "body":
-            return light
-        n = posed["sheet_normals"]
-        n = n if self.sheet.shade == "surface_grad" else n.detach()
-        M = n.shape[1]
-        means = posed["means"][:, -M:].detach()
-        towards = (cam_centre[:, None, :] - means if cam_centre is not None
-                   else means - means.mean(dim=1, keepdim=True))
-        n = torch.where(((n * towards).sum(-1, keepdim=True) < 0), -n, n)
-        return torch.cat([light[:, :-M], self.shading.irradiance(n).to(light)], dim=1)
 
     def all_features(self) -> torch.Tensor:
         """Colour features of every rendered Gaussian: the free ones, then the garment sheet's [N(+M),F]."""
@@ -397,10 +375,6 @@ class AvatarModule(pl.LightningModule):
             term = self.sheet.strain(posed["sheet_verts"])
             total = total + self.sheet.strain_weight * term
             terms["sheet_strain"] = term.detach()
-        if self.sheet is not None and self.sheet.bend_weight > 0:
-            term = self.sheet.bend(posed["sheet_verts"])
-            total = total + self.sheet.bend_weight * term
-            terms["sheet_bend"] = term.detach()
         if use_flow:
             term = self.flow(posed["extra_image"], alpha, batch["flow"], batch["flow_valid"])
             total = total + self.flow.weight * term

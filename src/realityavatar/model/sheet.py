@@ -48,8 +48,7 @@ class GarmentSheet(nn.Module):
                  hull_voxel: float = 0.015, hull_quantile: float = 0.25, feature_dim: int = 32,
                  init_opacity: float = 0.1, normal_scale: float = 0.005, feature_init_std: float = 0.01,
                  seed: int = 0, max_stretch: float = 16.0, strain_weight: float = 0.0, strain_free: float = 0.2,
-                 basis: int = 0, cond_dim: int = 128, shade: str = "body", bend_weight: float = 0.0,
-                 views=None) -> None:
+                 basis: int = 0, cond_dim: int = 128, views=None) -> None:
         super().__init__()
         if rows < 1 or cols < 3 or per_cell < 1:
             raise ValueError(f"sheet: expected rows >= 1, cols >= 3, per_cell >= 1, got {rows}, {cols}, {per_cell}")
@@ -57,11 +56,6 @@ class GarmentSheet(nn.Module):
             raise ValueError(f"sheet.profile: expected 'rest' or 'canonical', got {profile!r}")
         if radius_from not in ("body", "hull"):
             raise ValueError(f"sheet.radius_from: expected 'body' or 'hull', got {radius_from!r}")
-        if shade not in ("body", "surface", "surface_grad"):
-            raise ValueError(f"sheet.shade: expected 'body', 'surface' or 'surface_grad', got {shade!r}")
-        # shade=surface: with shading=irradiance the sheet's Gaussians are lit by their cell's own normal (posed,
-        # two-sided: the side facing the camera) instead of the body's normal grid (AvatarModule.light)
-        self.shade = shade
         if not 0.0 < init_opacity < 1.0:
             raise ValueError(f"sheet.init_opacity: expected a value in (0,1), got {init_opacity}")
         if not 0.0 <= hull_quantile <= 1.0:
@@ -71,9 +65,6 @@ class GarmentSheet(nn.Module):
         if strain_weight < 0 or strain_free < 0:
             raise ValueError(f"sheet.strain_weight and sheet.strain_free must be >= 0, got {strain_weight}, {strain_free}")
         self.strain_weight, self.strain_free = float(strain_weight), float(strain_free)  # see `strain`
-        if bend_weight < 0:
-            raise ValueError(f"sheet.bend_weight must be >= 0, got {bend_weight}")
-        self.bend_weight = float(bend_weight)  # see `bend`
         self.feature_dim = int(feature_dim)
         self.profile, self.hull_frame = profile, hull_frame  # hull_frame: read by build_module
         # profile=rest keeps its layout (posed) and that frame's pose for `canonicalise`; both are checkpointed
@@ -303,30 +294,11 @@ class GarmentSheet(nn.Module):
         excess = (self._column_edges(verts) / L0 - 1.0 - self.strain_free).clamp_min(0.0)
         return (excess * excess).mean()
 
-    def bend(self, verts: torch.Tensor) -> torch.Tensor:
-        """Crumpling of the sheet: the discrete Laplacian of its displacement from the reference layout (the rest
-        frame's, else the canonical one), down the columns and around the rings, in units of the layout's median
-        edge, squared and averaged over the vertices. Posed vertices [B,P,3] -> a scalar. A flare (each column turned
-        about the top ring) or the body's turn displaces the vertices linearly along the sheet and costs ~nothing;
-        a zigzag between neighbouring vertices costs its square. Without it the trained sheet crumples: at peak flare
-        its columns zigzag to 2.4x their end-to-end length (second differences 8 cm median), at rest 1.2x (README,
-        "A garment sheet"), so its cells face every way and do not form the cloth's surface."""
-        R, C = self.rows + 1, self.cols
-        ref = self._reference_layout().to(verts)
-        with torch.no_grad():
-            G0 = ref.reshape(R, C, 3)
-            edge = torch.cat([(G0[1:] - G0[:-1]).norm(dim=-1).reshape(-1),
-                              (G0.roll(-1, 1) - G0).norm(dim=-1).reshape(-1)]).median().clamp_min(1e-6)
-        D = (verts - ref[None]).reshape(verts.shape[0], R, C, 3) / edge
-        down = D[:, 2:] - 2 * D[:, 1:-1] + D[:, :-2]
-        around = D.roll(1, 2) - 2 * D + D.roll(-1, 2)
-        return 0.5 * ((down * down).sum(-1).mean() + (around * around).sum(-1).mean())
-
     def place(self, verts: torch.Tensor) -> dict[str, torch.Tensor]:
-        """Vertex positions [B,P,3] -> the Gaussians' means [B,M,3], quats [B,M,4] (the cell's tangent frame),
-        normals [B,M,3] (the frame's third axis, unit, one-sided) and scales [B,M,3] (stretched with the cell, at
-        most `max_stretch` times the reference cell's, see `reference_cells`: a cell torn open by a pose the garment
-        cannot follow, legs spread far apart, leaves a gap instead of a half-metre-long smear)."""
+        """Vertex positions [B,P,3] -> the Gaussians' means [B,M,3], quats [B,M,4] (the cell's tangent frame) and
+        scales [B,M,3] (stretched with the cell, at most `max_stretch` times the reference cell's, see
+        `reference_cells`: a cell torn open by a pose the garment cannot follow, legs spread far apart, leaves a gap
+        instead of a half-metre-long smear)."""
         e1, e2, e3, u_len, v_len = self._cell_frame(verts)
         R = torch.stack([e1, e2, e3], dim=-1)  # [B,M,3,3], columns = the frame
         means = self.interpolate(verts) + self.normal_offset[None, :, None] * e3
@@ -336,7 +308,7 @@ class GarmentSheet(nn.Module):
             v_len = torch.minimum(v_len, self.max_stretch * cv)
         s = self.log_scales.exp()
         scales = torch.cat([s[None, :, 0:1] * u_len, s[None, :, 1:2] * v_len, s[None, :, 2:3].expand_as(u_len)], -1)
-        return {"means": means, "quats": matrix_to_quat(R), "scales": scales, "normals": e3}
+        return {"means": means, "quats": matrix_to_quat(R), "scales": scales}
 
     def extra_repr(self) -> str:
         return f"rows={self.rows}, cols={self.cols}, per_cell={self.per_cell}, gaussians={self.num_points}"
