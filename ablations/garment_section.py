@@ -16,7 +16,10 @@ training frame it deforms the Gaussians (the training frame's own inputs, frame 
   cover, cover0..cover4: the share of the cloth's surface (samples, overall and per fifth of its length by texture v)
   with the centre of some Gaussian of opacity > 0.1 within 2 cm, whichever Gaussian it is: a model may build the
   flared skirt from Gaussians that sat elsewhere at rest (e.g. hidden under the skirt), which the distances above
-  do not see.
+  do not see. cloth_up: the cloth's outward normal's mean vertical component (0 hanging, towards 1 flared into a
+  disc). With a garment sheet (sheet=skirt) also sheet_up (the same for the sheet's cells, opacity-weighted),
+  sheet_lap_cm (median second difference down its columns of its displacement from the rest layout: a flare moves a
+  column linearly, a crumpled sheet zigzags) and sheet_zigzag (median column path length over its end-to-end length).
 """
 
 from __future__ import annotations
@@ -38,6 +41,43 @@ from realityavatar.build import build_data, load_run
 
 CELLS_U, CELLS_V = 16, 24  # realityavatar.data.synthetic.render.GarmentTexture's default cells
 SAMPLES = 60000  # cloth surface samples (a few mm apart on the demo skirt)
+
+
+def outward_up(centres: np.ndarray, normals: np.ndarray, weights: np.ndarray | None = None) -> float:
+    """Mean vertical component (y is up) of unit normals [n,3] turned away from the vertical axis through their
+    points' centre (centres [n,3]), weighted by `weights` [n]: 0 for a hanging skirt, towards 1 for one flared into a
+    disc."""
+    radial = (centres - centres.mean(0))[:, [0, 2]]
+    sign = np.where((radial * normals[:, [0, 2]]).sum(1) < 0, -1.0, 1.0)
+    return float(np.average(normals[:, 1] * sign, weights=weights))
+
+
+def cloth_up(verts: np.ndarray, faces: np.ndarray) -> float:
+    """outward_up of the cloth's faces, area-weighted."""
+    tri = verts[faces]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    area = np.linalg.norm(n, axis=1)
+    return outward_up(tri.mean(1), n / np.maximum(area, 1e-12)[:, None], area)
+
+
+@torch.no_grad()
+def sheet_shape(module, posed: dict) -> dict:
+    """A garment sheet's posed shape (sheet=skirt runs): whether it is a surface that flares like the cloth.
+    sheet_up: outward_up of its cells' normals, opacity-weighted; sheet_lap_cm: the median second difference down
+    its columns of its displacement from the rest layout (a flare or the body's turn displaces a column linearly,
+    a zigzag does not); sheet_zigzag: the median over columns of their path length over their end-to-end length."""
+    sh = module.sheet
+    R, C = sh.rows + 1, sh.cols
+    V = posed["sheet_verts"][0].double()
+    normals = sh._cell_frame(V[None].float())[2]  # each Gaussian's cell normal (its frame's third axis)
+    up = outward_up(sh.place(V[None].float())["means"][0].double().numpy(), normals[0].double().numpy(),
+                    sh.opacities().detach().double().numpy())
+    G = V.reshape(R, C, 3)
+    D = G - sh._reference_layout().double().reshape(R, C, 3)
+    lap = (D[2:] - 2 * D[1:-1] + D[:-2]).norm(dim=-1)
+    path = (G[1:] - G[:-1]).norm(dim=-1).sum(0)
+    chord = (G[-1] - G[0]).norm(dim=-1).clamp_min(1e-9)
+    return {"sheet_up": up, "sheet_lap_cm": float(lap.median()) * 100, "sheet_zigzag": float((path / chord).median())}
 
 
 def cloth_samples(faces: np.ndarray, n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -78,7 +118,9 @@ def section(run_dir: Path, threads: int = 1) -> dict:
         seen = x[posed["opacities"].detach().numpy() > 0.1]
         covered = cKDTree(seen).query(pts)[0] < CLOTH_NEAR if len(seen) else np.zeros(len(pts), bool)
         frames[f] = {"x": x, "d": d, "uv": uv_s[j], "cloth": pts, "phase": phase_of(f, events, fps),
-                     "covered": covered}
+                     "covered": covered, "shape": {"cloth_up": cloth_up(V[gframes.index(f)], F)}}
+        if module.sheet is not None:
+            frames[f]["shape"].update(sheet_shape(module, posed))
     rest = [f for f in sorted(frames) if frames[f]["phase"] == "rest"] or sorted(frames)[:1]
     on = np.all([frames[f]["d"] < CLOTH_NEAR for f in rest], 0)
     if not on.any():
@@ -105,6 +147,7 @@ def table(res: dict) -> list[dict]:
         cband = np.minimum((res["cloth_v"] * 5).astype(int), 4)
         for k in range(5):
             rows[-1][f"cover{k}"] = float(r["covered"][cband == k].mean())
+        rows[-1].update(r.get("shape", {}))
     return rows
 
 
@@ -168,7 +211,9 @@ def main(argv: list[str] | None = None) -> int:
         w = csv.DictWriter(fh, fieldnames=list(rows[0]))
         w.writeheader()
         w.writerows(rows)
-    keys = ("dist_cm", "abs_du_cells", "abs_dv_cells", "dv_cells", "cover", "cover4")
+    keys = ("dist_cm", "abs_du_cells", "abs_dv_cells", "dv_cells", "cover", "cover4", "cloth_up")
+    if all("sheet_up" in r for r in rows):
+        keys += ("sheet_up", "sheet_lap_cm", "sheet_zigzag")
     print("run | phase | " + " | ".join(keys) + "  (medians over the phase's frames)")
     for label in labels:
         for ph in ("rest", "spin", "after", "settled"):

@@ -525,3 +525,59 @@ def test_garment_section_table_measures_slide_distance_and_cover(tmp_path):
     assert np.isclose(spin["cover"], 0.4) and spin["cover0"] == 0.5 and spin["cover2"] == 1.0 and spin["cover4"] == 0.0
     plot(res, [0, 1], "test", tmp_path / "s.png")
     assert (tmp_path / "s.png").stat().st_size > 1000
+
+
+def test_garment_section_tells_a_flared_surface_from_a_crumpled_one():
+    """garment_section's shape columns: cloth_up is 0 for a hanging cylinder, 1 for a disc, cos 45 deg for a 45 deg
+    cone; a garment sheet turned about its top ring like a flaring skirt has no second difference down its columns
+    and straight columns, one zigzagged by +-a has second differences of 4a and longer columns."""
+    from types import SimpleNamespace
+
+    import numpy as np
+    import torch
+
+    from ablations.garment_section import cloth_up, sheet_shape
+    from realityavatar.body import build_body
+    from realityavatar.model.sheet import GarmentSheet
+
+    az = np.linspace(0, 2 * np.pi, 33)[:-1]
+    ring = np.stack([np.cos(az), np.zeros_like(az), np.sin(az)], 1)
+
+    def band(r0, r1, h0, h1):  # a strip between two rings of 32 vertices, as triangles (either winding)
+        v = np.vstack([r0 * ring + [0, h0, 0], r1 * ring + [0, h1, 0]])
+        i = np.arange(32)
+        j = (i + 1) % 32
+        return v, np.vstack([np.stack([i, j, i + 32], 1), np.stack([j, j + 32, i + 32], 1)])
+
+    assert abs(cloth_up(*band(0.2, 0.2, 0.0, -0.3))) < 1e-6
+    assert np.isclose(cloth_up(*band(0.2, 0.5, 0.0, 0.0)), 1.0, atol=1e-6)
+    assert np.isclose(cloth_up(*band(0.2, 0.5, 0.0, -0.3)), np.cos(np.pi / 4), atol=5e-3)  # 32 facets
+
+    sh = GarmentSheet(build_body("mannequin"), rows=8, cols=12, per_cell=1, profile="canonical")
+    module = SimpleNamespace(sheet=sh)
+    G = sh.vertices.reshape(9, 12, 3).double()
+    top = G[0].mean(0)
+    rest = sheet_shape(module, {"sheet_verts": G.reshape(1, -1, 3)})
+    assert rest["sheet_lap_cm"] < 1e-6
+
+    # flare: each column turned 30 deg outwards about its top vertex (a rigid turn: linear along the column; the
+    # canonical layout is already a cone, 45 deg at the knees, so 60 deg would fold it over)
+    radial = torch.nn.functional.normalize((G[0] - top) * torch.tensor([1.0, 0.0, 1.0], dtype=G.dtype), dim=-1)
+    rel = G - G[0:1]
+    down, out = rel[..., 1], (rel * radial).sum(-1)
+    a = math.radians(30)
+    flared = G + ((out * math.cos(a) - down * math.sin(a) - out)[..., None] * radial
+                  + (out * math.sin(a) + down * math.cos(a) - down)[..., None] * torch.tensor([0.0, 1.0, 0.0], dtype=G.dtype))
+    fl = sheet_shape(module, {"sheet_verts": flared.reshape(1, -1, 3)})
+    # a rigid turn of a column adds no second difference beyond the layout's own bend down the column
+    own = float((G[2:] - 2 * G[1:-1] + G[:-2]).norm(dim=-1).median()) * 100
+    assert fl["sheet_lap_cm"] <= 1.01 * own and abs(fl["sheet_zigzag"] - rest["sheet_zigzag"]) < 1e-6
+    assert fl["sheet_up"] > rest["sheet_up"] + 0.2
+
+    # zigzag: every other ring pushed out by a, the others in
+    amp = 0.02
+    sign = torch.tensor([(-1.0) ** j for j in range(9)], dtype=G.dtype)[:, None, None]
+    zig = G + amp * sign * radial[None]
+    zz = sheet_shape(module, {"sheet_verts": zig.reshape(1, -1, 3)})
+    assert np.isclose(zz["sheet_lap_cm"], 4 * amp * 100, rtol=1e-6)
+    assert zz["sheet_zigzag"] > rest["sheet_zigzag"] + 0.05 and zz["sheet_lap_cm"] > 4 * fl["sheet_lap_cm"]
