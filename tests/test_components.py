@@ -444,3 +444,36 @@ def test_density_gradient_of_a_multi_image_batch_is_scaled_by_its_images(body):
     avg_one = one.grad2d / one.count.clamp_min(1)
     avg_four = four.grad2d / four.count.clamp_min(1)
     assert float(avg_one[3]) > 0 and torch.allclose(avg_four, avg_one, rtol=1e-6), (avg_one[3], avg_four[3])
+
+
+def test_coarse_to_fine_window_opens_the_frequency_bands_in_turn():
+    """schedule.deform_anneal (Nerfies' coarse-to-fine window): at alpha 0 only the input passes, a band fades in as
+    alpha passes it, at alpha = num_freqs the encoding is the plain one bit for bit; the schedule opens it linearly
+    from deform_start over deform_anneal steps; the hash encoding has no window."""
+    from realityavatar.model.encodings import FrequencyEncoding
+
+    enc = FrequencyEncoding(4)
+    x = torch.rand(5, 3) * 2 - 1
+    plain = enc(x)
+    F_, D = 4, 3
+    bands = lambda e: e[:, D:].reshape(5, 2, F_, D)  # noqa: E731  [sin|cos, band, xyz]
+    enc.set_window(0.0)
+    assert torch.equal(enc(x)[:, :D], x) and float(bands(enc(x)).abs().max()) == 0.0
+    enc.set_window(1.5)  # band 0 full, band 1 half, bands 2-3 shut
+    b, p = bands(enc(x)), bands(plain)
+    assert torch.allclose(b[:, :, 0], p[:, :, 0]) and torch.allclose(b[:, :, 1], 0.5 * p[:, :, 1])
+    assert float(b[:, :, 2:].abs().max()) == 0.0
+    enc.set_window(4.0)
+    assert torch.equal(enc(x), plain)
+
+    from realityavatar.model.module import Schedule
+
+    d = MotionTrendDecoder(cond_dim=8, encoding="frequency", hidden_dim=16, num_layers=2, feature_dim=4, num_freqs=6)
+    assert d.encoding.alpha == 6.0  # a decoder nobody set (a module outside training) sees every band
+    sched = Schedule(deform_start=10, deform_anneal=100)
+    for step, alpha in ((0, 0.0), (10, 0.0), (60, 3.0), (110, 6.0), (500, 6.0), (None, 6.0)):
+        d.set_window(sched.deform_window(step))
+        assert d.encoding.alpha == alpha, (step, d.encoding.alpha)
+    assert Schedule(deform_anneal=0).deform_window(0) == 1.0  # 0: every band from the start
+    hashed = MotionTrendDecoder(cond_dim=8, encoding="hash", hidden_dim=16, num_layers=2, feature_dim=4)
+    hashed.set_window(0.0)  # no bands to open

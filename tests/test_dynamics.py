@@ -410,3 +410,25 @@ def test_frame_codes_pick_a_shape_per_training_frame():
         MotionTrendDecoder(frame_code_dim=-1)
     assert set(d.param_groups()) == {"deformer", "deformer_codes"}
     assert d.param_groups()["deformer_codes"] == [d.frame_codes.weight]
+
+
+def test_training_opens_the_coarse_to_fine_window_and_a_checkpoint_keeps_it(scenes_root, tmp_path, monkeypatch):
+    """Every training step sets the decoder's window from schedule.deform_anneal, and load_run puts a checkpoint's
+    window back where its step had it: a run stopped mid-anneal (20 of 40 steps) renders with half its bands, as it
+    trained, not with bands it never trained."""
+    from realityavatar.build import load_run
+    from realityavatar.config import compose, prepare_run
+    from realityavatar.model.module import AvatarModule
+    from realityavatar.train import run
+
+    assert compose([]).schedule.deform_anneal == compose([]).iterations // 2
+    steps = []
+    orig = AvatarModule.set_progress
+    monkeypatch.setattr(AvatarModule, "set_progress", lambda self, step: (steps.append(step), orig(self, step))[1])
+    cfg, choices = prepare_run(compose(["data=synthetic_ci", "trainer=ci", "iterations=20", "schedule.deform_anneal=40",
+                                        "gaussians.num_points=300", "eval.max_frames_per_split=1",
+                                        "eval.save_video=false", "eval.save_images=0"]), tmp_path / "run")
+    run(cfg, choices)
+    assert [s for s in steps if s is not None][:20] == list(range(20))
+    _, module, _ = load_run(tmp_path / "run")
+    assert module.deformer.encoding.alpha == module.deformer.encoding.num_freqs * 20 / 40

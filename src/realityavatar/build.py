@@ -129,6 +129,7 @@ def load_run(run_dir: str | Path, overrides: list[str] | None = None, ckpt: str 
     body = instantiate(cfg.body)
     module = build_module(cfg, body, info["num_train_frames"], info["scene_extent"])
     module.load_state_dict(state["state_dict"])
+    module.set_progress(state.get("global_step"))  # step-dependent state (the decoder's coarse-to-fine window)
     module.eval()
     return cfg, module, info
 

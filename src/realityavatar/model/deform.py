@@ -110,6 +110,13 @@ class MotionTrendDecoder(nn.Module):
             self.out.weight[:10].zero_()
             self.out.bias[:10].zero_()
 
+    def set_window(self, fraction: float) -> None:
+        """Coarse-to-fine (schedule.deform_anneal, Nerfies' window): with the frequency encoding, open its bands up to
+        `fraction` (0: the position alone, 1: every band) so that a large, smooth motion is found before the fine
+        bands let neighbouring Gaussians move apart. A no-op with the hash encoding."""
+        if isinstance(self.encoding, FrequencyEncoding):
+            self.encoding.set_window(self.encoding.num_freqs * float(fraction))
+
     @torch.no_grad()
     def fit_bounds(self, points: torch.Tensor, padding: float = 0.1) -> None:
         """Set the normalisation box from points [P,3] with a relative padding per axis."""

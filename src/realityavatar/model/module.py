@@ -32,9 +32,16 @@ class Schedule:
     deform_start: int = 0
     skin_switch: int = 0  # the skinning-loss weight drops from loss.lambda_skin_start to lambda_skin_end here
     skin_pretrain_steps: int = 0  # fit the skinning field to the body's weights before the first step
+    deform_anneal: int = 0  # the decoder's frequency bands open linearly over steps deform_start .. + this (0: all)
 
     def deform_on(self, step: int) -> bool:
         return step >= self.deform_start
+
+    def deform_window(self, step: int) -> float:
+        """How far the decoder's coarse-to-fine window is open at `step` (None: a finished run): 0 .. 1."""
+        if step is None or self.deform_anneal <= 0:
+            return 1.0
+        return min(1.0, max(0.0, (step - self.deform_start) / self.deform_anneal))
 
     def skin_decayed(self, step: int) -> bool:
         return step >= self.skin_switch
@@ -117,6 +124,13 @@ class AvatarModule(pl.LightningModule):
             # (a checkpoint's buffers replace it with the same values).
             J = body.joints(body.canonical_pose()[None])[0].detach()  # [24,3]
             deformer.set_axis(J[0], J[12] - J[0])
+
+    def set_progress(self, step: int | None) -> None:
+        """Put the step-dependent state of the networks where training step `step` has it (None: a finished run):
+        the decoder's coarse-to-fine window (schedule.deform_anneal). Called every training step, and by `load_run`
+        with the checkpoint's step, so a checkpoint saved mid-anneal renders as it trained."""
+        if hasattr(self.deformer, "set_window"):
+            self.deformer.set_window(self.schedule.deform_window(step))
 
     # ------------------------------------------------------------------ forward
     def deform(self, poses: torch.Tensor, transl: torch.Tensor, deform: bool = True,
@@ -351,6 +365,7 @@ class AvatarModule(pl.LightningModule):
         sched = self.lr_schedulers()
         opt.zero_grad(set_to_none=True)
         deform = self.schedule.deform_on(step)
+        self.set_progress(step)
         use_flow = self.flow is not None and "flow" in batch
         extra = self.image_motion(batch, deform) if use_flow else None
         rgb, alpha, metas, posed = self.render_batch(batch, deform=deform, extra=extra)
