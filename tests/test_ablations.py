@@ -39,8 +39,8 @@ EXPECTED = {
     "scenes": (8, {"+variant": {"full", "no_lstm"}, "seed": {"0"},
                    "data": {"synthetic_sweep", "synthetic_sweep_dress_spin", "synthetic_sweep_skirt_flap",
                             "synthetic_sweep_dress_walk"}}),
-    "dynamics": (27, {"+garment": {"default", "no_silhouette", "no_grid", "no_shading", "no_hard_frames", "plus_hull",
-                                   "plus_graph", "plus_sheet", "plus_sheet_basis"},
+    "dynamics": (30, {"+garment": {"default", "no_silhouette", "no_grid", "no_shading", "no_hard_frames", "no_anneal",
+                                   "plus_hull", "plus_graph", "plus_sheet", "plus_sheet_basis"},
                       "seed": SEEDS,
                       "data": {"synthetic_sweep"}}),
 }
@@ -50,6 +50,7 @@ GARMENT_CHOICES = {"default": ("chamfer", "grid", "default", "motion_trend", "ir
                    "no_grid": ("chamfer", "mlp", "default", "motion_trend", "irradiance", "hard_frames", "none"),
                    "no_shading": ("chamfer", "grid", "default", "motion_trend", "none", "hard_frames", "none"),
                    "no_hard_frames": ("chamfer", "grid", "default", "motion_trend", "irradiance", "uniform", "none"),
+                   "no_anneal": ("chamfer", "grid", "default", "motion_trend", "irradiance", "hard_frames", "none"),
                    "plus_hull": ("chamfer", "grid", "hull", "motion_trend", "irradiance", "hard_frames", "none"),
                    "plus_graph": ("chamfer", "grid", "default", "motion_trend_nodes", "irradiance", "hard_frames",
                                   "none"),
@@ -178,6 +179,9 @@ def test_sweep_jobs_compose_in_the_real_tree(name):
                     choices["shading"], choices["sampler"], choices["sheet"]) == GARMENT_CHOICES[ov["+garment"]]
         if ov.get("+garment", "").startswith("plus_sheet"):  # the sheet's motion basis only where named
             assert cfg.sheet.basis == (64 if ov["+garment"] == "plus_sheet_basis" else 0)
+        if "+garment" in ov:  # the decoder's coarse-to-fine window: half the run, off only where named
+            off = ov["+garment"] in ("no_anneal", "none")
+            assert cfg.schedule.deform_anneal == (0 if off else cfg.iterations // 2), ov
         for key in ("temporal", "color", "density", "render", "trainer", "data"):
             if key in ov:
                 assert choices[key] == ov[key]
