@@ -39,8 +39,8 @@ EXPECTED = {
     "scenes": (8, {"+variant": {"full", "no_lstm"}, "seed": {"0"},
                    "data": {"synthetic_sweep", "synthetic_sweep_dress_spin", "synthetic_sweep_skirt_flap",
                             "synthetic_sweep_dress_walk"}}),
-    "dynamics": (30, {"+garment": {"default", "no_silhouette", "no_grid", "no_shading", "no_hard_frames", "no_anneal",
-                                   "plus_hull", "plus_graph", "plus_sheet", "plus_sheet_basis"},
+    "dynamics": (33, {"+garment": {"default", "no_silhouette", "no_grid", "no_shading", "no_hard_frames", "no_anneal",
+                                   "plus_hull", "plus_graph", "plus_sheet", "plus_sheet_basis", "plus_dynamics"},
                       "seed": SEEDS,
                       "data": {"synthetic_sweep"}}),
 }
@@ -57,6 +57,7 @@ GARMENT_CHOICES = {"default": ("chamfer", "grid", "default", "motion_trend", "ir
                    "plus_sheet": ("chamfer", "grid", "default", "motion_trend", "irradiance", "hard_frames", "skirt"),
                    "plus_sheet_basis": ("chamfer", "grid", "default", "motion_trend", "irradiance", "hard_frames",
                                         "skirt"),
+                   "plus_dynamics": ("chamfer", "grid", "default", "motion_trend", "irradiance", "hard_frames", "none"),
                    "all": ("chamfer", "grid", "hull", "motion_trend_nodes", "irradiance", "hard_frames", "skirt"),
                    "none": ("none", "mlp", "default", "motion_trend", "none", "uniform", "none")}
 VARIANT_CHOICES = {"full": ("latentbone", "lstm"), "no_zc": ("no_zc", "lstm"),
@@ -179,6 +180,8 @@ def test_sweep_jobs_compose_in_the_real_tree(name):
                     choices["shading"], choices["sampler"], choices["sheet"]) == GARMENT_CHOICES[ov["+garment"]]
         if ov.get("+garment", "").startswith("plus_sheet"):  # the sheet's motion basis only where named
             assert cfg.sheet.basis == (64 if ov["+garment"] == "plus_sheet_basis" else 0)
+        if "+garment" in ov:  # pose deltas in the encoder only where named
+            assert cfg.encoder.dynamics == ("deltas" if ov["+garment"] == "plus_dynamics" else "none"), ov
         if "+garment" in ov:  # the decoder's coarse-to-fine window: half the run, off only where named
             off = ov["+garment"] in ("no_anneal", "none")
             assert cfg.schedule.deform_anneal == (0 if off else cfg.iterations // 2), ov

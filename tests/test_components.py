@@ -24,7 +24,7 @@ from realityavatar.geometry import (
 from realityavatar.model.color import MLPColor, SHColor
 from realityavatar.model.deform import MotionTrendDecoder, apply_deformation
 from realityavatar.model.density import DensityControl, NoDensityControl
-from realityavatar.model.encoders import PART_DIMS, LatentBoneEncoder, pose_features
+from realityavatar.model.encoders import PART_DIMS, LatentBoneEncoder, part_dims, pose_features
 from realityavatar.model.encodings import HashEncoding
 from realityavatar.model.gaussians import PARAM_NAMES, CanonicalGaussians
 from realityavatar.model.skinning import SkinningField, lbs_gaussians, pretrain_skinning, skinning_loss
@@ -111,6 +111,47 @@ def test_pose_features_invariant_to_heading_but_not_to_spin():
     assert torch.allclose(feats3["left_arm"], feats["left_arm"])
     # the current frame's own root terms are zero (relative to itself)
     assert torch.allclose(feats["torso"][:, -1, 30:], torch.zeros(2, 9), atol=1e-6)
+
+
+def test_pose_feature_deltas():
+    """`dynamics="deltas"` appends each window frame's change since the previous one: zero for the oldest frame and
+    for a still body, the root's turn for a spin, heading-invariant; the base features are unchanged."""
+    poses, transl = _poses()
+    base = pose_features(poses, transl)
+    feats = pose_features(poses, transl, "deltas")
+    assert {k: v.shape[-1] for k, v in feats.items()} == part_dims("deltas") == {k: 2 * d for k, d in PART_DIMS.items()}
+    for k, d in PART_DIMS.items():
+        assert torch.equal(feats[k][..., :d], base[k]), k
+        assert torch.equal(feats[k][:, 0, d:], torch.zeros_like(feats[k][:, 0, d:])), k  # no frame before the oldest
+        n = 30 if k == "torso" else d  # the torso's joints; its root terms are the turn and the move below
+        assert torch.allclose(feats[k][:, 1:, d:d + n], base[k][:, 1:, :n] - base[k][:, :-1, :n], atol=1e-6), k
+    # a still body (every frame the same) has zero deltas; a spin about the vertical has the root's turn per step
+    still = poses[:, -1:].expand_as(poses).clone()
+    tstill = transl[:, -1:].expand_as(transl).clone()
+    assert torch.allclose(pose_features(still, tstill, "deltas")["torso"][..., 39:], torch.zeros(2, 5, 39), atol=1e-6)
+    spin = still.clone()
+    spin[:, :, 0] = torch.tensor([0.0, 1.0, 0.0]) * (0.4 * torch.arange(5.0))[:, None]  # 0.4 rad per window step
+    turn = pose_features(spin, tstill, "deltas")["torso"][:, 1:, 39 + 30:39 + 36]
+    expected = pose_features(torch.zeros(1, 2, 24, 3) + torch.tensor([0.0, 0.4, 0.0]) * torch.tensor([0.0, 1.0])[:, None, None],
+                             torch.zeros(1, 2, 3))["torso"][0, 0, 30:36]  # 6D of a 0.4 rad turn (sign as seen back)
+    assert turn.abs().amax() > 0.1
+    assert torch.allclose(turn, turn[:1, :1].expand_as(turn), atol=1e-6)  # the same turn every step
+    assert torch.allclose(turn[0, 0].abs(), expected.abs(), atol=1e-5)
+    # heading-invariant like the base features
+    R0 = axis_angle_to_matrix(torch.tensor([0.0, 1.3, 0.0]))
+    from realityavatar.geometry import matrix_to_axis_angle
+
+    p2 = poses.clone()
+    p2[:, :, 0] = matrix_to_axis_angle(R0 @ axis_angle_to_matrix(poses[:, :, 0]))
+    t2 = (R0 @ transl[..., None]).squeeze(-1) + torch.tensor([1.0, 0.0, -2.0])
+    for k, v in pose_features(p2, t2, "deltas").items():
+        assert torch.allclose(v, feats[k], atol=1e-5), k
+    # the encoder sizes its input layers from them; an unknown option names the field
+    enc = LatentBoneEncoder(dynamics="deltas", out_dim=32)
+    assert enc.part_layers["torso"][0].in_features == 2 * PART_DIMS["torso"] + 16
+    assert enc(poses, transl).shape == (2, 5, 32)
+    with pytest.raises(ValueError, match="encoder.dynamics"):
+        LatentBoneEncoder(dynamics="velocity")
 
 
 def test_pose_features_rejects_nan():
