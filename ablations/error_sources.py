@@ -7,6 +7,9 @@ For every held-out (novel-view) image of the run's training frames it renders th
 - psnr_true_light: the model's albedo (colour / E) times the scene's true shading (lit image / albedo-only image of
   the same camera and frame, scaled by the global ratio of the two E's), inside the mask where the model is opaque;
 - psnr_true_albedo: the scene's true albedo times the model's E (same pixels, same scale);
+- psnr_unshaded: the model's error with each of those pixels' error divided by the scene's true shading there
+  (relative to its mean over all those pixels): the error a phase would have if its garment were lit as brightly as
+  on average, so phases compare without the light's change of brightness (a flared skirt faces the light);
 - the squared error's share by region (x1e4 of the image's mean): interior (mask, alpha > 0.9), edge (mask, alpha
   0.1-0.9), missed (mask, alpha <= 0.1), extra (outside the mask, alpha > 0.1), background (the rest); they sum to
   mse_total;
@@ -51,6 +54,14 @@ def blur(img: torch.Tensor, s: float) -> torch.Tensor:
     return im[:, 0].permute(1, 2, 0)
 
 
+def unshade(err: torch.Tensor, sel: torch.Tensor, e_true: torch.Tensor, e_mean: float) -> torch.Tensor:
+    """err [H,W,3] with each selected pixel's (sel [H,W]) error divided by its true shading relative to e_mean
+    (e_true [H,W,3]; at most a 5x gain where the light is dim); other pixels as they are."""
+    out = err.clone()
+    out[sel] = err[sel] / (e_true[sel] / e_mean).clamp_min(0.2)
+    return out
+
+
 @torch.no_grad()
 def error_sources(run: Path, unlit_root: Path, threads: int = 1) -> dict:
     torch.set_num_threads(threads)
@@ -71,7 +82,7 @@ def error_sources(run: Path, unlit_root: Path, threads: int = 1) -> dict:
         posed = module.deform(b["poses"], b["transl"])
         W, H = int(b["width"][0]), int(b["height"][0])
         rgb = module.shade(posed, b["viewmat"], b["frame_idx"])[0]
-        light = module.shading(posed["x_e"], posed["rot"])[0]
+        light = module.shading(posed["x_e"], posed["rot"], posed.get("n_c"))[0]
         img, a, _ = module.splat(posed, 0, rgb, b["viewmat"], b["K"], W, H)
         e_img, _, _ = module.splat(posed, 0, light, b["viewmat"], b["K"], W, H)
         base, _, _ = module.splat(posed, 0, rgb / light, b["viewmat"], b["K"], W, H)
@@ -83,6 +94,10 @@ def error_sources(run: Path, unlit_root: Path, threads: int = 1) -> dict:
                         e_true=gt / albedo.clamp_min(1e-3)))
     # E and albedo share a global scale: match the model's E to the true one over all selected pixels.
     scale = sum(float(r["e_true"][r["sel"]].sum()) for r in raw) / sum(float(r["e_model"][r["sel"]].sum()) for r in raw)
+    # The true shading's mean over the same pixels: psnr_unshaded divides each pixel's error by its shading relative
+    # to this mean, so a phase whose garment is brighter (a flared skirt tilted towards the light) is not
+    # penalised for its larger absolute errors.
+    e_mean = sum(float(r["e_true"][r["sel"]].sum()) for r in raw) / sum(3 * int(r["sel"].sum()) for r in raw)
     per: dict[str, list[dict]] = {}
     for r in raw:
         img, gt, sel, a, m = r["img"].clamp(0, 1), r["gt"], r["sel"], r["a"], r["m"]
@@ -90,10 +105,12 @@ def error_sources(run: Path, unlit_root: Path, threads: int = 1) -> dict:
         light_fix[sel] = r["base"][sel] * r["e_true"][sel] / scale
         albedo_fix[sel] = r["albedo"][sel] * r["e_model"][sel] * scale
         se = ((img - gt) ** 2).mean(-1)
+        err_u = unshade(img - gt, sel, r["e_true"], e_mean)
         regions = dict(interior=m & (a > 0.9), edge=m & (a > 0.1) & (a <= 0.9), missed=m & (a <= 0.1),
                        extra=~m & (a > 0.1), background=~m & (a <= 0.1))
         row = dict(psnr=float(psnr(img, gt)), psnr_true_light=float(psnr(light_fix.clamp(0, 1), gt)),
                    psnr_true_albedo=float(psnr(albedo_fix.clamp(0, 1), gt)),
+                   psnr_unshaded=float(-10 * torch.log10(err_u.square().mean())),
                    mse_total=float(se.mean() * 1e4),
                    **{f"mse_{k}": float(se[v].sum() / se.numel() * 1e4) for k, v in regions.items()},
                    **{f"blur_{s}": float(psnr(blur(gt, s), gt)) for s in BLUR_PX})
@@ -115,7 +132,7 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "error_sources.json").write_text(json.dumps(res, indent=2))
-    cols = ["psnr", "psnr_true_light", "psnr_true_albedo", "mse_interior", "mse_edge", "mse_missed", "mse_extra",
+    cols = ["psnr", "psnr_true_light", "psnr_true_albedo", "psnr_unshaded", "mse_interior", "mse_edge", "mse_missed", "mse_extra",
             *[f"blur_{s}" for s in BLUR_PX]]
     print(f"{'phase':<9}{'n':>4}" + "".join(f"{c:>17}" for c in cols))
     for ph in ("rest", "spin", "after", "settled", "all"):

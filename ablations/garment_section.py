@@ -20,6 +20,9 @@ training frame it deforms the Gaussians (the training frame's own inputs, frame 
   disc). With a garment sheet (sheet=skirt) also sheet_up (the same for the sheet's cells, opacity-weighted),
   sheet_lap_cm (median second difference down its columns of its displacement from the rest layout: a flare moves a
   column linearly, a crumpled sheet zigzags) and sheet_zigzag (median column path length over its end-to-end length).
+  With shading=irradiance also light_up, light_cos and light_ratio: the shading normals of the Gaussians within 2 cm
+  of the cloth against the cloth's own (`light_normals`): a flared skirt lit by the hanging body's normals gets the
+  light of a hanging skirt.
 """
 
 from __future__ import annotations
@@ -80,6 +83,34 @@ def sheet_shape(module, posed: dict) -> dict:
     return {"sheet_up": up, "sheet_lap_cm": float(lap.median()) * 100, "sheet_zigzag": float((path / chord).median())}
 
 
+def light_normals(module, posed: dict, pts: np.ndarray, tris: np.ndarray, nearest: np.ndarray,
+                  near: np.ndarray) -> dict:
+    """The shading's world normals (shading.normals: the body's at x_e, or carried by the decoder's field) of the
+    Gaussians `near` the cloth against the outward normal of their nearest cloth sample (pts [P,3], their
+    triangles tris [P,3,3], nearest [N] sample index). light_up: the shading normals' median outward vertical
+    component (compare cloth_up); light_cos: their median cosine to the cloth's normal; light_ratio: the mean
+    irradiance E (grey) they give over the one the cloth's normal would give, under the run's trained light map."""
+    if not near.any():
+        return {"light_up": float("nan"), "light_cos": float("nan"), "light_ratio": float("nan")}
+    sh = module.shading
+    n_c = posed.get("n_c")
+    n_c = sh.normals(posed["x_e"][0]) if n_c is None else n_c[0]
+    n_w = (posed["rot"][0] @ n_c[..., None]).squeeze(-1)[torch.from_numpy(near)]
+    t = tris[nearest[near]]
+    cn = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+    cn /= np.maximum(np.linalg.norm(cn, axis=1, keepdims=True), 1e-12)
+    radial = pts[nearest[near]] - pts.mean(0)
+    radial[:, 1] = 0
+    cn *= np.where((cn * radial).sum(1) < 0, -1.0, 1.0)[:, None]  # outward, as cloth_up
+    unit = torch.nn.functional.normalize(n_w, dim=-1).double().numpy()
+    e_model = sh.irradiance(n_w).mean(-1)
+    e_cloth = sh.irradiance(torch.from_numpy(cn).to(n_w) * n_w.norm(dim=-1, keepdim=True)).mean(-1)
+    e_model, e_cloth = e_model.detach(), e_cloth.detach()
+    return {"light_up": float(np.median(unit[:, 1] * np.where((unit * radial).sum(1) < 0, -1.0, 1.0))),
+            "light_cos": float(np.median((unit * cn).sum(1))),
+            "light_ratio": float((e_model / e_cloth).mean())}
+
+
 def cloth_samples(faces: np.ndarray, n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """Triangles [n] and barycentrics [n,3] of uniform samples on a mesh's faces (fixed across frames)."""
     rng = np.random.default_rng(seed)
@@ -119,6 +150,9 @@ def section(run_dir: Path, threads: int = 1) -> dict:
         covered = cKDTree(seen).query(pts)[0] < CLOTH_NEAR if len(seen) else np.zeros(len(pts), bool)
         frames[f] = {"x": x, "d": d, "uv": uv_s[j], "cloth": pts, "phase": phase_of(f, events, fps),
                      "covered": covered, "shape": {"cloth_up": cloth_up(V[gframes.index(f)], F)}}
+        if hasattr(module.shading, "irradiance"):  # shading=irradiance: the light's normals against the cloth's
+            near = (d < CLOTH_NEAR) & (posed["opacities"].detach().numpy() > 0.1)
+            frames[f]["shape"].update(light_normals(module, posed, pts, V[gframes.index(f)][F[tri]], j, near))
         if module.sheet is not None:
             frames[f]["shape"].update(sheet_shape(module, posed))
     rest = [f for f in sorted(frames) if frames[f]["phase"] == "rest"] or sorted(frames)[:1]
@@ -212,6 +246,8 @@ def main(argv: list[str] | None = None) -> int:
         w.writeheader()
         w.writerows(rows)
     keys = ("dist_cm", "abs_du_cells", "abs_dv_cells", "dv_cells", "cover", "cover4", "cloth_up")
+    if all("light_up" in r for r in rows):
+        keys += ("light_up", "light_cos", "light_ratio")
     if all("sheet_up" in r for r in rows):
         keys += ("sheet_up", "sheet_lap_cm", "sheet_zigzag")
     print("run | phase | " + " | ".join(keys) + "  (medians over the phase's frames)")

@@ -534,6 +534,43 @@ def test_garment_section_table_measures_slide_distance_and_cover(tmp_path):
     assert (tmp_path / "s.png").stat().st_size > 1000
 
 
+def test_garment_section_light_normals_against_a_flared_cloth(tmp_path):
+    """light_normals: Gaussians on a 45 deg cone lit with the cone's own normals agree with it (cos 1, light ratio 1,
+    up cos 45); lit with the hanging body's horizontal normals, they look down the cone by 45 deg and, with the light
+    from above, get less light than the cloth's normals would give."""
+    from types import SimpleNamespace
+
+    import numpy as np
+    import torch
+
+    from ablations.garment_section import light_normals
+    from realityavatar.model.shading import IrradianceShading
+
+    sh = IrradianceShading()
+    with torch.no_grad():
+        sh.coeffs[1] = -1.0  # log E grows with the normal's y (band 1 is -C1 y): light from above
+    az = np.linspace(0, 2 * np.pi, 65)[:-1]
+    radial = np.stack([np.cos(az), np.zeros_like(az), np.sin(az)], 1)
+    pts = 0.3 * radial + np.array([0.0, -0.3, 0.0])  # a ring half way down a 45 deg cone from (0, 0, 0)
+    along = 0.05 * np.stack([-np.sin(az), np.zeros_like(az), np.cos(az)], 1)  # around the cone
+    down = 0.05 * (radial + np.array([0.0, -1.0, 0.0]))
+    tris = np.stack([pts, pts + along, pts + down], 1)  # a small facet of the cone at each sample
+    tris[1::2] = tris[1::2][:, [0, 2, 1]]  # every other facet wound the other way (the cloth is two-sided)
+    cone = (radial + np.array([0.0, 1.0, 0.0])) / np.sqrt(2)
+    n = len(pts)
+    rot = torch.eye(3).expand(1, n, 3, 3)
+    near = np.ones(n, bool)
+    for normals, expect_cos in ((cone, 1.0), (radial, np.cos(np.pi / 4))):
+        posed = {"n_c": torch.tensor(normals, dtype=torch.float32)[None], "rot": rot, "x_e": None}
+        out = light_normals(SimpleNamespace(shading=sh), posed, pts, tris, np.arange(n), near)
+        assert np.isclose(out["light_cos"], expect_cos, atol=1e-4), out
+        assert np.isclose(out["light_up"], np.cos(np.pi / 4) if expect_cos == 1.0 else 0.0, atol=1e-4), out
+        if expect_cos == 1.0:
+            assert np.isclose(out["light_ratio"], 1.0, atol=1e-5)
+        else:
+            assert out["light_ratio"] < 0.8, out
+
+
 def test_garment_section_tells_a_flared_surface_from_a_crumpled_one():
     """garment_section's shape columns: cloth_up is 0 for a hanging cylinder, 1 for a disc, cos 45 deg for a 45 deg
     cone; a garment sheet turned about its top ring like a flaring skirt has no second difference down its columns

@@ -472,4 +472,22 @@ def test_error_sources_splits_the_error_by_region(trained_run, tmp_path):
         assert abs(parts - v["mse_total"]) < 1e-6 * max(1.0, v["mse_total"]), (ph, parts, v["mse_total"])
         blurs = [v[f"blur_{s}"] for s in BLUR_PX]
         assert all(a > b for a, b in zip(blurs, blurs[1:])), blurs
-        assert np.isfinite([v["psnr"], v["psnr_true_light"], v["psnr_true_albedo"]]).all()
+        assert np.isfinite([v["psnr"], v["psnr_true_light"], v["psnr_true_albedo"], v["psnr_unshaded"]]).all()
+
+
+def test_unshade_divides_the_error_by_the_relative_light():
+    """error_sources.unshade: a pixel lit twice as brightly as the mean has its error halved, one lit at the mean
+    keeps it, pixels outside the selection are untouched."""
+    import sys
+
+    import torch
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+    from ablations.error_sources import unshade
+
+    err = torch.full((2, 2, 3), 0.1)
+    sel = torch.tensor([[True, True], [False, False]])
+    e = torch.tensor([[[1.0] * 3, [2.0] * 3], [[4.0] * 3, [4.0] * 3]])
+    out = unshade(err, sel, e, 1.0)
+    assert torch.allclose(out[0, 0], err[0, 0]) and torch.allclose(out[0, 1], err[0, 1] / 2)
+    assert torch.equal(out[1], err[1])
