@@ -189,3 +189,72 @@ def test_grids_share_the_nearest_sample_query_only_for_the_same_voxel_centres(bo
     assert torch.equal(shifted, fresh)
     skinning._KNN_CACHE.clear()
     assert torch.equal(diffuse_to_grid(v, body.faces, n, args[0], 0.30, *args[1:])[0], a)
+
+
+def test_jacobian_normals_follow_a_linear_field_and_keep_their_length():
+    """normals=jacobian: a field x -> x + A x turns a normal n into cof(I + A) n (= F^-T n up to its length), and the
+    result keeps |n_c| (short normals stay short)."""
+    from realityavatar.model.shading import deformed_normals
+
+    g = torch.Generator().manual_seed(0)
+    A = torch.randn(3, 3, generator=g) * 0.3
+    x = torch.randn(40, 3, generator=g)
+    n = torch.nn.functional.normalize(torch.randn(40, 3, generator=g), dim=-1) * torch.rand(40, 1, generator=g)
+
+    def field(p):
+        return (p @ A.T)[None]
+
+    out = deformed_normals(n, x, field(x), field, 0.005)[0]
+    F_ = torch.eye(3) + A
+    ref = (torch.linalg.inv(F_).T @ n.T).T * torch.sign(torch.det(F_))
+    ref = torch.nn.functional.normalize(ref, dim=-1) * n.norm(dim=-1, keepdim=True)
+    assert torch.allclose(out, ref, atol=1e-4)
+    assert torch.allclose(deformed_normals(n, x, torch.zeros(1, 40, 3), lambda p: torch.zeros(1, len(p), 3), 0.005)[0], n)
+
+
+def test_jacobian_normals_tilt_up_on_a_flaring_skirt():
+    """The point of the option: a cylinder of cloth whose radius grows with the depth below its waist (a skirt's
+    flare) has normals that tilt up, by the cone's angle; the body normal (horizontal) would not see it."""
+    from realityavatar.model.shading import deformed_normals
+
+    phi = torch.linspace(0, 2 * math.pi, 33)[:-1]
+    y = torch.linspace(-0.5, -0.1, 5)
+    P, Y = torch.meshgrid(phi, y, indexing="ij")
+    radial = torch.stack([torch.cos(P), torch.zeros_like(P), torch.sin(P)], -1).reshape(-1, 3)
+    x = 0.15 * radial + torch.stack([torch.zeros_like(Y), Y, torch.zeros_like(Y)], -1).reshape(-1, 3)
+    k = 1.0  # radius grows 1 m per metre below y = 0: a 45° cone
+
+    def flare(p):
+        r = torch.nn.functional.normalize(p * torch.tensor([1.0, 0.0, 1.0]), dim=-1)
+        return (k * (-p[:, 1:2]) * r)[None]
+
+    n = deformed_normals(radial, x, flare(x), flare, 0.001)[0]
+    assert torch.allclose(n[:, 1], torch.full((len(n),), math.sin(math.pi / 4)), atol=2e-3)  # tilted up by 45°
+    assert float((n * radial).sum(-1).min()) > 0.7  # still outward
+
+
+def test_jacobian_normals_in_the_module_send_no_gradient_and_change_the_light(body):
+    """build_module with shading.normals=jacobian: the normals start as the body's at x_c (the decoder starts at the
+    identity), a decoder that flares changes the light, and no gradient reaches the geometry through it."""
+    from realityavatar.build import build_module
+
+    cfg = compose(["gaussians.num_points=300", "shading=irradiance", "shading.normals=jacobian", "skinning=grid"])
+    module = build_module(cfg, body, num_train_frames=2, scene_extent=1.0)
+    module.on_fit_start()
+    with torch.no_grad():
+        module.shading.coeffs[1] = -1.0  # light from above (band 1 is -C1 y)
+    poses, transl = torch.zeros(1, 3, 24, 3), torch.zeros(1, 3, 3)
+    posed = module.deform(poses, transl)
+    x_c = module.gaussians.means.detach()
+    assert torch.allclose(posed["n_c"][0], module.shading.normals(x_c), atol=1e-3)
+    with torch.no_grad():  # a decoder whose Δx flares: out bias 0, weight so that Δx grows with -y of its input
+        out = module.deformer.out
+        out.weight[:3].normal_(0, 0.05)
+    posed = module.deform(poses, transl)
+    assert (posed["n_c"][0] - module.shading.normals(x_c)).norm(dim=-1).max() > 0.05
+    light = module.shading(posed["x_e"], posed["rot"], posed["n_c"])
+    light.sum().backward()
+    assert module.gaussians.means.grad is None and module.deformer.out.weight.grad is None
+    assert module.shading.coeffs.grad is not None
+    with pytest.raises(ValueError, match="shading.normals"):
+        IrradianceShading(normals="mesh")

@@ -16,7 +16,7 @@ from realityavatar.body.base import BodyModel
 from realityavatar.geometry import camera_centres, sample_surface
 from realityavatar.model.deform import apply_deformation
 from realityavatar.model.gaussians import CODE_NAME, PARAM_NAMES
-from realityavatar.model.shading import NoShading
+from realityavatar.model.shading import NoShading, deformed_normals
 from realityavatar.model.skinning import lbs_gaussians
 from realityavatar.render import rasterize
 
@@ -159,6 +159,7 @@ class AvatarModule(pl.LightningModule):
         # frame_idx and the Gaussians' codes reach the decoder's per-frame / per-Gaussian codes when it has them
         out = (self.deformer(means, h_t, frame_idx, codes=codes) if deform
                else identity_deformation(B, means, self.deformer.feature_dim))
+        n_c = self._shading_normals(means, out, h_t, frame_idx, codes, deform)
         if self.sheet is not None and self.sheet.num_basis and deform:  # the sheet's motion basis (sheet.basis)
             out = {**out, "dx": torch.cat([out["dx"][:, :N], out["dx"][:, N:] + self.sheet.basis_offsets(h_t)], 1)}
         x_e, log_s_e, q_e = apply_deformation(means, log_scales, quats, out)  # [B,N,3],[B,N,3],[B,N,4]
@@ -174,11 +175,27 @@ class AvatarModule(pl.LightningModule):
             "f_mt": out.get("f_mt"),
             "weights": w,
             "x_e": x_e,
+            "n_c": n_c,
             "B": B,
         }
         if self.sheet is not None:
             posed = self._sheet_gaussians(posed, N)
         return posed
+
+    def _shading_normals(self, means: torch.Tensor, out: dict, h_t: torch.Tensor, frame_idx: torch.Tensor | None,
+                         codes: torch.Tensor | None, deform: bool) -> torch.Tensor | None:
+        """shading.normals=jacobian: each point's canonical body normal carried through the decoder's offset field
+        [B,N,3] (no gradient; model/shading.py `deformed_normals`), else None (the shading looks its normal up at
+        x_e). A garment sheet's motion basis is not part of the field."""
+        if getattr(self.shading, "normals_from", "body") != "jacobian":
+            return None
+        x_c = means.detach()
+        n0 = self.shading.normals(x_c)  # [N,3]
+        if not deform:
+            return n0[None].expand(h_t.shape[0], -1, -1)
+        rep = None if codes is None else codes.detach().repeat(3, 1)
+        return deformed_normals(n0, x_c, out["dx"].detach(),
+                                lambda x: self.deformer(x, h_t, frame_idx, codes=rep)["dx"], self.shading.jacobian_eps)
 
     def _sheet_gaussians(self, posed: dict, N: int) -> dict:
         """Replace the sheet's vertices (entries N: of the per-point outputs) by the sheet's Gaussians, which
@@ -196,6 +213,7 @@ class AvatarModule(pl.LightningModule):
             "f_mt": None if posed["f_mt"] is None else sh.interpolate(posed["f_mt"][:, N:]),
             "weights": sh.interpolate(posed["weights"][:, N:]),
             "x_e": sh.interpolate(posed["x_e"][:, N:]),
+            "n_c": None if posed["n_c"] is None else sh.interpolate(posed["n_c"][:, N:]),
         }
         for k, v in vert.items():
             if v is not None:
@@ -203,7 +221,7 @@ class AvatarModule(pl.LightningModule):
         posed["opacities"] = torch.cat([posed["opacities"], sh.opacities().to(posed["opacities"])])
         return posed
 
-    _PER_SAMPLE = ("means", "quats", "scales", "rot", "f_mt", "weights", "x_e")
+    _PER_SAMPLE = ("means", "quats", "scales", "rot", "f_mt", "weights", "x_e", "n_c")
 
     def deform_shared(self, poses: torch.Tensor, transl: torch.Tensor, deform: bool = True,
                       frame_idx: torch.Tensor | None = None) -> dict:
@@ -238,7 +256,7 @@ class AvatarModule(pl.LightningModule):
         # Canonicalise: undo each Gaussian's blended skinning rotation.
         d_c = (posed["rot"].transpose(-1, -2) @ d[..., None]).squeeze(-1)
         rgb = self.color(self.all_features(), F.normalize(d_c, dim=-1), posed["f_mt"], frame_idx)
-        light = self.shading(posed["x_e"], posed["rot"])  # world-fixed light (shading=irradiance), or None
+        light = self.shading(posed["x_e"], posed["rot"], posed.get("n_c"))  # world-fixed light, or None
         return rgb if light is None else rgb * light
 
     def all_features(self) -> torch.Tensor:
