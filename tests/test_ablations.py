@@ -19,6 +19,7 @@ from hydra.core.override_parser.overrides_parser import OverridesParser
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+import realityavatar.config  # noqa: F401  registers the resolvers (int_mul, ...) the real tree's configs use
 from ablations.collect import collect
 from ablations.common import load_runs
 from ablations.pareto import main as pareto_main
@@ -39,8 +40,9 @@ EXPECTED = {
     "scenes": (8, {"+variant": {"full", "no_lstm"}, "seed": {"0"},
                    "data": {"synthetic_sweep", "synthetic_sweep_dress_spin", "synthetic_sweep_skirt_flap",
                             "synthetic_sweep_dress_walk"}}),
-    "dynamics": (33, {"+garment": {"default", "no_silhouette", "no_grid", "no_shading", "no_hard_frames", "no_anneal",
-                                   "plus_hull", "plus_graph", "plus_sheet", "plus_sheet_basis", "plus_dynamics"},
+    "dynamics": (36, {"+garment": {"default", "no_silhouette", "no_grid", "no_shading", "no_hard_frames", "no_anneal",
+                                   "plus_hull", "plus_graph", "plus_sheet", "plus_sheet_basis", "plus_dynamics",
+                                   "plus_light_normals"},
                       "seed": SEEDS,
                       "data": {"synthetic_sweep"}}),
 }
@@ -58,6 +60,8 @@ GARMENT_CHOICES = {"default": ("chamfer", "grid", "default", "motion_trend", "ir
                    "plus_sheet_basis": ("chamfer", "grid", "default", "motion_trend", "irradiance", "hard_frames",
                                         "skirt"),
                    "plus_dynamics": ("chamfer", "grid", "default", "motion_trend", "irradiance", "hard_frames", "none"),
+                   "plus_light_normals": ("chamfer", "grid", "default", "motion_trend", "irradiance", "hard_frames",
+                                          "none"),
                    "all": ("chamfer", "grid", "hull", "motion_trend_nodes", "irradiance", "hard_frames", "skirt"),
                    "none": ("none", "mlp", "default", "motion_trend", "none", "uniform", "none")}
 VARIANT_CHOICES = {"full": ("latentbone", "lstm"), "no_zc": ("no_zc", "lstm"),
@@ -182,6 +186,8 @@ def test_sweep_jobs_compose_in_the_real_tree(name):
             assert cfg.sheet.basis == (64 if ov["+garment"] == "plus_sheet_basis" else 0)
         if "+garment" in ov:  # pose deltas in the encoder only where named
             assert cfg.encoder.dynamics == ("deltas" if ov["+garment"] == "plus_dynamics" else "none"), ov
+            if choices["shading"] == "irradiance":  # the light's normals from the decoder's field only where named
+                assert cfg.shading.normals == ("jacobian" if ov["+garment"] == "plus_light_normals" else "body"), ov
         if "+garment" in ov:  # the decoder's coarse-to-fine window: half the run, off only where named
             off = ov["+garment"] in ("no_anneal", "none")
             assert cfg.schedule.deform_anneal == (0 if off else cfg.iterations // 2), ov
