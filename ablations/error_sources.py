@@ -93,11 +93,12 @@ def error_sources(run: Path, unlit_root: Path, threads: int = 1) -> dict:
                         albedo=albedo, sel=sel, e_model=e_img[0] / a[..., None].clamp_min(1e-3),
                         e_true=gt / albedo.clamp_min(1e-3)))
     # E and albedo share a global scale: match the model's E to the true one over all selected pixels.
-    scale = sum(float(r["e_true"][r["sel"]].sum()) for r in raw) / sum(float(r["e_model"][r["sel"]].sum()) for r in raw)
+    e_true_sum = sum(float(r["e_true"][r["sel"]].sum()) for r in raw)
+    scale = e_true_sum / sum(float(r["e_model"][r["sel"]].sum()) for r in raw)
     # The true shading's mean over the same pixels: psnr_unshaded divides each pixel's error by its shading relative
     # to this mean, so a phase whose garment is brighter (a flared skirt tilted towards the light) is not
     # penalised for its larger absolute errors.
-    e_mean = sum(float(r["e_true"][r["sel"]].sum()) for r in raw) / sum(3 * int(r["sel"].sum()) for r in raw)
+    e_mean = e_true_sum / sum(3 * int(r["sel"].sum()) for r in raw)
     per: dict[str, list[dict]] = {}
     for r in raw:
         img, gt, sel, a, m = r["img"].clamp(0, 1), r["gt"], r["sel"], r["a"], r["m"]
@@ -132,8 +133,8 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "error_sources.json").write_text(json.dumps(res, indent=2))
-    cols = ["psnr", "psnr_true_light", "psnr_true_albedo", "psnr_unshaded", "mse_interior", "mse_edge", "mse_missed", "mse_extra",
-            *[f"blur_{s}" for s in BLUR_PX]]
+    cols = ["psnr", "psnr_true_light", "psnr_true_albedo", "psnr_unshaded", "mse_interior", "mse_edge", "mse_missed",
+            "mse_extra", *[f"blur_{s}" for s in BLUR_PX]]
     print(f"{'phase':<9}{'n':>4}" + "".join(f"{c:>17}" for c in cols))
     for ph in ("rest", "spin", "after", "settled", "all"):
         if ph in res["phases"]:

@@ -46,13 +46,17 @@ CELLS_U, CELLS_V = 16, 24  # realityavatar.data.synthetic.render.GarmentTexture'
 SAMPLES = 60000  # cloth surface samples (a few mm apart on the demo skirt)
 
 
+def outward(normals: np.ndarray, points: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """Normals [n,3] turned away from the vertical axis (y is up) through `centre` [3] at their points [n,3]."""
+    radial = (points - centre)[:, [0, 2]]
+    return normals * np.where((radial * normals[:, [0, 2]]).sum(1) < 0, -1.0, 1.0)[:, None]
+
+
 def outward_up(centres: np.ndarray, normals: np.ndarray, weights: np.ndarray | None = None) -> float:
     """Mean vertical component (y is up) of unit normals [n,3] turned away from the vertical axis through their
     points' centre (centres [n,3]), weighted by `weights` [n]: 0 for a hanging skirt, towards 1 for one flared into a
     disc."""
-    radial = (centres - centres.mean(0))[:, [0, 2]]
-    sign = np.where((radial * normals[:, [0, 2]]).sum(1) < 0, -1.0, 1.0)
-    return float(np.average(normals[:, 1] * sign, weights=weights))
+    return float(np.average(outward(normals, centres, centres.mean(0))[:, 1], weights=weights))
 
 
 def cloth_up(verts: np.ndarray, faces: np.ndarray) -> float:
@@ -83,6 +87,7 @@ def sheet_shape(module, posed: dict) -> dict:
     return {"sheet_up": up, "sheet_lap_cm": float(lap.median()) * 100, "sheet_zigzag": float((path / chord).median())}
 
 
+@torch.no_grad()
 def light_normals(module, posed: dict, pts: np.ndarray, tris: np.ndarray, nearest: np.ndarray,
                   near: np.ndarray) -> dict:
     """The shading's world normals (shading.normals: the body's at x_e, or carried by the decoder's field) of the
@@ -99,14 +104,12 @@ def light_normals(module, posed: dict, pts: np.ndarray, tris: np.ndarray, neares
     t = tris[nearest[near]]
     cn = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
     cn /= np.maximum(np.linalg.norm(cn, axis=1, keepdims=True), 1e-12)
-    radial = pts[nearest[near]] - pts.mean(0)
-    radial[:, 1] = 0
-    cn *= np.where((cn * radial).sum(1) < 0, -1.0, 1.0)[:, None]  # outward, as cloth_up
+    at, centre = pts[nearest[near]], pts.mean(0)
+    cn = outward(cn, at, centre)  # as cloth_up
     unit = torch.nn.functional.normalize(n_w, dim=-1).double().numpy()
     e_model = sh.irradiance(n_w).mean(-1)
     e_cloth = sh.irradiance(torch.from_numpy(cn).to(n_w) * n_w.norm(dim=-1, keepdim=True)).mean(-1)
-    e_model, e_cloth = e_model.detach(), e_cloth.detach()
-    return {"light_up": float(np.median(unit[:, 1] * np.where((unit * radial).sum(1) < 0, -1.0, 1.0))),
+    return {"light_up": float(np.median(outward(unit, at, centre)[:, 1])),
             "light_cos": float(np.median((unit * cn).sum(1))),
             "light_ratio": float((e_model / e_cloth).mean())}
 

@@ -27,10 +27,14 @@ def _rot6d(R: torch.Tensor) -> torch.Tensor:
     return (R[..., :, :2] - eye).flatten(-2)
 
 
-def part_dims(dynamics: str = "none") -> dict[str, int]:
-    """Feature size per part: PART_DIMS, doubled with `dynamics: deltas`."""
+def _check_dynamics(dynamics: str) -> None:
     if dynamics not in DYNAMICS:
         raise ValueError(f"encoder.dynamics: expected one of {DYNAMICS}, got {dynamics!r}")
+
+
+def part_dims(dynamics: str = "none") -> dict[str, int]:
+    """Feature size per part: PART_DIMS, doubled with `dynamics: deltas`."""
+    _check_dynamics(dynamics)
     return {p: d * (2 if dynamics == "deltas" else 1) for p, d in PART_DIMS.items()}
 
 
@@ -47,8 +51,7 @@ def pose_features(poses: torch.Tensor, transl: torch.Tensor, dynamics: str = "no
     R_root(t)^T (transl_k - transl_{k-1}) in the current root frame. The current frame's deltas are its velocity
     over one window step, which the "w/o LSTM" variant (current frame only) then sees too.
     """
-    if dynamics not in DYNAMICS:
-        raise ValueError(f"encoder.dynamics: expected one of {DYNAMICS}, got {dynamics!r}")
+    _check_dynamics(dynamics)
     check_pose(poses, transl, "pose_features")
     if poses.ndim != 4 or transl.shape != poses.shape[:2] + (3,):
         raise ValueError(
@@ -72,12 +75,8 @@ def pose_features(poses: torch.Tensor, transl: torch.Tensor, dynamics: str = "no
     R0 = R[:, :, 0]
     turn = _rot6d(R0[:, :-1].transpose(-1, -2) @ R0[:, 1:])  # [B,T-1,6] root turn since the previous window frame
     move = rel_transl[:, 1:] - rel_transl[:, :-1]  # [B,T-1,3] root move, current root frame
-    deltas = {
-        "left_arm": feats["left_arm"][:, 1:] - feats["left_arm"][:, :-1],
-        "right_arm": feats["right_arm"][:, 1:] - feats["right_arm"][:, :-1],
-        "legs": feats["legs"][:, 1:] - feats["legs"][:, :-1],
-        "torso": torch.cat([(six[:, 1:] - six[:, :-1])[:, :, list(TORSO)].reshape(B, T - 1, -1), turn, move], -1),
-    }
+    deltas = {p: f[:, 1:] - f[:, :-1] for p, f in feats.items() if p != "torso"}
+    deltas["torso"] = torch.cat([(six[:, 1:] - six[:, :-1])[:, :, list(TORSO)].reshape(B, T - 1, -1), turn, move], -1)
     return {
         p: torch.cat([f, torch.cat([torch.zeros_like(f[:, :1]), deltas[p]], 1)], -1) for p, f in feats.items()
     }
