@@ -258,3 +258,64 @@ def test_jacobian_normals_in_the_module_send_no_gradient_and_change_the_light(bo
     assert module.shading.coeffs.grad is not None
     with pytest.raises(ValueError, match="shading.normals"):
         IrradianceShading(normals="mesh")
+
+
+def test_learnt_normals_train_the_grid_and_not_the_geometry(shading):
+    """shading.normals=learnt: the photometric gradient reaches the normal grid (and the light map), never x_e or the
+    LBS rotation; with the body's normals the grid is not trained."""
+    for normals, trained in (("learnt", True), ("body", False)):
+        s = IrradianceShading(voxel_size=0.04, normals=normals)
+        s.load_state_dict(shading.state_dict())
+        with torch.no_grad():
+            s.coeffs[1] = -1.0
+        x = (torch.randn(1, 20, 3) * 0.2).requires_grad_()
+        rot = _rot_y(0.3).expand(1, 20, 3, 3).clone().requires_grad_()
+        s(x, rot).sum().backward()
+        assert x.grad is None and rot.grad is None
+        assert s.coeffs.grad is not None
+        assert (s.grid.grad is not None and float(s.grid.grad.abs().sum()) > 0) == trained
+        assert ("shading_normals" in s.param_groups()) == trained
+
+
+def test_learnt_normals_learn_the_normal_the_light_needs(body, shading):
+    """Points on the torso's side (body normal horizontal) under a light from above, with a target as bright as an
+    upward normal: training the grid alone tilts their looked-up normal up, and it stays at most unit length."""
+    s = IrradianceShading(voxel_size=0.04, normals="learnt")
+    s.load_state_dict(shading.state_dict())
+    with torch.no_grad():
+        s.coeffs[1] = -1.0  # band 1 is -C1 y: brighter towards +y
+    v = body.canonical_vertices().detach()
+    n = vertex_normals(v, body.faces)
+    side = (n[:, 1].abs() < 0.2) & (v[:, 1] > v[:, 1].median())  # upper body, normal horizontal
+    x = (v[side] + 0.01 * n[side])[:200][None]
+    rot = torch.eye(3).expand(1, x.shape[1], 3, 3)
+    target = s.irradiance(torch.tensor([[0.0, 1.0, 0.0]])).detach()
+    assert float(s.normals(x)[..., 1].median()) < 0.3
+    opt = torch.optim.Adam([s.grid], lr=0.05)
+    for _ in range(150):
+        opt.zero_grad()
+        ((s(x, rot) - target) ** 2).mean().backward()
+        opt.step()
+    looked_up = s.normals(x)
+    assert float(looked_up[..., 1].median()) > 0.8
+    assert float(looked_up.norm(dim=-1).max()) <= 1.0 + 1e-5
+
+
+def test_learnt_normal_grid_is_one_parameter_through_build_and_checkpoint(body):
+    """The optimizer is built before on_fit_start fills the grid: the grid must stay the same Parameter (its data
+    replaced), carry its own learning rate, and load back from a checkpoint of another resolution."""
+    from realityavatar.build import build_module
+
+    cfg = compose(["gaussians.num_points=300", "shading=irradiance", "shading.normals=learnt", "skinning=grid"])
+    module = build_module(cfg, body, num_train_frames=2, scene_extent=1.0)
+    groups = {g["name"]: g for g in module.param_groups()}
+    assert groups["shading_normals"]["lr"] == cfg.optim.lr.shading_normals
+    grid = module.shading.grid
+    module.on_fit_start()
+    assert module.shading.grid is grid and grid.shape[2:] != (2, 2, 2)
+    fresh = instantiate(cfg.shading)
+    fresh.load_state_dict(module.shading.state_dict())
+    assert fresh.grid.requires_grad and torch.equal(fresh.grid, module.shading.grid)
+    assert "shading_normals" not in {g["name"] for g in build_module(
+        compose(["gaussians.num_points=300", "shading=irradiance"]), body, num_train_frames=2,
+        scene_extent=1.0).param_groups()}

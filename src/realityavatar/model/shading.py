@@ -16,7 +16,7 @@ from realityavatar.model.skinning import check_grid_settings, diffuse_to_grid, s
 from realityavatar.render import sh_basis
 
 
-NORMALS = ("body", "jacobian")
+NORMALS = ("body", "jacobian", "learnt")
 
 
 class NoShading(nn.Module):
@@ -50,6 +50,11 @@ class IrradianceShading(nn.Module):
       deformation gradient), before LBS. A flaring skirt's offsets grow with the depth below the waist, so its normal
       tilts up as the cloth's does and the light it gets changes with the flare. The module computes n (finite
       differences of the decoder, no gradient) and passes it as `n_c`; see `deformed_normals`.
+    - `normals="learnt"`: the normal grid is a trained parameter (group `shading_normals`), starting from the body's
+      diffused normals. The photometric loss reaches it through E only (x_e stays detached), so it learns the normal
+      the light needs at each canonical place a Gaussian occupies: a hanging skirt's surface outside the legs, and,
+      since x_e includes the decoder's offsets, the tilted surface of the flared skirt where the flare puts it.
+      Looked-up normals longer than 1 are scaled back to length 1.
     """
 
     def __init__(
@@ -77,8 +82,9 @@ class IrradianceShading(nn.Module):
         self.voxel_size, self.padding, self.k = float(voxel_size), float(padding), int(k)
         self.smooth_iters, self.smooth_ramp, self.max_voxels = int(smooth_iters), float(smooth_ramp), int(max_voxels)
         self.coeffs = nn.Parameter(torch.zeros((self.sh_degree + 1) ** 2, 3))
-        # [1,3,D,H,W] canonical normals; resized by init_from_body (and by a checkpoint's grid on load).
-        self.register_buffer("grid", torch.zeros(1, 3, 2, 2, 2))
+        # [1,3,D,H,W] canonical normals; resized by init_from_body (and by a checkpoint's grid on load). A parameter
+        # either way (the same state_dict key as the buffer it once was), trained only with normals="learnt".
+        self.grid = nn.Parameter(torch.zeros(1, 3, 2, 2, 2), requires_grad=normals == "learnt")
         self.register_buffer("lo", torch.full((3,), -1.0))
         self.register_buffer("hi", torch.full((3,), 1.0))
         self.register_buffer("built", torch.tensor(False))  # set by init_from_body; restored from a checkpoint
@@ -86,7 +92,7 @@ class IrradianceShading(nn.Module):
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
         key = prefix + "grid"
         if key in state_dict and state_dict[key].shape != self.grid.shape:
-            self.grid = torch.empty_like(state_dict[key], device=self.grid.device, dtype=self.grid.dtype)
+            self.grid.data = torch.empty_like(state_dict[key], device=self.grid.device, dtype=self.grid.dtype)
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     @torch.no_grad()
@@ -95,7 +101,7 @@ class IrradianceShading(nn.Module):
         normals = vertex_normals(vertices.detach().float().cpu(), faces.cpu())
         grid, lo, hi, _, _ = diffuse_to_grid(vertices, faces, normals, self.voxel_size, self.padding, self.k,
                                              self.smooth_iters, self.smooth_ramp, self.max_voxels, seed, "shading")
-        self.grid = grid.to(self.grid).contiguous()
+        self.grid.data = grid.to(self.grid).contiguous()  # the same Parameter: an optimizer holding it stays valid
         self.lo.copy_(lo.to(self.lo))
         self.hi.copy_(hi.to(self.hi))
         self.built.fill_(True)
@@ -103,7 +109,10 @@ class IrradianceShading(nn.Module):
 
     def normals(self, x: torch.Tensor) -> torch.Tensor:
         """Canonical normals at x [...,3] -> [...,3], length <= 1 (short where nearby surface normals disagree)."""
-        return sample_grid(self.grid, self.lo, self.hi, x)
+        n = sample_grid(self.grid, self.lo, self.hi, x)
+        if self.grid.requires_grad:  # a trained grid may grow past unit length
+            n = n / n.norm(dim=-1, keepdim=True).clamp_min(1.0)
+        return n
 
     def irradiance(self, n_w: torch.Tensor) -> torch.Tensor:
         """World normals [...,3] (length <= 1) -> E [...,3] > 0."""
@@ -120,7 +129,7 @@ class IrradianceShading(nn.Module):
         return self.irradiance(n_w)
 
     def param_groups(self) -> dict[str, list[nn.Parameter]]:
-        return {"shading": [self.coeffs]}
+        return {"shading": [self.coeffs], **({"shading_normals": [self.grid]} if self.grid.requires_grad else {})}
 
 
 def cofactor(F_: torch.Tensor) -> torch.Tensor:
