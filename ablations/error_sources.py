@@ -1,6 +1,7 @@
 """Where a trained run's held-out error comes from, per phase of a synthetic scene: light, texture or silhouette.
 
 Usage: python ablations/error_sources.py <run_dir> --out <folder> [--unlit-root <dir>]
+       python ablations/error_sources.py <run trained on the albedo-only scene> --out <folder> --lit-oracle <dir>
 
 For every held-out (novel-view) image of the run's training frames it renders the model and measures:
 - psnr: the model as it is;
@@ -18,6 +19,13 @@ For every held-out (novel-view) image of the run's training frames it renders th
 The albedo-only scene is built once under --unlit-root with the run's scene parameters and ambient=1, diffuse=0.
 Needs a run with shading=irradiance (the light and albedo columns), a synthetic scene and its motion events.
 Writes error_sources.json (phase means) and prints a table.
+
+--lit-oracle <dir>: the run was trained on the albedo-only scene (`data.root=<albedo root>
+'+data.build_overrides={ambient: 1.0, diffuse: 0.0}'`); its renders are multiplied by the scene's exact shading
+(lit image / albedo-only image, per pixel; `true_shading`) and compared with the lit scene, built under <dir> with
+the run's scene parameters and the default light. That is what a model with a perfect light model would score on
+the lit scene, per phase (psnr, and the squared error by region as above); psnr_albedo is the run on its own
+scene. Writes lit_oracle.json.
 """
 
 from __future__ import annotations
@@ -63,6 +71,55 @@ def unshade(err: torch.Tensor, sel: torch.Tensor, e_true: torch.Tensor, e_mean: 
 
 
 @torch.no_grad()
+def true_shading(lit: torch.Tensor, albedo: torch.Tensor, mask: torch.Tensor, dark: float = 0.08) -> torch.Tensor:
+    """The scene's shading per pixel [H,W,3]: lit / albedo inside the mask where the albedo is not dark (mean >
+    `dark`); elsewhere (background, dark albedo) the median of those pixels, so a model's extra pixels are lit as
+    the garment is on average."""
+    ok = mask & (albedo.mean(-1) > dark)
+    fill = float((lit[ok] / albedo[ok]).median()) if ok.any() else 1.0
+    S = torch.full_like(lit, fill)
+    S[ok] = lit[ok] / albedo[ok]
+    return S
+
+
+@torch.no_grad()
+def lit_oracle(run: Path, lit_root: Path, threads: int = 1) -> dict:
+    """A run trained on the albedo-only scene, its renders times the exact shading, against the lit scene."""
+    torch.set_num_threads(threads)
+    cfg, module, _ = load_run(run)
+    bo = dict(cfg.data.get("build_overrides") or {})
+    if bo.get("ambient") != 1.0 or bo.get("diffuse") != 0.0:
+        raise ValueError(f"{run}: --lit-oracle needs a run trained on the albedo-only scene (data.build_overrides "
+                         f"ambient=1.0, diffuse=0.0), got data.build_overrides={bo}")
+    dm = build_data(cfg, module.body)
+    lit_bo = {k: v for k, v in bo.items() if k not in ("ambient", "diffuse")}
+    cfg_l = OmegaConf.merge(cfg, {"data": {"root": str(lit_root)}})
+    cfg_l.data.build_overrides = lit_bo or None
+    dm_l = build_data(cfg_l, module.body)
+    meta = dm_l.scene.meta or {}
+    events, fps = meta.get("motion", {}).get("events", {}), float(meta.get("fps", 25.0))
+    ds, ds_l = dm.datasets["novel_view"], dm_l.datasets["novel_view"]
+    per: dict[str, list[dict]] = {}
+    for i, rec in enumerate(ds_l.records):
+        b, bl = default_collate([ds[i]]), default_collate([ds_l[i]])
+        posed = module.deform(b["poses"], b["transl"])
+        W, H = int(b["width"][0]), int(b["height"][0])
+        rgb = module.shade(posed, b["viewmat"], b["frame_idx"])[0]
+        img, a, _ = module.splat(posed, 0, rgb, b["viewmat"], b["K"], W, H)
+        img, a = img[0].clamp(0, 1), a[0, ..., 0]
+        gt, albedo, m = bl["image"][0], b["image"][0], bl["mask"][0, ..., 0] > 0.5
+        se = ((img * true_shading(gt, albedo, m) - gt) ** 2).mean(-1)
+        regions = dict(interior=m & (a > 0.9), edge=m & (a > 0.1) & (a <= 0.9), missed=m & (a <= 0.1),
+                       extra=~m & (a > 0.1), background=~m & (a <= 0.1))
+        per.setdefault(phase_of(int(rec.frame), events, fps), []).append(dict(
+            psnr=float(-10 * torch.log10(se.mean())), psnr_albedo=float(psnr(img, albedo)),
+            mse_total=float(se.mean() * 1e4), **{f"mse_{k}": float(se[v].sum() / se.numel() * 1e4)
+                                                 for k, v in regions.items()}))
+    return {"run": str(run), "lit_root": str(lit_root), "phases": {
+        ph: {"images": len(rows), **{k: float(np.mean([x[k] for x in rows])) for k in rows[0]}}
+        for ph, rows in per.items()}}
+
+
 def error_sources(run: Path, unlit_root: Path, threads: int = 1) -> dict:
     torch.set_num_threads(threads)
     cfg, module, _ = load_run(run)
@@ -127,10 +184,22 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("run")
     ap.add_argument("--out", required=True)
     ap.add_argument("--unlit-root", default="scenes_unlit", help="where the albedo-only scene is built (once)")
+    ap.add_argument("--lit-oracle", metavar="DIR", help="the run was trained on the albedo-only scene: its renders "
+                    "times the exact shading against the lit scene built under DIR (writes lit_oracle.json)")
     ap.add_argument("--threads", type=int, default=1)
     a = ap.parse_args(argv)
-    res = error_sources(Path(a.run), Path(a.unlit_root), a.threads)
     out = Path(a.out)
+    if a.lit_oracle:
+        res = lit_oracle(Path(a.run), Path(a.lit_oracle), a.threads)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "lit_oracle.json").write_text(json.dumps(res, indent=2))
+        cols = ["psnr", "psnr_albedo", "mse_interior", "mse_edge", "mse_missed", "mse_extra"]
+        print(f"{'phase':<9}{'n':>4}" + "".join(f"{c:>14}" for c in cols))
+        for ph, v in res["phases"].items():
+            print(f"{ph:<9}{v['images']:>4}" + "".join(f"{v[c]:14.3f}" for c in cols))
+        print(f"wrote {out}/lit_oracle.json")
+        return 0
+    res = error_sources(Path(a.run), Path(a.unlit_root), a.threads)
     out.mkdir(parents=True, exist_ok=True)
     (out / "error_sources.json").write_text(json.dumps(res, indent=2))
     cols = ["psnr", "psnr_true_light", "psnr_true_albedo", "psnr_unshaded", "mse_interior", "mse_edge", "mse_missed",

@@ -475,6 +475,28 @@ def test_error_sources_splits_the_error_by_region(trained_run, tmp_path):
         assert np.isfinite([v["psnr"], v["psnr_true_light"], v["psnr_true_albedo"], v["psnr_unshaded"]]).all()
 
 
+def test_true_shading_is_lit_over_albedo_inside_the_mask(trained_run):
+    """error_sources.true_shading: lit / albedo on bright mask pixels, their median elsewhere (background, dark
+    albedo); and lit_oracle refuses a run that was not trained on the albedo-only scene, naming the field."""
+    import sys
+
+    import torch
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+    from ablations.error_sources import lit_oracle, true_shading
+
+    albedo = torch.tensor([[[0.5] * 3, [0.8] * 3], [[0.02] * 3, [0.6] * 3]])
+    light = torch.tensor([[[0.4] * 3, [1.0] * 3], [[0.9] * 3, [0.7] * 3]])
+    mask = torch.tensor([[True, True], [True, False]])
+    S = true_shading(albedo * light, albedo, mask)
+    assert torch.allclose(S[0, 0], light[0, 0]) and torch.allclose(S[0, 1], light[0, 1])
+    fill = float(torch.tensor([0.4, 1.0]).median())  # the dark pixel and the one outside the mask take the median
+    assert torch.allclose(S[1], torch.full((2, 3), fill))
+    out, _ = trained_run
+    with pytest.raises(ValueError, match="build_overrides"):
+        lit_oracle(out, out / "lit")
+
+
 def test_unshade_divides_the_error_by_the_relative_light():
     """error_sources.unshade: a pixel lit twice as brightly as the mean has its error halved, one lit at the mean
     keeps it, pixels outside the selection are untouched."""
