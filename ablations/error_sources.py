@@ -11,6 +11,9 @@ For every held-out (novel-view) image of the run's training frames it renders th
 - psnr_unshaded: the model's error with each of those pixels' error divided by the scene's true shading there
   (relative to its mean over all those pixels): the error a phase would have if its garment were lit as brightly as
   on average, so phases compare without the light's change of brightness (a flared skirt faces the light);
+- light_corr, light_err: how well the model's light matches the scene's per pixel (the same pixels): the correlation
+  of E (grey) with the true shading, and the median |log| of their ratio after the global scale (for comparison,
+  light_err_flat is that of a constant E, the image's mean true shading);
 - the squared error's share by region (x1e4 of the image's mean): interior (mask, alpha > 0.9), edge (mask, alpha
   0.1-0.9), missed (mask, alpha <= 0.1), extra (outside the mask, alpha > 0.1), background (the rest); they sum to
   mse_total;
@@ -166,7 +169,11 @@ def error_sources(run: Path, unlit_root: Path, threads: int = 1) -> dict:
         err_u = unshade(img - gt, sel, r["e_true"], e_mean)
         regions = dict(interior=m & (a > 0.9), edge=m & (a > 0.1) & (a <= 0.9), missed=m & (a <= 0.1),
                        extra=~m & (a > 0.1), background=~m & (a <= 0.1))
-        row = dict(psnr=float(psnr(img, gt)), psnr_true_light=float(psnr(light_fix.clamp(0, 1), gt)),
+        et, em = r["e_true"][sel].mean(-1).detach(), r["e_model"][sel].mean(-1).detach() * scale
+        light = dict(light_corr=float(torch.corrcoef(torch.stack([em, et]))[0, 1]) if len(et) > 1 else float("nan"),
+                     light_err=float((em / et).log().abs().median()) if len(et) else float("nan"),
+                     light_err_flat=float((et.mean() / et).log().abs().median()) if len(et) else float("nan"))
+        row = dict(**light, psnr=float(psnr(img, gt)), psnr_true_light=float(psnr(light_fix.clamp(0, 1), gt)),
                    psnr_true_albedo=float(psnr(albedo_fix.clamp(0, 1), gt)),
                    psnr_unshaded=float(-10 * torch.log10(err_u.square().mean())),
                    mse_total=float(se.mean() * 1e4),
@@ -202,7 +209,7 @@ def main(argv: list[str] | None = None) -> int:
     res = error_sources(Path(a.run), Path(a.unlit_root), a.threads)
     out.mkdir(parents=True, exist_ok=True)
     (out / "error_sources.json").write_text(json.dumps(res, indent=2))
-    cols = ["psnr", "psnr_true_light", "psnr_true_albedo", "psnr_unshaded", "mse_interior", "mse_edge", "mse_missed",
+    cols = ["psnr", "psnr_true_light", "psnr_true_albedo", "psnr_unshaded", "light_corr", "light_err", "mse_interior", "mse_edge", "mse_missed",
             "mse_extra", *[f"blur_{s}" for s in BLUR_PX]]
     print(f"{'phase':<9}{'n':>4}" + "".join(f"{c:>17}" for c in cols))
     for ph in ("rest", "spin", "after", "settled", "all"):

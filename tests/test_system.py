@@ -473,6 +473,7 @@ def test_error_sources_splits_the_error_by_region(trained_run, tmp_path):
         blurs = [v[f"blur_{s}"] for s in BLUR_PX]
         assert all(a > b for a, b in zip(blurs, blurs[1:])), blurs
         assert np.isfinite([v["psnr"], v["psnr_true_light"], v["psnr_true_albedo"], v["psnr_unshaded"]]).all()
+        assert -1 <= v["light_corr"] <= 1 and v["light_err"] >= 0 and v["light_err_flat"] >= 0
 
 
 def test_true_shading_is_lit_over_albedo_inside_the_mask(trained_run):
