@@ -14,6 +14,9 @@ For every held-out (novel-view) image of the run's training frames it renders th
 - light_corr, light_err: how well the model's light matches the scene's per pixel (the same pixels): the correlation
   of E (grey) with the true shading, and the median |log| of their ratio after the global scale (for comparison,
   light_err_flat is that of a constant E, the image's mean true shading);
+- light_map_corr, light_map_deg (once per run): the model's irradiance map E(n) against the scene's Lambert light
+  ambient + diffuse max(0, n.l) over 20,000 random directions: their correlation, and the angle between the
+  brightest direction of the map and the light's;
 - the squared error's share by region (x1e4 of the image's mean): interior (mask, alpha > 0.9), edge (mask, alpha
   0.1-0.9), missed (mask, alpha <= 0.1), extra (outside the mask, alpha > 0.1), background (the rest); they sum to
   mse_total;
@@ -83,6 +86,20 @@ def true_shading(lit: torch.Tensor, albedo: torch.Tensor, mask: torch.Tensor, da
     S = torch.full_like(lit, fill)
     S[ok] = lit[ok] / albedo[ok]
     return S
+
+
+@torch.no_grad()
+def light_map(shading, params: dict, n: int = 20_000) -> dict:
+    """The model's irradiance map against the scene's light (render.LIGHT_DIR, the scene's ambient and diffuse)."""
+    from realityavatar.data.synthetic.render import AMBIENT, DIFFUSE, LIGHT_DIR
+
+    dirs = F.normalize(torch.randn(n, 3, generator=torch.Generator().manual_seed(0)), dim=-1)
+    em = shading.irradiance(dirs.to(shading.coeffs)).mean(-1).double()
+    light = torch.as_tensor(LIGHT_DIR, dtype=torch.float64)
+    et = params.get("ambient", AMBIENT) + params.get("diffuse", DIFFUSE) * (dirs.double() @ light).clamp_min(0)
+    cos = float(dirs[em.argmax()].double() @ light)
+    return {"light_map_corr": float(torch.corrcoef(torch.stack([em, et]))[0, 1]),
+            "light_map_deg": float(torch.rad2deg(torch.arccos(torch.tensor(min(1.0, cos)))))}
 
 
 @torch.no_grad()
@@ -180,7 +197,7 @@ def error_sources(run: Path, unlit_root: Path, threads: int = 1) -> dict:
                    **{f"mse_{k}": float(se[v].sum() / se.numel() * 1e4) for k, v in regions.items()},
                    **{f"blur_{s}": float(psnr(blur(gt, s), gt)) for s in BLUR_PX})
         per.setdefault(r["phase"], []).append(row)
-    out = {"run": str(run), "e_scale": scale, "phases": {}}
+    out = {"run": str(run), "e_scale": scale, **light_map(module.shading, meta.get("params", {})), "phases": {}}
     for ph, rows in per.items():
         out["phases"][ph] = {"images": len(rows), **{k: float(np.mean([x[k] for x in rows])) for k in rows[0]}}
     return out
@@ -216,6 +233,8 @@ def main(argv: list[str] | None = None) -> int:
         if ph in res["phases"]:
             v = res["phases"][ph]
             print(f"{ph:<9}{v['images']:>4}" + "".join(f"{v[c]:17.3f}" for c in cols))
+    print(f"light map against the scene's light: correlation {res['light_map_corr']:.3f}, brightest direction "
+          f"{res['light_map_deg']:.1f} deg off")
     print(f"wrote {out}/error_sources.json")
     return 0
 

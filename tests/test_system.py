@@ -467,6 +467,7 @@ def test_error_sources_splits_the_error_by_region(trained_run, tmp_path):
     out, _ = trained_run
     res = error_sources(out, tmp_path / "unlit")
     assert set(res["phases"]) >= {"rest", "spin"} and res["e_scale"] > 0
+    assert -1 <= res["light_map_corr"] <= 1 and 0 <= res["light_map_deg"] <= 180
     for ph, v in res["phases"].items():
         parts = sum(v[f"mse_{k}"] for k in ("interior", "edge", "missed", "extra", "background"))
         assert abs(parts - v["mse_total"]) < 1e-6 * max(1.0, v["mse_total"]), (ph, parts, v["mse_total"])
