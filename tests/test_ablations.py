@@ -40,7 +40,8 @@ EXPECTED = {
     "scenes": (8, {"+variant": {"full", "no_lstm"}, "seed": {"0"},
                    "data": {"synthetic_sweep", "synthetic_sweep_dress_spin", "synthetic_sweep_skirt_flap",
                             "synthetic_sweep_dress_walk"}}),
-    "dynamics": (36, {"+garment": {"default", "no_silhouette", "no_grid", "no_shading", "no_hard_frames", "no_anneal",
+    "dynamics": (39, {"+garment": {"default", "no_silhouette", "no_grid", "no_shading", "no_hard_frames", "no_anneal",
+                                   "no_learnt_normals",
                                    "plus_hull", "plus_graph", "plus_sheet", "plus_sheet_basis", "plus_dynamics",
                                    "plus_light_normals"},
                       "seed": SEEDS,
@@ -62,6 +63,8 @@ GARMENT_CHOICES = {"default": ("chamfer", "grid", "default", "motion_trend", "ir
                    "plus_dynamics": ("chamfer", "grid", "default", "motion_trend", "irradiance", "hard_frames", "none"),
                    "plus_light_normals": ("chamfer", "grid", "default", "motion_trend", "irradiance", "hard_frames",
                                           "none"),
+                   "no_learnt_normals": ("chamfer", "grid", "default", "motion_trend", "irradiance", "hard_frames",
+                                         "none"),
                    "all": ("chamfer", "grid", "hull", "motion_trend_nodes", "irradiance", "hard_frames", "skirt"),
                    "none": ("none", "mlp", "default", "motion_trend", "none", "uniform", "none")}
 VARIANT_CHOICES = {"full": ("latentbone", "lstm"), "no_zc": ("no_zc", "lstm"),
@@ -186,8 +189,9 @@ def test_sweep_jobs_compose_in_the_real_tree(name):
             assert cfg.sheet.basis == (64 if ov["+garment"] == "plus_sheet_basis" else 0)
         if "+garment" in ov:  # pose deltas in the encoder only where named
             assert cfg.encoder.dynamics == ("deltas" if ov["+garment"] == "plus_dynamics" else "none"), ov
-            if choices["shading"] == "irradiance":  # the light's normals from the decoder's field only where named
-                assert cfg.shading.normals == ("jacobian" if ov["+garment"] == "plus_light_normals" else "body"), ov
+            if choices["shading"] == "irradiance":  # learnt normals unless the decoder's field or the body's is named
+                assert cfg.shading.normals == {"plus_light_normals": "jacobian", "no_learnt_normals": "body"}.get(
+                    ov["+garment"], "learnt"), ov
         if "+garment" in ov:  # the decoder's coarse-to-fine window: half the run, off only where named
             off = ov["+garment"] in ("no_anneal", "none")
             assert cfg.schedule.deform_anneal == (0 if off else cfg.iterations // 2), ov

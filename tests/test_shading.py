@@ -317,5 +317,5 @@ def test_learnt_normal_grid_is_one_parameter_through_build_and_checkpoint(body):
     fresh.load_state_dict(module.shading.state_dict())
     assert fresh.grid.requires_grad and torch.equal(fresh.grid, module.shading.grid)
     assert "shading_normals" not in {g["name"] for g in build_module(
-        compose(["gaussians.num_points=300", "shading=irradiance"]), body, num_train_frames=2,
+        compose(["gaussians.num_points=300", "shading=irradiance", "shading.normals=body"]), body, num_train_frames=2,
         scene_extent=1.0).param_groups()}
