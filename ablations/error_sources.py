@@ -68,6 +68,18 @@ def blur(img: torch.Tensor, s: float) -> torch.Tensor:
     return im[:, 0].permute(1, 2, 0)
 
 
+def regions(m: torch.Tensor, a: torch.Tensor) -> dict[str, torch.Tensor]:
+    """The image's pixels by the mask m [H,W] and the model's alpha a [H,W]: interior, edge, missed, extra, background."""
+    return dict(interior=m & (a > 0.9), edge=m & (a > 0.1) & (a <= 0.9), missed=m & (a <= 0.1),
+                extra=~m & (a > 0.1), background=~m & (a <= 0.1))
+
+
+def phase_means(per: dict[str, list[dict]]) -> dict[str, dict]:
+    """Per phase: the number of images and the mean of every column of their rows."""
+    return {ph: {"images": len(rows), **{k: float(np.mean([x[k] for x in rows])) for k in rows[0]}}
+            for ph, rows in per.items()}
+
+
 def unshade(err: torch.Tensor, sel: torch.Tensor, e_true: torch.Tensor, e_mean: float) -> torch.Tensor:
     """err [H,W,3] with each selected pixel's (sel [H,W]) error divided by its true shading relative to e_mean
     (e_true [H,W,3]; at most a 5x gain where the light is dim); other pixels as they are."""
@@ -128,18 +140,15 @@ def lit_oracle(run: Path, lit_root: Path, threads: int = 1) -> dict:
         img, a, _ = module.splat(posed, 0, rgb, b["viewmat"], b["K"], W, H)
         img, a = img[0].clamp(0, 1), a[0, ..., 0]
         gt, albedo, m = bl["image"][0], b["image"][0], bl["mask"][0, ..., 0] > 0.5
-        se = ((img * true_shading(gt, albedo, m) - gt) ** 2).mean(-1)
-        regions = dict(interior=m & (a > 0.9), edge=m & (a > 0.1) & (a <= 0.9), missed=m & (a <= 0.1),
-                       extra=~m & (a > 0.1), background=~m & (a <= 0.1))
+        lit = img * true_shading(gt, albedo, m)
+        se = ((lit - gt) ** 2).mean(-1)
         per.setdefault(phase_of(int(rec.frame), events, fps), []).append(dict(
-            psnr=float(-10 * torch.log10(se.mean())), psnr_albedo=float(psnr(img, albedo)),
-            mse_total=float(se.mean() * 1e4), **{f"mse_{k}": float(se[v].sum() / se.numel() * 1e4)
-                                                 for k, v in regions.items()}))
-    return {"run": str(run), "lit_root": str(lit_root), "phases": {
-        ph: {"images": len(rows), **{k: float(np.mean([x[k] for x in rows])) for k in rows[0]}}
-        for ph, rows in per.items()}}
+            psnr=float(psnr(lit, gt)), psnr_albedo=float(psnr(img, albedo)), mse_total=float(se.mean() * 1e4),
+            **{f"mse_{k}": float(se[v].sum() / se.numel() * 1e4) for k, v in regions(m, a).items()}))
+    return {"run": str(run), "lit_root": str(lit_root), "phases": phase_means(per)}
 
 
+@torch.no_grad()
 def error_sources(run: Path, unlit_root: Path, threads: int = 1) -> dict:
     torch.set_num_threads(threads)
     cfg, module, _ = load_run(run)
@@ -184,9 +193,7 @@ def error_sources(run: Path, unlit_root: Path, threads: int = 1) -> dict:
         albedo_fix[sel] = r["albedo"][sel] * r["e_model"][sel] * scale
         se = ((img - gt) ** 2).mean(-1)
         err_u = unshade(img - gt, sel, r["e_true"], e_mean)
-        regions = dict(interior=m & (a > 0.9), edge=m & (a > 0.1) & (a <= 0.9), missed=m & (a <= 0.1),
-                       extra=~m & (a > 0.1), background=~m & (a <= 0.1))
-        et, em = r["e_true"][sel].mean(-1).detach(), r["e_model"][sel].mean(-1).detach() * scale
+        et, em = r["e_true"][sel].mean(-1), r["e_model"][sel].mean(-1) * scale
         light = dict(light_corr=float(torch.corrcoef(torch.stack([em, et]))[0, 1]) if len(et) > 1 else float("nan"),
                      light_err=float((em / et).log().abs().median()) if len(et) else float("nan"),
                      light_err_flat=float((et.mean() / et).log().abs().median()) if len(et) else float("nan"))
@@ -194,13 +201,11 @@ def error_sources(run: Path, unlit_root: Path, threads: int = 1) -> dict:
                    psnr_true_albedo=float(psnr(albedo_fix.clamp(0, 1), gt)),
                    psnr_unshaded=float(-10 * torch.log10(err_u.square().mean())),
                    mse_total=float(se.mean() * 1e4),
-                   **{f"mse_{k}": float(se[v].sum() / se.numel() * 1e4) for k, v in regions.items()},
+                   **{f"mse_{k}": float(se[v].sum() / se.numel() * 1e4) for k, v in regions(m, a).items()},
                    **{f"blur_{s}": float(psnr(blur(gt, s), gt)) for s in BLUR_PX})
         per.setdefault(r["phase"], []).append(row)
-    out = {"run": str(run), "e_scale": scale, **light_map(module.shading, meta.get("params", {})), "phases": {}}
-    for ph, rows in per.items():
-        out["phases"][ph] = {"images": len(rows), **{k: float(np.mean([x[k] for x in rows])) for k in rows[0]}}
-    return out
+    return {"run": str(run), "e_scale": scale, **light_map(module.shading, meta.get("params", {})),
+            "phases": phase_means(per)}
 
 
 def main(argv: list[str] | None = None) -> int:
