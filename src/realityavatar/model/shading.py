@@ -110,7 +110,7 @@ class IrradianceShading(nn.Module):
     def normals(self, x: torch.Tensor) -> torch.Tensor:
         """Canonical normals at x [...,3] -> [...,3], length <= 1 (short where nearby surface normals disagree)."""
         n = sample_grid(self.grid, self.lo, self.hi, x)
-        if self.grid.requires_grad:  # a trained grid may grow past unit length
+        if self.normals_from == "learnt":  # a trained grid may grow past unit length
             n = n / n.norm(dim=-1, keepdim=True).clamp_min(1.0)
         return n
 
