@@ -306,6 +306,28 @@ def test_animate_writes_video_from_pose_file(trained_run, tmp_path):
         animate_main([f"run_dir={out}", f"poses={bad}"])
 
 
+def test_animate_without_ffmpeg_fails_before_rendering_and_gif_needs_none(trained_run, tmp_path, monkeypatch):
+    """No imageio-ffmpeg (a GPU image without it): a clear error naming the file before any frame is rendered
+    (imageio otherwise picked its TIFF plugin and failed with `unexpected keyword 'fps'`); a .gif still works."""
+    import sys
+
+    import imageio.v2 as imageio
+
+    import realityavatar.animate as anim
+
+    out, _ = trained_run
+    rendered = []
+    real = anim.render_sequence
+    monkeypatch.setattr(anim, "render_sequence", lambda *a, **k: rendered.append(1) or real(*a, **k))
+    monkeypatch.setitem(sys.modules, "imageio_ffmpeg", None)
+    with pytest.raises(RuntimeError, match=r"a\.mp4: writing a video needs ffmpeg.*imageio-ffmpeg"):
+        anim.main([f"run_dir={out}", "views=0", f"out={tmp_path / 'a.mp4'}"])
+    assert not rendered and not (tmp_path / "a.mp4").exists()
+    assert anim.main([f"run_dir={out}", "views=0", f"out={tmp_path / 'a.gif'}", "fps=10"]) == 0
+    frames = imageio.mimread(tmp_path / "a.gif")
+    assert rendered and len(frames) > 1 and frames[0].shape[0] > 0
+
+
 @pytest.mark.slow
 def test_canonical_gaussians_land_on_the_posed_body_after_skinning_prefit(body):
     """Posing end to end (module.deform -> skinning field -> canonical_transforms -> LBS, then render_batch): after

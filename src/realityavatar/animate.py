@@ -96,6 +96,21 @@ def render_sequence(module, table: PoseTable, cameras: list[dict], window_len: i
     return frames
 
 
+def check_video_writer(path: str | Path) -> None:
+    """Fail before rendering when writing `path` needs ffmpeg (every format but .gif) and imageio has none: without
+    it imageio picks another plugin by the suffix and fails after the render with an unrelated TypeError."""
+    if Path(path).suffix.lower() == ".gif":
+        return
+    try:
+        import imageio_ffmpeg
+
+        imageio_ffmpeg.get_ffmpeg_exe()
+    except Exception as exc:  # noqa: BLE001 - ImportError, or RuntimeError when the package finds no binary
+        raise RuntimeError(f"{path}: writing a video needs ffmpeg through the imageio-ffmpeg package "
+                           f"({type(exc).__name__}: {exc}); pip install imageio-ffmpeg, set IMAGEIO_FFMPEG_EXE "
+                           "to an ffmpeg binary, or write a .gif (out=...gif)") from None
+
+
 def main(argv: list[str] | None = None) -> int:
     import imageio.v2 as imageio
 
@@ -117,10 +132,15 @@ def main(argv: list[str] | None = None) -> int:
         name = split
     views = [int(v) for v in args["views"].split(",")] if "views" in args else None
     cameras = dataset_cameras(dm, views, split if split in dm.datasets else None)
-    frames = render_sequence(module, table, cameras, dm.window_len, dm.window_step, frame_ids)
     out = Path(args.get("out", Path(args["run_dir"]) / "animations" / f"{name}.mp4"))
+    check_video_writer(out)
+    frames = render_sequence(module, table, cameras, dm.window_len, dm.window_step, frame_ids)
     out.parent.mkdir(parents=True, exist_ok=True)
-    imageio.mimwrite(out, frames, fps=float(args.get("fps", 25)), macro_block_size=1)
+    fps = float(args.get("fps", 25))
+    if out.suffix.lower() == ".gif":
+        imageio.mimwrite(out, frames, duration=1000.0 / fps, loop=0)
+    else:
+        imageio.mimwrite(out, frames, fps=fps, macro_block_size=1)
     print(f"wrote {out} ({len(frames)} frames, {len(cameras)} cameras)")
     return 0
 
