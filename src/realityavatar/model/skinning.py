@@ -178,7 +178,8 @@ def diffuse_to_grid(vertices: torch.Tensor, faces: torch.Tensor, values: torch.T
         axes = [np.linspace(float(lo[i]), float(hi[i]), n) for i, n in enumerate((nx, ny, nz))]
         zz, yy, xx = np.meshgrid(axes[2], axes[1], axes[0], indexing="ij")  # [D,H,W] each
         centres = np.stack([xx, yy, zz], -1).reshape(-1, 3)
-        dist, idx = cKDTree(pts.numpy()).query(centres, k=k)
+        # as many query threads as torch uses (1 in sweeps that share the CPU; all cores on a GPU machine)
+        dist, idx = cKDTree(pts.numpy()).query(centres, k=k, workers=max(1, torch.get_num_threads()))
         _KNN_CACHE.update(key=key, dist=dist.reshape(len(centres), -1), idx=idx.reshape(len(centres), -1))
     dist, idx = _KNN_CACHE["dist"], _KNN_CACHE["idx"]
     inv = 1.0 / np.maximum(dist, 1e-4)
