@@ -1,7 +1,7 @@
 """One full training step of the demo model and its parts (data, networks, render, losses, optimizer, density).
 
 python benchmarks/step.py [--n 10000 35000] [--size 128 256 512] [--backends torch numba] [--threads 1] [--clock cpu]
-                          [--views 1 4]
+                          [--views 1 4] [--device cuda]
 Every time is printed beside its ratio to the GEMM unit (8 float32 matmuls of 1024^3) timed in the same process,
 because the project's CPU is shared and absolute seconds drift with the load. Writes benchmarks/results/step_cpu.json.
 
@@ -12,6 +12,10 @@ data -> networks fwd -> render fwd -> losses fwd -> losses bwd -> render bwd -> 
 (random pose window, one camera framing the body, random target image) built the way the DataModule collates one.
 --views V adds the whole step of a data.sampler=frame_views batch: the same pose window seen by V cameras around the
 body (one network pass, V renders and losses); its parts are not split out.
+--device cuda runs the module and its batches on the GPU (backends `gsplat torch` there); every clock reading waits
+for the GPU first (torch.cuda.synchronize), and each row also records the GPU kernels' own time per step
+(`gpu_kernel_s`, from torch.profiler over 3 whole steps): a step far longer than its kernels waits on Python and
+kernel launches, not on the GPU.
 """
 from __future__ import annotations
 
@@ -26,7 +30,14 @@ from pathlib import Path
 
 import torch
 
-_clock = time.perf_counter  # --clock cpu: time.process_time
+_clock_base = time.perf_counter  # --clock cpu: time.process_time
+_device = "cpu"
+
+
+def _clock() -> float:
+    if _device != "cpu":
+        torch.cuda.synchronize()
+    return _clock_base()
 
 PARTS = ("data", "networks_fwd", "render_fwd", "losses_fwd", "losses_bwd", "render_bwd", "networks_bwd", "optimizer",
          "density")
@@ -68,7 +79,7 @@ def build(n: int, backend: str, overrides: list[str]):
         cfg = compose("train", overrides=[f"gaussians.num_points={n}", f"render={backend}", "iterations=2000",
                                           "out_dir=/tmp/realityavatar_step_bench", *overrides])
     body = instantiate(cfg.body)
-    module = build_module(cfg, body, num_train_frames=100, scene_extent=1.0)
+    module = build_module(cfg, body, num_train_frames=100, scene_extent=1.0).to(_device)
     opt_cfg = module.configure_optimizers()
     return cfg, module, opt_cfg["optimizer"], opt_cfg["lr_scheduler"]["scheduler"]
 
@@ -76,7 +87,7 @@ def build(n: int, backend: str, overrides: list[str]):
 def make_batch_fn(module, size: int, window: int, views: int = 1):
     """A DataModule-shaped batch: one pose window seen by `views` cameras framing the body (turned about the up axis),
     target images and masks."""
-    verts = module.body.canonical_vertices().detach().float()
+    verts = module.body.canonical_vertices().detach().float().cpu()
     lo, hi = verts.min(0).values, verts.max(0).values
     centre, ext = 0.5 * (lo + hi), hi - lo
     up_axis = int(torch.argmax(ext))
@@ -100,6 +111,9 @@ def make_batch_fn(module, size: int, window: int, views: int = 1):
 
     def make():
         V = views
+        return {k: v.to(_device) for k, v in make_cpu(V).items()}
+
+    def make_cpu(V):
         return {
             "poses": (torch.randn(1, window, 24, 3, generator=g) * 0.1).expand(V, -1, -1, -1).clone(),
             "transl": torch.zeros(V, window, 3),
@@ -197,6 +211,15 @@ def run_config(n: int, size: int, backend: str, repeats: int, overrides: list[st
             parts[k].append(v)
         whole.append(step_whole(module, opt, sched, make_batch, step))
     med = {k: statistics.median(v) for k, v in parts.items()}
+    gpu_kernel_s = None
+    if _device != "cpu":
+        from torch.profiler import ProfilerActivity, profile
+
+        with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
+            for _ in range(3):
+                step_whole(module, opt, sched, make_batch, step)
+        kernels = [e for e in prof.events() if str(getattr(e, "device_type", "")).endswith("CUDA")]
+        gpu_kernel_s = sum(e.time_range.elapsed_us() for e in kernels) / 3e6
     multi = {}
     for V in views:
         if V == 1:
@@ -204,9 +227,9 @@ def run_config(n: int, size: int, backend: str, repeats: int, overrides: list[st
         make_v = make_batch_fn(module, size, int(cfg.data.window_len), V)
         step_whole(module, opt, sched, make_v, step)  # warm-up
         multi[str(V)] = statistics.median([step_whole(module, opt, sched, make_v, step) for _ in range(repeats)])
-    return {"n": n, "size": size, "backend": backend, "num_gaussians": int(module.gaussians.num_points),
-            "step_s": statistics.median(whole), "sum_of_parts_s": sum(med.values()), "parts_s": med,
-            "views_step_s": multi}
+    return {"n": n, "size": size, "backend": backend, "device": _device,
+            "num_gaussians": int(module.gaussians.num_points), "step_s": statistics.median(whole),
+            "sum_of_parts_s": sum(med.values()), "parts_s": med, "views_step_s": multi, "gpu_kernel_s": gpu_kernel_s}
 
 
 def main() -> None:
@@ -221,16 +244,22 @@ def main() -> None:
     ap.add_argument("--override", nargs="*", default=[], help="extra hydra overrides, e.g. encoder=whole_pose")
     ap.add_argument("--views", type=int, nargs="+", default=[1],
                     help="also time the whole step with V cameras of one frame per batch (data.sampler=frame_views)")
-    ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "step_cpu.json"))
+    ap.add_argument("--device", default="cpu", help="cpu or cuda[:i] (the module and batches there)")
+    ap.add_argument("--out", default=None, help="JSON (default results/step_cpu.json, step_cuda.json with --device cuda)")
     ap.add_argument("--no-tune-malloc", action="store_true",
                     help="leave glibc malloc as it is (training tunes it: realityavatar.runtime.tune_malloc)")
     a = ap.parse_args()
+    global _device
+    _device = a.device
+    if _device != "cpu" and not torch.cuda.is_available():
+        raise SystemExit(f"--device {_device}: CUDA is not available to this torch ({torch.__version__})")
+    a.out = a.out or str(Path(__file__).parent / "results" / f"step_{'cpu' if _device == 'cpu' else 'cuda'}.json")
     torch.set_num_threads(a.threads)
     from realityavatar.runtime import tune_malloc
 
     allocator = "untouched (--no-tune-malloc)" if a.no_tune_malloc else tune_malloc()
-    global _clock
-    _clock = time.process_time if a.clock == "cpu" else time.perf_counter
+    global _clock_base
+    _clock_base = time.process_time if a.clock == "cpu" else time.perf_counter
     load_before = list(os.getloadavg())
     units = [gemm_unit()]
     results = []
@@ -242,8 +271,9 @@ def main() -> None:
                 r["gemm_unit_s"] = statistics.median(units[-2:])
                 results.append(r)
                 u = r["gemm_unit_s"]
+                gk = "" if r["gpu_kernel_s"] is None else f"; GPU kernels {r['gpu_kernel_s']:.4f}s of it"
                 print(f"  {backend:6s} N={n:6d} {size}^2  step {r['step_s']:.3f}s = {r['step_s'] / u:.2f} units "
-                      f"(render fwd+bwd {r['parts_s']['render_fwd'] + r['parts_s']['render_bwd']:.3f}s)"
+                      f"(render fwd+bwd {r['parts_s']['render_fwd'] + r['parts_s']['render_bwd']:.3f}s{gk})"
                       + "".join(f"; {V} views {t:.3f}s = {t / u:.2f} units ({t / r['step_s']:.2f}x)"
                                 for V, t in r["views_step_s"].items()), flush=True)
     cols = ["step", *PARTS]
@@ -257,6 +287,8 @@ def main() -> None:
     meta = {
         "command": " ".join(["python", "benchmarks/step.py", *os.sys.argv[1:]]),
         "threads": a.threads,
+        "device": a.device,
+        "gpu": torch.cuda.get_device_name(0) if a.device != "cpu" else None,
         "clock": a.clock,
         "allocator": allocator,
         "torch": torch.__version__,

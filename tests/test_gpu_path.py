@@ -345,3 +345,32 @@ def test_gpu_benchmark_runs_and_skips_cuda_cleanly(tmp_path):
         assert res["pytest_gpu"]["skipped"] == 1
     else:
         assert {("cuda", "torch"), ("cuda", "gsplat")} <= timed
+
+
+# ---------------------------------------------------------------------- the training step on the GPU
+def _step_bench(tmp_path, *args):
+    import subprocess
+
+    out = tmp_path / "step.json"
+    p = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "step.py"), *args, "--n", "2000", "--size", "64",
+                        "--repeats", "1", "--out", str(out)], cwd=ROOT, capture_output=True, text=True, timeout=600,
+                       check=False)
+    return p, out
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the refusal without CUDA")
+def test_step_benchmark_refuses_cuda_without_it(tmp_path):
+    p, out = _step_bench(tmp_path, "--device", "cuda", "--backends", "torch")
+    assert p.returncode != 0 and "--device cuda: CUDA is not available" in p.stderr and not out.exists()
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_step_benchmark_on_cuda(tmp_path):
+    """benchmarks/step.py --device cuda: the whole step and its parts on the GPU, with the kernels' own time."""
+    p, out = _step_bench(tmp_path, "--device", "cuda", "--backends", "gsplat", "torch")
+    assert p.returncode == 0, p.stderr[-2000:]
+    rows = json.loads(out.read_text())["results"]
+    assert {r["backend"] for r in rows} == {"gsplat", "torch"}
+    for r in rows:
+        assert r["device"] == "cuda" and r["step_s"] > 0 and r["gpu_kernel_s"] > 0
