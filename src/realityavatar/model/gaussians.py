@@ -12,9 +12,11 @@ from realityavatar.body.base import BodyModel
 from realityavatar.geometry import sample_surface
 
 # Order matters only for readability; density control and checkpoint resizing iterate over these names (an
-# instance's `param_names`: these, plus "deform_codes" when gaussians.deform_code_dim > 0).
+# instance's `param_names`: these, plus "deform_codes" when gaussians.deform_code_dim > 0 and "normal_residuals" with
+# gaussians.normal_residual).
 PARAM_NAMES = ("means", "log_scales", "quats", "opacity_logits", "features")
 CODE_NAME = "deform_codes"
+NORMAL_NAME = "normal_residuals"
 
 
 def inverse_sigmoid(x: torch.Tensor) -> torch.Tensor:
@@ -38,6 +40,7 @@ class CanonicalGaussians(nn.Module):
         feature_init_std: float = 0.01,
         seed: int = 0,
         deform_code_dim: int = 0,
+        normal_residual: bool = False,
     ) -> None:
         super().__init__()
         if num_points < 1:
@@ -50,7 +53,9 @@ class CanonicalGaussians(nn.Module):
             raise ValueError(f"gaussians.deform_code_dim: expected a size >= 0, got {deform_code_dim}")
         self.feature_dim = feature_dim
         self.deform_code_dim = int(deform_code_dim)
-        self.param_names = PARAM_NAMES + ((CODE_NAME,) if self.deform_code_dim > 0 else ())
+        self.normal_residual = bool(normal_residual)
+        self.param_names = (PARAM_NAMES + ((CODE_NAME,) if self.deform_code_dim > 0 else ())
+                            + ((NORMAL_NAME,) if self.normal_residual else ()))
         gen = torch.Generator().manual_seed(seed)
         verts = body.canonical_vertices().detach().float().cpu()  # [V,3]
         faces = body.faces.cpu()
@@ -72,6 +77,10 @@ class CanonicalGaussians(nn.Module):
             # A learnt code per Gaussian that the motion-trend decoder reads beside its canonical position: Gaussians
             # that sit side by side in canonical space (a skirt's and the thigh's under it) can then move apart.
             self.deform_codes = nn.Parameter(torch.randn(num_points, self.deform_code_dim, generator=gen) * 0.01)
+        if self.normal_residual:
+            # A learnt canonical 3-vector per Gaussian added to the shading's normal grid at its position (starts at
+            # 0): Gaussians that share a voxel (the skirt's and the thigh's under it) can be lit by different normals.
+            self.normal_residuals = nn.Parameter(torch.zeros(num_points, 3))
         self.register_load_state_dict_pre_hook(self._resize_to_checkpoint)
 
     def initial_points(self, body: BodyModel, n: int, gen: torch.Generator) -> torch.Tensor:

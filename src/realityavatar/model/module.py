@@ -119,6 +119,9 @@ class AvatarModule(pl.LightningModule):
         if codes_g != codes_d:
             raise ValueError(f"gaussians.deform_code_dim ({codes_g}) and deformer.gaussian_code_dim ({codes_d}) must "
                              "agree: the decoder reads the Gaussians' codes")
+        if getattr(gaussians, "normal_residual", False) and not hasattr(self.shading, "normals"):
+            raise ValueError(f"gaussians.normal_residual=true: its residuals are added to the light's normal, which "
+                             f"{type(self.shading).__name__} does not have; use shading=irradiance")
         if hasattr(deformer, "set_axis"):
             # offsets=cylindrical turn about the canonical body's vertical axis: through the pelvis, towards the neck
             # (a checkpoint's buffers replace it with the same values).
@@ -256,7 +259,11 @@ class AvatarModule(pl.LightningModule):
         # Canonicalise: undo each Gaussian's blended skinning rotation.
         d_c = (posed["rot"].transpose(-1, -2) @ d[..., None]).squeeze(-1)
         rgb = self.color(self.all_features(), F.normalize(d_c, dim=-1), posed["f_mt"], frame_idx)
-        light = self.shading(posed["x_e"], posed["rot"], posed.get("n_c"))  # world-fixed light, or None
+        residual = getattr(self.gaussians, "normal_residuals", None)
+        if residual is not None and self.sheet is not None:  # the sheet's Gaussians have none
+            residual = torch.cat([residual, residual.new_zeros(posed["x_e"].shape[1] - residual.shape[0], 3)])
+        light = (self.shading(posed["x_e"], posed["rot"], posed.get("n_c"))  # world-fixed light, or None
+                 if residual is None else self.shading(posed["x_e"], posed["rot"], posed.get("n_c"), residual))
         return rgb if light is None else rgb * light
 
     def all_features(self) -> torch.Tensor:

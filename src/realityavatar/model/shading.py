@@ -121,10 +121,16 @@ class IrradianceShading(nn.Module):
         log_e = Y[..., :1] * self.coeffs[0] + length * (Y[..., 1:] @ self.coeffs[1:])
         return torch.exp(log_e)
 
-    def forward(self, x_e: torch.Tensor, rot: torch.Tensor, n_c: torch.Tensor | None = None) -> torch.Tensor:
+    def forward(self, x_e: torch.Tensor, rot: torch.Tensor, n_c: torch.Tensor | None = None,
+                residual: torch.Tensor | None = None) -> torch.Tensor:
         """x_e [B,N,3] deformed canonical positions, rot [B,N,3,3] canonical-to-posed -> factor [B,N,3].
-        n_c [B,N,3]: canonical normals to use instead of the grid's at x_e (normals="jacobian")."""
+        n_c [B,N,3]: canonical normals to use instead of the grid's at x_e (normals="jacobian").
+        residual [N,3]: each Gaussian's learnt canonical normal residual (gaussians.normal_residual), added to the
+        normal; the sum is kept to length <= 1 like the grid's."""
         n_c = self.normals(x_e.detach()) if n_c is None else n_c.detach()
+        if residual is not None:
+            n_c = n_c + residual
+            n_c = n_c / n_c.norm(dim=-1, keepdim=True).clamp_min(1.0)
         n_w = (rot.detach() @ n_c[..., None]).squeeze(-1)
         return self.irradiance(n_w)
 
