@@ -2,6 +2,7 @@
 
     python benchmarks/gpu.py                      # pytest -m gpu, then 10k/35k Gaussians at 256²/512² -> JSON
     python benchmarks/gpu.py --skip-tests --n 10000 --size 256
+    python benchmarks/gpu.py --step                # also the training step on the GPU (benchmarks/step.py --device cuda)
 
 Writes benchmarks/results/gpu_<device>.json (gpu_cpu.json on a machine without CUDA, where the CUDA rows are
 recorded as skipped with the reason). Each timing runs in a fresh process (benchmarks/render.py --child), so
@@ -99,6 +100,23 @@ def time_one(cfg: dict, timeout: int) -> dict:
     return json.loads(p.stdout.strip().splitlines()[-1])
 
 
+def time_step(ns: list[int], timeout: int) -> dict:
+    """benchmarks/step.py --device cuda in a fresh process; its JSON, or why it did not run."""
+    if not torch.cuda.is_available():
+        return {"skipped": "no CUDA device"}
+    with tempfile.TemporaryDirectory() as d:
+        out = Path(d) / "step.json"
+        cmd = [sys.executable, str(HERE / "step.py"), "--device", "cuda", "--backends", "gsplat", "torch", "--size",
+               "128", "--repeats", "5", "--n", *map(str, ns), "--out", str(out)]
+        try:
+            p = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=timeout, check=False)
+        except subprocess.TimeoutExpired:
+            return {"error": f"timed out after {timeout} s"}
+        if p.returncode != 0 or not out.is_file():
+            return {"error": (p.stderr.strip().splitlines() or [f"rc {p.returncode}"])[-1]}
+        return json.loads(out.read_text())
+
+
 def compare(rows: list[dict]) -> list[dict]:
     """Speed-ups per (N, size): torch-CUDA over CPU, gsplat over torch-CUDA (forward+backward)."""
     key = {(r["n"], r["size"], r["device"], r["method"]): r for r in rows if "forward_backward_s" in r}
@@ -122,6 +140,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--cpu-threads", type=int, default=0, help="torch threads for the CPU rows (0: torch default)")
     ap.add_argument("--skip-tests", action="store_true", help="timings only")
+    ap.add_argument("--step", type=int, nargs="*", default=None, metavar="N",
+                    help="also time the training step on the GPU (benchmarks/step.py --device cuda, 128², gsplat and "
+                         "torch) at these Gaussian counts (default with the flag alone: 7000)")
     ap.add_argument("--tests", nargs="*", default=["tests"], help="what pytest -m gpu collects")
     ap.add_argument("--timeout", type=int, default=1800, help="seconds per subprocess")
     ap.add_argument("--out", default=None, help="JSON path (default benchmarks/results/gpu_<device>.json)")
@@ -146,6 +167,11 @@ def main(argv: list[str] | None = None) -> int:
     result["render"] = rows
     result["render_skipped"] = skipped
     result["speedups"] = compare(rows)
+    if a.step is not None:
+        result["step"] = time_step(a.step or [7000], a.timeout)
+        for r in result["step"].get("results", []):
+            print(f"  step {r['device']} {r['backend']:6s} N={r['n']} {r['size']}²: {r['step_s']:.4f}s, GPU kernels "
+                  f"{r['gpu_kernel_s']:.4f}s", file=sys.stderr)
 
     lines = ["| device | backend | N | image | forward s | fwd+bwd s | peak MB |", "|---|---|---:|---:|---:|---:|---:|"]
     for r in rows:
@@ -161,7 +187,7 @@ def main(argv: list[str] | None = None) -> int:
     out.write_text(json.dumps(result, indent=1))
     print(f"wrote {out}")
     failed = result.get("pytest_gpu", {}).get("failed", 0) + result.get("pytest_gpu", {}).get("error", 0)
-    return 1 if failed or any("error" in r for r in rows) else 0
+    return 1 if failed or any("error" in r for r in rows) or "error" in result.get("step", {}) else 0
 
 
 if __name__ == "__main__":

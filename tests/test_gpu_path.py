@@ -333,7 +333,7 @@ def test_gpu_benchmark_runs_and_skips_cuda_cleanly(tmp_path):
     import gpu
 
     out = tmp_path / "gpu.json"
-    rc = gpu.main(["--n", "300", "--size", "32", "--repeats", "1", "--out", str(out),
+    rc = gpu.main(["--n", "300", "--size", "32", "--repeats", "1", "--out", str(out), "--step", "1000",
                    "--tests", "tests/test_gpu_path.py::test_torch_backend_forward_and_backward_on_cuda_match_cpu"])
     res = json.loads(out.read_text())
     assert rc == 0 and res["environment"]["cuda_available"] == torch.cuda.is_available()
@@ -343,8 +343,10 @@ def test_gpu_benchmark_runs_and_skips_cuda_cleanly(tmp_path):
     if not torch.cuda.is_available():
         assert {(r["device"], r["method"]) for r in res["render_skipped"]} == {("cuda", "torch"), ("cuda", "gsplat")}
         assert res["pytest_gpu"]["skipped"] == 1
+        assert res["step"] == {"skipped": "no CUDA device"}
     else:
         assert {("cuda", "torch"), ("cuda", "gsplat")} <= timed
+        assert {r["backend"] for r in res["step"]["results"]} == {"gsplat", "torch"}
 
 
 # ---------------------------------------------------------------------- the training step on the GPU
