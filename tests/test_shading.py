@@ -343,24 +343,26 @@ def test_normal_residuals_light_coincident_gaussians_apart(shading):
 
 
 def test_normal_residuals_train_follow_density_control_and_reload(scenes_root, tmp_path):
-    """A short run with gaussians.normal_residual=true (density control on): the residuals train, stay one row per
-    Gaussian, have their own optimizer group and reload; off by default; refused without a light's normal."""
+    """A short run with gaussians.normal_residual=true (density control on, a garment sheet beside): the residuals
+    train, stay one row per free Gaussian, have their own optimizer group and reload; refused without a light's
+    normal."""
     from realityavatar.build import build_data, build_module, load_run
     from realityavatar.config import prepare_run
     from realityavatar.train import run
 
     over = ["data=synthetic_ci", "trainer=ci", "iterations=30", "gaussians.num_points=800", "test_after_fit=false",
             "logger=none", "gaussians.normal_residual=true", "density.refine_start=5", "density.refine_every=5",
-            "density.grad_threshold=0.0"]
+            "density.grad_threshold=0.0", "sheet=skirt", "sheet.rows=4", "sheet.cols=12", "sheet.per_cell=2"]
     cfg, choices = prepare_run(compose(over), tmp_path / "run")
     run(cfg, choices)
     _, module, _ = load_run(tmp_path / "run")
     g = module.gaussians
     assert g.num_points != 800 and g.normal_residuals.shape == (g.num_points, 3)
+    assert module.sheet is not None and module.sheet.num_points == 96  # its Gaussians are lit without residuals
     assert float(g.normal_residuals.abs().max()) > 1e-4
     groups = {grp["name"]: grp for grp in module.param_groups()}
     assert groups["normal_residuals"]["lr"] == cfg.optim.lr.normal_residuals
-    assert "normal_residuals" not in compose([]).optim.lr or not compose([]).gaussians.normal_residual
+    assert not compose([]).gaussians.normal_residual  # off by default
     bad = compose(over[:1] + ["gaussians.normal_residual=true", "shading=none"])
     body = instantiate(bad.body)
     dm = build_data(bad, body)
