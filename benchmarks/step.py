@@ -111,10 +111,7 @@ def make_batch_fn(module, size: int, window: int, views: int = 1):
 
     def make():
         V = views
-        return {k: v.to(_device) for k, v in make_cpu(V).items()}
-
-    def make_cpu(V):
-        return {
+        batch = {
             "poses": (torch.randn(1, window, 24, 3, generator=g) * 0.1).expand(V, -1, -1, -1).clone(),
             "transl": torch.zeros(V, window, 3),
             "frame_idx": torch.full((V,), 3),
@@ -125,6 +122,7 @@ def make_batch_fn(module, size: int, window: int, views: int = 1):
             "image": torch.rand(V, size, size, 3, generator=g),
             "mask": (torch.rand(V, size, size, 1, generator=g) > 0.5).float(),
         }
+        return {k: v.to(_device) for k, v in batch.items()}
 
     return make
 
@@ -288,7 +286,7 @@ def main() -> None:
         "command": " ".join(["python", "benchmarks/step.py", *os.sys.argv[1:]]),
         "threads": a.threads,
         "device": a.device,
-        "gpu": torch.cuda.get_device_name(0) if a.device != "cpu" else None,
+        "gpu": torch.cuda.get_device_name(torch.device(a.device)) if a.device != "cpu" else None,
         "clock": a.clock,
         "allocator": allocator,
         "torch": torch.__version__,

@@ -262,8 +262,7 @@ class AvatarModule(pl.LightningModule):
         residual = getattr(self.gaussians, "normal_residuals", None)
         if residual is not None and self.sheet is not None:  # the sheet's Gaussians have none
             residual = torch.cat([residual, residual.new_zeros(posed["x_e"].shape[1] - residual.shape[0], 3)])
-        light = (self.shading(posed["x_e"], posed["rot"], posed.get("n_c"))  # world-fixed light, or None
-                 if residual is None else self.shading(posed["x_e"], posed["rot"], posed.get("n_c"), residual))
+        light = self.shading(posed["x_e"], posed["rot"], posed.get("n_c"), residual)  # world-fixed light, or None
         return rgb if light is None else rgb * light
 
     def all_features(self) -> torch.Tensor:

@@ -24,7 +24,8 @@ class NoShading(nn.Module):
 
     normals_from = "body"
 
-    def forward(self, x_e: torch.Tensor, rot: torch.Tensor, n_c: torch.Tensor | None = None) -> None:
+    def forward(self, x_e: torch.Tensor, rot: torch.Tensor, n_c: torch.Tensor | None = None,
+                residual: torch.Tensor | None = None) -> None:
         return None
 
     def init_from_body(self, vertices: torch.Tensor, faces: torch.Tensor, seed: int = 0) -> None:
@@ -110,9 +111,7 @@ class IrradianceShading(nn.Module):
     def normals(self, x: torch.Tensor) -> torch.Tensor:
         """Canonical normals at x [...,3] -> [...,3], length <= 1 (short where nearby surface normals disagree)."""
         n = sample_grid(self.grid, self.lo, self.hi, x)
-        if self.normals_from == "learnt":  # a trained grid may grow past unit length
-            n = n / n.norm(dim=-1, keepdim=True).clamp_min(1.0)
-        return n
+        return _at_most_unit(n) if self.normals_from == "learnt" else n  # a trained grid may grow past unit length
 
     def irradiance(self, n_w: torch.Tensor) -> torch.Tensor:
         """World normals [...,3] (length <= 1) -> E [...,3] > 0."""
@@ -129,13 +128,17 @@ class IrradianceShading(nn.Module):
         normal; the sum is kept to length <= 1 like the grid's."""
         n_c = self.normals(x_e.detach()) if n_c is None else n_c.detach()
         if residual is not None:
-            n_c = n_c + residual
-            n_c = n_c / n_c.norm(dim=-1, keepdim=True).clamp_min(1.0)
+            n_c = _at_most_unit(n_c + residual)
         n_w = (rot.detach() @ n_c[..., None]).squeeze(-1)
         return self.irradiance(n_w)
 
     def param_groups(self) -> dict[str, list[nn.Parameter]]:
         return {"shading": [self.coeffs], **({"shading_normals": [self.grid]} if self.grid.requires_grad else {})}
+
+
+def _at_most_unit(n: torch.Tensor) -> torch.Tensor:
+    """Vectors [...,3] longer than 1 scaled to unit length; shorter ones (where nearby normals disagree) kept."""
+    return n / n.norm(dim=-1, keepdim=True).clamp_min(1.0)
 
 
 def cofactor(F_: torch.Tensor) -> torch.Tensor:
