@@ -432,3 +432,39 @@ def test_training_opens_the_coarse_to_fine_window_and_a_checkpoint_keeps_it(scen
     assert [s for s in steps if s is not None][:20] == list(range(20))
     _, module, _ = load_run(tmp_path / "run")
     assert module.deformer.encoding.alpha == module.deformer.encoding.num_freqs * 20 / 40
+
+
+@pytest.mark.parametrize("query_at", ["deformed", "canonical"])
+def test_skinning_query_at_reads_the_weights_where_it_says(scenes_root, query_at):
+    """skinning.query_at: "deformed" reads each point's weights at x_c + dx (3DGS-Avatar), "canonical" at x_c, so
+    a point the decoder moves 40 cm keeps the bones it was laid out on; an unknown value names the field."""
+    from torch.utils.data import default_collate
+
+    from realityavatar.build import build_data, build_module
+
+    cfg = compose(["data=synthetic_ci", "trainer=ci", "gaussians.num_points=200", f"skinning.query_at={query_at}"])
+    body = instantiate(cfg.body)
+    dm = build_data(cfg, body)
+    module = build_module(cfg, body, dm.num_train_frames, dm.scene_extent, data=dm)
+    assert module.skinning.query_at == query_at
+    module.skinning.init_from_body(body.canonical_vertices().detach(), body.faces, body.skin_weights)  # as on_fit_start
+    forward = module.deformer.forward
+
+    def far(*args, **kwargs):  # the decoder moves every point 40 cm along x
+        out = forward(*args, **kwargs)
+        return {**out, "dx": out["dx"] + torch.tensor([0.4, 0.0, 0.0])}
+
+    module.deformer.forward = far
+    b = default_collate([dm.datasets["train"][0]])
+    with torch.no_grad():
+        posed = module.deform(b["poses"], b["transl"], frame_idx=b["frame_idx"])
+        at_rest, moved = module.skinning(module.gaussians.means), module.skinning(posed["x_e"][0])
+    expected, other = (at_rest, moved) if query_at == "canonical" else (moved, at_rest)
+    assert torch.allclose(posed["weights"][0], expected, atol=1e-6)
+    assert (posed["weights"][0] - other).abs().max() > 0.1
+    from realityavatar.model.skinning import SkinningField, SkinningGrid
+
+    with pytest.raises(ValueError, match=r"skinning \(grid\)\.query_at"):
+        SkinningGrid(query_at="rest")
+    with pytest.raises(ValueError, match=r"skinning \(mlp\)\.query_at"):
+        SkinningField(query_at="rest")

@@ -166,7 +166,9 @@ class AvatarModule(pl.LightningModule):
         if self.sheet is not None and self.sheet.num_basis and deform:  # the sheet's motion basis (sheet.basis)
             out = {**out, "dx": torch.cat([out["dx"][:, :N], out["dx"][:, N:] + self.sheet.basis_offsets(h_t)], 1)}
         x_e, log_s_e, q_e = apply_deformation(means, log_scales, quats, out)  # [B,N,3],[B,N,3],[B,N,4]
-        w = self.skinning(x_e)  # [B,N,24]
+        # skinning.query_at: the weights at the deformed canonical position (default) or at the undeformed one
+        at_rest = getattr(self.skinning, "query_at", "deformed") == "canonical"
+        w = self.skinning(means[None].expand(B, -1, -1) if at_rest else x_e)  # [B,N,24]
         A = self.body.canonical_transforms(poses[:, -1], transl[:, -1])  # [B,24,4,4]
         means_o, quats_o, rot = lbs_gaussians(x_e, q_e, w, A)
         posed = {

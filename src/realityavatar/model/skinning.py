@@ -30,8 +30,10 @@ class SkinningField(nn.Module):
         center: tuple[float, float, float] = (0.0, -0.3, 0.0),
         half_extent: float = 1.2,
         num_bones: int = NUM_BONES,
+        query_at: str = "deformed",
     ) -> None:
         super().__init__()
+        self.query_at = check_query_at("skinning (mlp)", query_at)
         self.encoding = FrequencyEncoding(num_freqs)
         # Persistent so a checkpoint carries the normalisation the weights were trained with.
         self.register_buffer("center", torch.tensor(center, dtype=torch.float32))
@@ -91,9 +93,11 @@ class SkinningGrid(nn.Module):
         learnable: bool = False,
         max_voxels: int = 400_000,
         num_bones: int = NUM_BONES,
+        query_at: str = "deformed",
     ) -> None:
         super().__init__()
         check_grid_settings("skinning (grid)", voxel_size, padding, k, smooth_iters, smooth_ramp)
+        self.query_at = check_query_at("skinning (grid)", query_at)
         self.voxel_size, self.padding, self.k = float(voxel_size), float(padding), int(k)
         self.smooth_iters, self.smooth_ramp, self.max_voxels = int(smooth_iters), float(smooth_ramp), int(max_voxels)
         self.num_bones = num_bones
@@ -130,6 +134,19 @@ class SkinningGrid(nn.Module):
             w = w.clamp_min(0)
             w = w / w.sum(-1, keepdim=True).clamp_min(1e-8)
         return w
+
+
+QUERY_AT = ("deformed", "canonical")
+
+
+def check_query_at(name: str, query_at: str) -> str:
+    """Where the module reads a point's skinning weights (`skinning.query_at`): "deformed", at its canonical
+    position plus the decoder's offset (x_c + dx, as 3DGS-Avatar), or "canonical", at x_c itself, so a garment
+    point keeps the bones it was laid out on however far the decoder moves it (README, "What the spin's gap is
+    made of": read at x_c + dx, a hem pushed 30 cm out takes the weights of whatever part lies there)."""
+    if query_at not in QUERY_AT:
+        raise ValueError(f"{name}.query_at: expected one of {QUERY_AT}, got {query_at!r}")
+    return query_at
 
 
 _KNN_CACHE: dict = {}  # the last grid's nearest-sample query (see diffuse_to_grid)
