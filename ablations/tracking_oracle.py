@@ -138,8 +138,8 @@ class GluedGaussians(torch.nn.Module):
         self.light = light
         if light not in ("exact", "rigid", "none"):
             raise ValueError(f"light: expected 'exact', 'rigid' or 'none', got {light!r}")
-        pos, nrm, lit, tan, spacing, owner, self.samples = [], [], [], [], [], [], []
-        for i, (V, F, n, garment) in enumerate(parts):
+        pos, nrm, lit, tan, spacing, self.samples = [], [], [], [], [], []
+        for V, F, n, garment in parts:
             tri0 = V[0][F]
             area = torch.linalg.cross(tri0[:, 1] - tri0[:, 0], tri0[:, 2] - tri0[:, 0]).norm(dim=-1) / 2
             fi = torch.multinomial(area, n, replacement=True, generator=gen)
@@ -164,12 +164,10 @@ class GluedGaussians(torch.nn.Module):
             lit.append(turn_y(nv[:1].expand_as(nv), waist_yaw(V, garment["cols"])) if rigid else nv)
             tan.append(tri[:, :, 1] - tri[:, :, 0])
             spacing.append(torch.full((n,), float((area.sum() / n).sqrt())))
-            owner.append(torch.full((n,), i))
         self.register_buffer("pos", torch.cat(pos, 1).float())  # [T,N,3]
         self.register_buffer("nrm", torch.cat(nrm, 1).float())
         self.register_buffer("lit", torch.cat(lit, 1).float())  # the normals the light sees
         self.register_buffer("tan", torch.cat(tan, 1).float())
-        self.register_buffer("owner", torch.cat(owner))
         self.register_buffer("spacing", torch.cat(spacing))
         N = self.pos.shape[1]
         self.albedo = torch.nn.Parameter(torch.zeros(N, 3))  # sigmoid -> 0.5 grey
@@ -244,15 +242,14 @@ def main(argv: list[str] | None = None) -> int:
     index = {f: i for i, f in enumerate(frames)}
     gen = torch.Generator().manual_seed(args.seed)
     garm_v = torch.as_tensor(garm_v)
-    cols_all = len(np.unique(np.load(npz)["uv"][:, 0]))
+    uv = np.load(npz)["uv"]
+    cols_all, rows = len(np.unique(uv[:, 0])), len(np.unique(uv[:, 1]))
     if args.open != 1.0:
         garm_v = open_less(garm_v, cols_all, args.open)
     garment = {"cols": cols_all}
     if args.slide_cm:
-        g = np.load(npz)
-        rows = len(np.unique(g["uv"][:, 1]))
         length = (garm_v[0, -cols_all:] - garm_v[0, :cols_all]).norm(dim=-1).mean()  # waist to hem at rest, metres
-        garment.update(uv=torch.as_tensor(g["uv"], dtype=torch.float64), rows=rows,
+        garment.update(uv=torch.as_tensor(uv, dtype=torch.float64), rows=rows,
                        dv=-args.slide_cm / 100 / length * flare_curve(garm_v, cols_all))
     model = GluedGaussians([(torch.as_tensor(np.asarray(body_v)), torch.as_tensor(np.asarray(body_f)).long(), args.body,
                              None), (garm_v, torch.as_tensor(garm_f).long(), args.garment, garment)], gen, args.light)
