@@ -50,7 +50,7 @@ from probe import PHASES, phase_of
 from realityavatar.build import build_data
 from realityavatar.config import compose
 from realityavatar.data.synthetic.render import AMBIENT, DIFFUSE, LIGHT_DIR
-from realityavatar.geometry import camera_centres, matrix_to_quat
+from realityavatar.geometry import camera_centres, matrix_to_quat, sample_barycentric
 from realityavatar.losses import AvatarLoss
 from realityavatar.metrics import psnr, silhouette_iou
 from realityavatar.render.splat import rasterize
@@ -140,12 +140,7 @@ class GluedGaussians(torch.nn.Module):
             raise ValueError(f"light: expected 'exact', 'rigid' or 'none', got {light!r}")
         pos, nrm, lit, tan, spacing, self.samples = [], [], [], [], [], []
         for V, F, n, garment in parts:
-            tri0 = V[0][F]
-            area = torch.linalg.cross(tri0[:, 1] - tri0[:, 0], tri0[:, 2] - tri0[:, 0]).norm(dim=-1) / 2
-            fi = torch.multinomial(area, n, replacement=True, generator=gen)
-            r = torch.rand(n, 2, generator=gen)
-            s = r[:, 0].sqrt()
-            bary = torch.stack([1 - s, s * (1 - r[:, 1]), s * r[:, 1]], -1)
+            fi, bary, area = sample_barycentric(V[0], F, n, gen)  # on the first frame's mesh
             self.samples.append((F[fi], bary))  # each Gaussian's face vertices and barycentrics
             T = V.shape[0]
             ids, w = F[fi][None].expand(T, n, 3), bary[None].expand(T, n, 3)

@@ -108,6 +108,27 @@ def camera_centres(viewmats: torch.Tensor) -> torch.Tensor:
     return -(R.transpose(-1, -2) @ t).squeeze(-1)
 
 
+def sample_barycentric(
+    vertices: torch.Tensor, faces: torch.Tensor, n: int, generator: torch.Generator | None = None
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Area-weighted uniform sample points on a triangle mesh, as faces and barycentrics.
+
+    vertices [V,3], faces [F,3] (CPU; the areas are computed in the vertices' dtype) -> face index [n], barycentrics
+    [n,3] (float32) and every face's area [F]. Draws from `generator`: the faces, then two uniforms per point.
+    """
+    if faces.ndim != 2 or faces.shape[1] != 3:
+        raise ValueError(f"sample_surface: faces must be [F,3], got {tuple(faces.shape)}")
+    tri = vertices[faces]  # [F,3,3]
+    area = torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]).norm(dim=-1) / 2
+    if not torch.isfinite(area).all() or area.sum() <= 0:
+        raise ValueError("sample_surface: mesh has no positive area")
+    face_idx = torch.multinomial(area, n, replacement=True, generator=generator)  # [n]
+    r = torch.rand(n, 2, generator=generator)
+    # sqrt trick: uniform over the triangle.
+    s = r[:, 0].sqrt()
+    return face_idx, torch.stack([1 - s, s * (1 - r[:, 1]), s * r[:, 1]], -1), area
+
+
 def sample_surface(
     vertices: torch.Tensor,
     faces: torch.Tensor,
@@ -120,20 +141,10 @@ def sample_surface(
     vertices [V,3], faces [F,3], weights [V,K] or None -> points [n,3], barycentric-interpolated weights [n,K] (or None).
     Deterministic for a given generator (sampling runs on the CPU generator; results take the mesh's device and dtype).
     """
-    if faces.ndim != 2 or faces.shape[1] != 3:
-        raise ValueError(f"sample_surface: faces must be [F,3], got {tuple(faces.shape)}")
     dev = vertices.device
     v = vertices.detach().cpu().float()
     f = faces.cpu().long()
-    tri = v[f]  # [F,3,3]
-    area = torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]).norm(dim=-1) / 2
-    if not torch.isfinite(area).all() or area.sum() <= 0:
-        raise ValueError("sample_surface: mesh has no positive area")
-    face_idx = torch.multinomial(area, n, replacement=True, generator=generator)  # [n]
-    r = torch.rand(n, 2, generator=generator)
-    # sqrt trick: uniform over the triangle.
-    s = r[:, 0].sqrt()
-    bary = torch.stack([1 - s, s * (1 - r[:, 1]), s * r[:, 1]], -1)  # [n,3]
+    face_idx, bary, _ = sample_barycentric(v, f, n, generator)
     fi = f[face_idx]  # [n,3]
     points = (bary[:, :, None] * v[fi]).sum(1)
     w = None
