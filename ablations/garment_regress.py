@@ -205,7 +205,7 @@ def main(argv: list[str] | None = None) -> int:
                 rows.append(row)
                 print(row, flush=True)
     cols = [*PHASES, "all", "novel pose"]
-    print(f"\n{args.data}: {len(frames)} training frames, window {poses.shape[1]} frames, "
+    print(f"\n{args.data}: {len(frames)} training frames, window {poses.shape[1]} frames {cfg.data.window_step} apart, "
           f"{args.steps} steps x {args.batch} frame(s), lr {args.lr:g}; RMS cm over the garment's vertices")
     print(f"| | {' | '.join(cols)} |\n|---|{'---:|' * len(cols)}")
     for r in rows:
