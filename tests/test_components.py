@@ -182,6 +182,33 @@ def test_latentbone_encoder_options(split, zc):
         assert enc.input_layer[0].in_features == sum(PART_DIMS.values()) + zc
 
 
+@pytest.mark.parametrize("split", [True, False])
+def test_latentbone_fourier_features(split):
+    """encoder.fourier_sigma > 0 adds sin(xW), cos(xW) of each part's features to its input (W fixed, N(0, sigma^2)):
+    the input layers widen by 2 x fourier_features, W is rebuilt identically from the config and stays out of the
+    state dict (checkpoints of either setting load into the other), and it is off at 0."""
+    poses, transl = _poses()
+    off = LatentBoneEncoder(part_split=split, out_dim=32)
+    on = LatentBoneEncoder(part_split=split, out_dim=32, fourier_sigma=1.0, fourier_features=8)
+    first = (lambda e: e.part_layers["legs"][0]) if split else (lambda e: e.input_layer[0])
+    assert first(on).in_features == first(off).in_features + 16
+    assert not any(k.startswith("fourier") for k in on.state_dict())
+    W = on.fourier_legs if split else on.fourier_all
+    assert W.shape[1] == 8 and 0.5 < float(W.std()) < 1.5
+    again = LatentBoneEncoder(part_split=split, out_dim=32, fourier_sigma=1.0, fourier_features=8)
+    again.load_state_dict(on.state_dict())
+    torch.testing.assert_close(again(poses, transl), on(poses, transl))
+    # what the input layer reads: [x, sin(xW), cos(xW)]
+    x = torch.randn(3, W.shape[0])
+    out = on._fourier(x, "legs" if split else "all")
+    torch.testing.assert_close(out, torch.cat([x, torch.sin(x @ W), torch.cos(x @ W)], -1))
+    torch.testing.assert_close(off._fourier(x, "legs" if split else "all"), x)
+    on(poses, transl).square().sum().backward()
+    _all_grads(on)
+    with pytest.raises(ValueError, match="encoder.fourier_sigma"):
+        LatentBoneEncoder(fourier_sigma=-1.0)
+
+
 # ---------------------------------------------------------------------- temporal
 def test_temporal_none_ignores_history_lstm_does_not():
     torch.manual_seed(0)

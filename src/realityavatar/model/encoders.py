@@ -112,12 +112,29 @@ class LatentBoneEncoder(nn.Module):
         num_layers: int = 2,
         latent_init_std: float = 0.1,
         dynamics: str = "none",
+        fourier_sigma: float = 0.0,
+        fourier_features: int = 64,
     ) -> None:
         super().__init__()
         dims = part_dims(dynamics)
         self.dynamics = dynamics
         if num_layers < 1:
             raise ValueError(f"encoder.num_layers: expected >= 1, got {num_layers}")
+        if fourier_sigma < 0 or (fourier_sigma > 0 and fourier_features < 1):
+            raise ValueError(f"encoder.fourier_sigma must be >= 0 and encoder.fourier_features >= 1, got "
+                             f"{fourier_sigma}, {fourier_features}")
+        # fourier_sigma > 0: each part's per-frame features x also enter as sin(x W), cos(x W), W a fixed Gaussian
+        # matrix of std fourier_sigma (random Fourier features; drawn from a fixed seed, so rebuilt identically from the
+        # config and kept out of the checkpoint)
+        self.fourier_sigma = float(fourier_sigma)
+        groups = PART_NAMES if part_split else ("all",)
+        sizes = dims if part_split else {"all": sum(dims.values())}
+        gen = torch.Generator().manual_seed(0)
+        for g in groups:
+            W = torch.randn(sizes[g], fourier_features, generator=gen) * fourier_sigma if fourier_sigma > 0 else torch.zeros(0)
+            self.register_buffer(f"fourier_{g}", W, persistent=False)
+        extra = 2 * fourier_features if fourier_sigma > 0 else 0
+        dims = {p: d + extra for p, d in dims.items()}
         self.part_split = part_split
         self.clothes_latent_dim = clothes_latent_dim
         self.out_dim = out_dim
@@ -130,7 +147,7 @@ class LatentBoneEncoder(nn.Module):
                 {p: nn.Sequential(nn.Linear(dims[p] + clothes_latent_dim, part_dim), nn.SiLU()) for p in PART_NAMES}
             )
         else:
-            total = sum(dims.values())
+            total = sum(part_dims(dynamics).values()) + extra
             self.input_layer = nn.Sequential(nn.Linear(total + clothes_latent_dim, 4 * part_dim), nn.SiLU())
         self.mlp = _mlp(4 * part_dim, hidden_dim, out_dim, num_layers)
 
@@ -139,13 +156,20 @@ class LatentBoneEncoder(nn.Module):
             return x
         return torch.cat([x, self.z_c.expand(x.shape[:-1] + (-1,))], -1)
 
+    def _fourier(self, x: torch.Tensor, group: str) -> torch.Tensor:
+        """x [...,D] -> [x, sin(x W), cos(x W)] with fourier_sigma > 0, else x."""
+        if self.fourier_sigma <= 0:
+            return x
+        z = x @ getattr(self, f"fourier_{group}").to(x)
+        return torch.cat([x, torch.sin(z), torch.cos(z)], -1)
+
     def forward(self, poses: torch.Tensor, transl: torch.Tensor) -> torch.Tensor:
         """poses [B,T,24,3], transl [B,T,3] -> f_p [B,T,out_dim]."""
         feats = pose_features(poses, transl, self.dynamics)
         if self.part_split:
-            h = torch.cat([self.part_layers[p](self._with_latent(feats[p])) for p in PART_NAMES], -1)
+            h = torch.cat([self.part_layers[p](self._with_latent(self._fourier(feats[p], p))) for p in PART_NAMES], -1)
         else:
-            h = self.input_layer(self._with_latent(torch.cat([feats[p] for p in PART_NAMES], -1)))
+            h = self.input_layer(self._with_latent(self._fourier(torch.cat([feats[p] for p in PART_NAMES], -1), "all")))
         return self.mlp(h)
 
     def param_groups(self) -> dict[str, list[nn.Parameter]]:
