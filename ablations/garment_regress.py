@@ -35,7 +35,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from torch.utils.data import default_collate
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
@@ -47,16 +46,17 @@ from realityavatar.config import compose
 from realityavatar.model.encoders import pose_features
 
 
-def windows(ds, view: int | None = None) -> tuple[torch.Tensor, torch.Tensor, list[int]]:
-    """One window per frame of a dataset (its first camera's records): poses [F,T,24,3], transl [F,T,3], frame ids."""
-    if ds is None:
+def windows(dm, split: str) -> tuple[torch.Tensor, torch.Tensor, list[int]]:
+    """One window per frame of a split, in its first camera's record order (the DataModule's pose table, no images):
+    poses [F,T,24,3], transl [F,T,3], frame ids."""
+    ds = dm.datasets.get(split)
+    if ds is None or not ds.records:
         return torch.zeros(0), torch.zeros(0), []
-    first = view if view is not None else min(r.view for r in ds.records)
-    items = [default_collate([ds[i]]) for i, r in enumerate(ds.records) if r.view == first]
-    if not items:
-        return torch.zeros(0), torch.zeros(0), []
-    return (torch.cat([b["poses"] for b in items]).float(), torch.cat([b["transl"] for b in items]).float(),
-            [int(b["frame"][0]) for b in items])
+    first = min(r.view for r in ds.records)
+    frames = [int(r.frame) for r in ds.records if r.view == first]
+    pairs = [dm.window_for(dm.scene.poses, f) for f in frames]
+    return (torch.stack([torch.as_tensor(w[0]) for w in pairs]).float(),
+            torch.stack([torch.as_tensor(w[1]) for w in pairs]).float(), frames)
 
 
 def pelvis_frame_cloth(body, cloth: torch.Tensor, poses: torch.Tensor, transl: torch.Tensor) -> torch.Tensor:
@@ -172,19 +172,18 @@ def main(argv: list[str] | None = None) -> int:
             raise ValueError(f"{npz}: no simulated garment for frames {missing[:5]}")
         return pelvis_frame_cloth(body, cloth[[index[f] for f in frames]], poses, transl)
 
-    poses, transl, frames = windows(dm.datasets["train"])
+    poses, transl, frames = windows(dm, "train")
     P = targets(poses, transl, frames)
     ref = P[0:1]
     Y = P - ref
     phases = [phase_of(f, events, fps) for f in frames]
-    np_poses, np_transl, np_frames = windows(dm.datasets.get("novel_pose"))
+    np_poses, np_transl, np_frames = windows(dm, "novel_pose")
     Y_np = targets(np_poses, np_transl, np_frames) - ref if np_frames else None
     with torch.no_grad():
-        floor = window_floor(window_features(poses, transl), Y)
+        X = window_features(poses, transl)
         rows = [{"row": "no motion (the first frame's cloth)", **per_phase(Y.pow(2).sum(-1).mean(-1).sqrt(), phases)},
-                {"row": "floor (identical windows, different cloth)", **per_phase(floor, phases)},
-                {"row": "ridge (linear in the window's features with deltas)",
-                 **per_phase(ridge(window_features(poses, transl), Y), phases)}]
+                {"row": "floor (identical windows, different cloth)", **per_phase(window_floor(X, Y), phases)},
+                {"row": "ridge (linear in the window's features with deltas)", **per_phase(ridge(X, Y), phases)}]
     if Y_np is not None:
         rows[0]["novel pose"] = round(100 * float(Y_np.pow(2).sum(-1).mean().sqrt()), 2)
     for temporal in args.temporal.split(","):

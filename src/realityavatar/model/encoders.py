@@ -133,8 +133,7 @@ class LatentBoneEncoder(nn.Module):
         for g in groups:
             W = torch.randn(sizes[g], fourier_features, generator=gen) * fourier_sigma if fourier_sigma > 0 else torch.zeros(0)
             self.register_buffer(f"fourier_{g}", W, persistent=False)
-        extra = 2 * fourier_features if fourier_sigma > 0 else 0
-        dims = {p: d + extra for p, d in dims.items()}
+        extra = 2 * fourier_features if fourier_sigma > 0 else 0  # input columns each Fourier group adds
         self.part_split = part_split
         self.clothes_latent_dim = clothes_latent_dim
         self.out_dim = out_dim
@@ -144,10 +143,11 @@ class LatentBoneEncoder(nn.Module):
             self.register_parameter("z_c", None)
         if part_split:
             self.part_layers = nn.ModuleDict(
-                {p: nn.Sequential(nn.Linear(dims[p] + clothes_latent_dim, part_dim), nn.SiLU()) for p in PART_NAMES}
+                {p: nn.Sequential(nn.Linear(dims[p] + extra + clothes_latent_dim, part_dim), nn.SiLU())
+                 for p in PART_NAMES}
             )
         else:
-            total = sum(part_dims(dynamics).values()) + extra
+            total = sum(dims.values()) + extra
             self.input_layer = nn.Sequential(nn.Linear(total + clothes_latent_dim, 4 * part_dim), nn.SiLU())
         self.mlp = _mlp(4 * part_dim, hidden_dim, out_dim, num_layers)
 
