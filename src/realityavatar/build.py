@@ -41,6 +41,7 @@ def build_module(cfg: DictConfig, body, num_train_frames: int, scene_extent: flo
     silhouette = instantiate(cfg.silhouette) if cfg.get("silhouette") is not None else None
     shading = instantiate(cfg.shading) if cfg.get("shading") is not None else None  # configs from before the option
     flow = instantiate(cfg.flow) if cfg.get("flow") is not None else None  # configs from before the option: none
+    posefit = instantiate(cfg.posefit) if cfg.get("posefit") is not None else None  # configs from before: none
     sheet_cfg = cfg.get("sheet")
     sheet = None
     if sheet_cfg is not None and sheet_cfg.get("_target_"):
@@ -76,6 +77,7 @@ def build_module(cfg: DictConfig, body, num_train_frames: int, scene_extent: flo
         shading=shading,
         flow=flow,
         sheet=sheet,
+        posefit=posefit,
     )
     module.lpips_status = lpips_status  # "computed" or why not, recorded in metrics.json
     return module

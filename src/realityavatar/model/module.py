@@ -75,6 +75,7 @@ class AvatarModule(pl.LightningModule):
         shading: nn.Module | None = None,
         flow: nn.Module | None = None,
         sheet: nn.Module | None = None,
+        posefit: nn.Module | None = None,
     ):
         super().__init__()
         self.automatic_optimization = False  # density control edits parameters between optimizer steps
@@ -91,6 +92,8 @@ class AvatarModule(pl.LightningModule):
         self.silhouette = silhouette
         self.flow = flow if flow is not None and float(getattr(flow, "weight", 0.0)) > 0 else None
         self.sheet = sheet  # sheet=skirt: Gaussians bound to a deformable garment surface, after the free ones
+        # posefit=silhouette: extra pose-path steps on other frames' silhouettes after each image step (model/posefit.py)
+        self.posefit = posefit if posefit is not None and int(getattr(posefit, "passes", 0)) > 0 else None
         self.optimizer_factory = optimizer
         self.lr = dict(lr)
         self.final_factor = dict(final_factor)
@@ -186,6 +189,30 @@ class AvatarModule(pl.LightningModule):
         if self.sheet is not None:
             posed = self._sheet_gaussians(posed, N)
         return posed
+
+    def deform_points(self, poses: torch.Tensor, transl: torch.Tensor, free_idx: torch.Tensor) -> torch.Tensor:
+        """Posed centres [B,S(+P),3] of the free Gaussians free_idx [S], then the garment sheet's P vertices: the
+        geometry path of `deform` (decoder offsets, the sheet's motion basis, skinning) without rotations, scales,
+        shading or the sheet's Gaussians, for posefit=silhouette."""
+        g = self.gaussians
+        h_t = self.temporal(self.encoder(poses, transl))  # [B,H]
+        means = g.means[free_idx]
+        codes = getattr(g, "deform_codes", None)
+        codes = None if codes is None else codes[free_idx]
+        S = means.shape[0]
+        if self.sheet is not None:
+            V = self.sheet.vertices.to(means)
+            means = torch.cat([means, V])
+            codes = None if codes is None else torch.cat([codes, codes.new_zeros(len(V), codes.shape[1])])
+        dx = self.deformer(means, h_t, None, codes=codes)["dx"]  # [B,S+P,3]
+        if self.sheet is not None and self.sheet.num_basis:
+            dx = torch.cat([dx[:, :S], dx[:, S:] + self.sheet.basis_offsets(h_t)], 1)
+        x_e = means + dx
+        at_rest = getattr(self.skinning, "query_at", "deformed") == "canonical"
+        w = self.skinning(means[None].expand(x_e.shape[0], -1, -1) if at_rest else x_e)  # [B,S+P,24]
+        A = self.body.canonical_transforms(poses[:, -1], transl[:, -1])  # [B,24,4,4]
+        T = torch.einsum("bnj,bjkl->bnkl", w, A)  # [B,S+P,4,4]
+        return (T[..., :3, :3] @ x_e[..., None])[..., 0] + T[..., :3, 3]
 
     def _shading_normals(self, means: torch.Tensor, out: dict, h_t: torch.Tensor, frame_idx: torch.Tensor | None,
                          codes: torch.Tensor | None, deform: bool) -> torch.Tensor | None:
@@ -361,6 +388,11 @@ class AvatarModule(pl.LightningModule):
             t0 = time.perf_counter()
             record = self.shading.init_from_body(self.body.canonical_vertices().detach(), self.body.faces)
             self.run_info["shading_grid"] = {**record, "seconds": time.perf_counter() - t0}
+        if self.posefit is not None:  # the training masks' distance fields (not in the checkpoint: rebuilt here)
+            dm = getattr(self.trainer, "datamodule", None)
+            if dm is None or "train" not in getattr(dm, "datasets", {}):
+                raise RuntimeError("posefit=silhouette needs the training DataModule (trainer.fit(module, datamodule=...))")
+            self.run_info["posefit"] = self.posefit.build(dm)
         # The skinning field starts from the body's weights: the MLP is pre-fitted for schedule.skin_pretrain_steps
         # cheap steps on surface samples (learnt from scratch at the paper's small LR it is still far from them after
         # a short CPU run, which blurs every frame); the grid is built from them. Once per run: a resumed run restores run_info["skin_pretrain"] from its checkpoint (on_load_checkpoint runs
@@ -433,6 +465,10 @@ class AvatarModule(pl.LightningModule):
         self.run_info["render"] = {"backend": metas[0]["backend"], "device": str(rgb.device), "dtype": str(rgb.dtype)}
         stats = self.density.step_post_backward(self.gaussians, opt.optimizer if hasattr(opt, "optimizer") else opt, metas, step, (W, H))
         bs = rgb.shape[0]
+        if self.posefit is not None and deform:  # the pose path's own steps on other frames' silhouettes
+            raw = opt.optimizer if hasattr(opt, "optimizer") else opt  # not Lightning's: it would count the steps
+            for k, v in self.posefit.step(self, raw, step, self.grad_clip).items():
+                self.log(f"train/{k}", v, batch_size=bs)
         self.log("train/loss", total.detach(), prog_bar=True, batch_size=bs)
         for k, v in terms.items():
             self.log(f"train/{k}", float(v), batch_size=bs)

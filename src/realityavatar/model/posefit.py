@@ -1,0 +1,166 @@
+"""The pose path's own updates from other frames' silhouettes (`posefit=silhouette`).
+
+Why: the garment's shape during a spin is a function of the pose window that the encoder, temporal module, decoder
+and the sheet's motion basis learn far slower than the images arrive. Given the simulated cloth in 3D as target,
+those networks are still 4.9 cm off over the spin after 1,000 one-frame steps and need ~10,000 to get within 2 cm
+(`ablations/garment_regress.py`, README "Can the pose window learn the garment?"), while a sweep-preset run gives
+them 1,000 steps of one image each. Rendering more images per step would cost a whole step each.
+
+What: after each image step, `passes` more optimizer steps of the pose path alone (the groups named in `groups`),
+each on `frames` training frames drawn uniformly, seen by every training camera of that frame, with no rendering:
+the centres of the sheet's vertices and of `free_points` free Gaussians (drawn afresh each pass) are deformed and
+skinned for the frame's pose window and projected, and a 2D chamfer with the frame's masks (as `silhouette=chamfer`,
+image heights squared) pulls them:
+- outside: a projected centre outside a mask follows the mask's distance field (the visual-hull condition);
+- coverage: each sampled mask pixel farther than `margin_px` from every projected centre pulls its nearest one
+  (without a render there is no alpha to say which pixels are uncovered; the margin stands in for a footprint).
+The masks' distance fields are computed once, when training starts. The frames drawn depend only on the seed and the
+step, so a resumed run draws the same ones.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from realityavatar.losses import mask_distance, nearest_index, project_points
+
+POSE_PATH_GROUPS = ("encoder", "temporal", "deformer", "sheet_basis", "sheet_coeff")
+
+
+class NoPoseFit(nn.Module):
+    """posefit=none: the pose path learns from the image steps only."""
+
+    passes = 0
+
+    def build(self, dm) -> dict | None:
+        return None
+
+
+class SilhouettePoseFit(nn.Module):
+    def __init__(self, frames: int = 4, passes: int = 2, weight: float = 10.0, outside_weight: float = 1.0,
+                 coverage_weight: float = 1.0, free_points: int = 1024, max_pixels: int = 512, margin_px: float = 1.0,
+                 near: float = 0.05, groups: tuple | list = POSE_PATH_GROUPS, seed: int = 0) -> None:
+        super().__init__()
+        for name, v, lo in (("frames", frames, 1), ("passes", passes, 0), ("free_points", free_points, 0),
+                            ("max_pixels", max_pixels, 1)):
+            if int(v) != v or v < lo:
+                raise ValueError(f"posefit.{name}: expected a whole number >= {lo}, got {v!r}")
+        for name, v in (("weight", weight), ("outside_weight", outside_weight), ("coverage_weight", coverage_weight),
+                        ("margin_px", margin_px)):
+            if not (float(v) >= 0):
+                raise ValueError(f"posefit.{name}: expected a number >= 0, got {v!r}")
+        unknown = sorted(set(groups) - set(POSE_PATH_GROUPS))
+        if unknown:
+            raise ValueError(f"posefit.groups: {unknown} are not pose-path groups; choose from {list(POSE_PATH_GROUPS)}")
+        self.frames, self.passes, self.free_points, self.max_pixels = int(frames), int(passes), int(free_points), \
+            int(max_pixels)
+        self.weight, self.outside_weight, self.coverage_weight = float(weight), float(outside_weight), \
+            float(coverage_weight)
+        self.margin_px, self.near, self.groups, self.seed = float(margin_px), float(near), tuple(groups), int(seed)
+        self.bank: list[dict] | None = None
+
+    # ------------------------------------------------------------------ data
+    def build(self, dm) -> dict:
+        """Per training frame: its pose window and, per training camera, viewmat, K, the mask's distance field and
+        its pixels. Reads the training split's (cached) images once."""
+        t0 = time.perf_counter()
+        ds = dm.datasets["train"]
+        by_frame: dict[int, list[int]] = {}
+        for i, r in enumerate(ds.records):
+            by_frame.setdefault(int(r.frame), []).append(i)
+        bank = []
+        for frame in sorted(by_frame):
+            poses, transl = ds.poses.window(frame, ds.window_len, ds.window_step)
+            views = []
+            for i in by_frame[frame]:
+                rec = ds.records[i]
+                _, mask_b, K = ds._decoded(i)
+                mask = torch.from_numpy(np.asarray(mask_b, dtype=np.float32))
+                pix = (mask > 0.5).nonzero().flip(-1).to(torch.int16)  # [P,2] (x,y)
+                views.append({"viewmat": torch.as_tensor(rec.viewmat, dtype=torch.float32),
+                              "K": torch.as_tensor(K, dtype=torch.float32),
+                              "dist": mask_distance(mask).to(torch.float16), "pix": pix})
+            bank.append({"frame": frame, "poses": poses.float(), "transl": transl.float(), "views": views})
+        self.bank = bank
+        return {"frames": len(bank), "images": sum(len(b["views"]) for b in bank),
+                "seconds": round(time.perf_counter() - t0, 3)}
+
+    def draw(self, step: int, k: int) -> tuple[list[int], torch.Generator]:
+        gen = torch.Generator().manual_seed(self.seed * 1_000_003 + step * 101 + k)
+        n = len(self.bank)
+        return torch.randint(0, n, (min(self.frames, n),), generator=gen).tolist(), gen
+
+    # ------------------------------------------------------------------ loss
+    def loss(self, module, step: int, k: int) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """Pass k of step `step`: the chamfer over the drawn frames' training cameras, and its two terms."""
+        if not self.bank:
+            raise RuntimeError("posefit: build(datamodule) must run before training (AvatarModule.on_fit_start)")
+        idx, gen = self.draw(step, k)
+        dev, dt = module.device, module.dtype
+        poses = torch.stack([self.bank[i]["poses"] for i in idx]).to(dev, dt)
+        transl = torch.stack([self.bank[i]["transl"] for i in idx]).to(dev, dt)
+        n_free = module.gaussians.num_points
+        free = torch.randperm(n_free, generator=gen)[: self.free_points].to(dev)
+        pts = module.deform_points(poses, transl, free)  # [B,S+V,3]
+        outs, covs = [], []
+        for b, i in enumerate(idx):
+            for v in self.bank[i]["views"]:
+                o, c = self._image_terms(pts[b], v, gen)
+                outs.append(o)
+                covs.append(c)
+        terms = {"posefit_outside": torch.stack(outs).mean(), "posefit_coverage": torch.stack(covs).mean()}
+        total = self.weight * (self.outside_weight * terms["posefit_outside"]
+                               + self.coverage_weight * terms["posefit_coverage"])
+        return total, terms
+
+    def _image_terms(self, points: torch.Tensor, view: dict, gen: torch.Generator):
+        dist = view["dist"].to(points)
+        H, W = dist.shape
+        uv, z = project_points(points, view["viewmat"].to(points), view["K"].to(points))
+        uv = uv[z > self.near]
+        if not uv.shape[0]:
+            return points.sum() * 0, points.sum() * 0
+        lim = uv.new_tensor([W - 1.0, H - 1.0])
+        inside = torch.minimum(torch.maximum(uv, uv.new_zeros(2)), lim)
+        grid = (inside / lim * 2 - 1)[None, None]
+        d_in = F.grid_sample(dist[None, None], grid, mode="bilinear", align_corners=True)[0, 0, 0]
+        d = d_in + (uv - inside).norm(dim=-1)
+        outside = ((d / H) ** 2).mean()
+        pix = view["pix"]
+        if not pix.shape[0]:
+            return outside, outside * 0
+        if pix.shape[0] > self.max_pixels:
+            pix = pix[torch.randperm(pix.shape[0], generator=gen)[: self.max_pixels]]
+        pix = pix.to(uv)
+        near = uv[nearest_index(pix, uv.detach()).to(uv.device)]
+        gap = ((near - pix).norm(dim=-1) - self.margin_px).clamp_min(0.0)
+        return outside, ((gap / H) ** 2).mean()
+
+    def step(self, module, optimizer, step: int, grad_clip: float | None = None) -> dict[str, float]:
+        """The `passes` pose-path steps after image step `step` (optimizer: the torch optimizer itself, so the
+        Trainer's step count is not advanced). Returns the last pass's terms."""
+        names = set(self.groups)
+        keep = [p for g in optimizer.param_groups if g.get("name") in names for p in g["params"]]
+        keep_ids = {id(p) for p in keep}
+        others = [p for g in optimizer.param_groups if g.get("name") not in names for p in g["params"]]
+        out: dict[str, float] = {}
+        for k in range(self.passes):
+            optimizer.zero_grad(set_to_none=True)
+            total, terms = self.loss(module, step, k)
+            if not torch.isfinite(total):
+                raise FloatingPointError(f"posefit loss became non-finite at step {step}, pass {k}: {terms}")
+            total.backward()
+            for p in others:
+                if id(p) not in keep_ids:
+                    p.grad = None
+            if grad_clip:
+                torch.nn.utils.clip_grad_norm_([p for p in keep if p.grad is not None], grad_clip)
+            optimizer.step()
+            out = {k2: float(v) for k2, v in terms.items()}
+        optimizer.zero_grad(set_to_none=True)
+        return out
