@@ -44,7 +44,8 @@ class NoPoseFit(nn.Module):
 class SilhouettePoseFit(nn.Module):
     def __init__(self, frames: int = 4, passes: int = 2, weight: float = 10.0, outside_weight: float = 1.0,
                  coverage_weight: float = 1.0, free_points: int = 1024, max_pixels: int = 512, margin_px: float = 1.0,
-                 near: float = 0.05, groups: tuple | list = POSE_PATH_GROUPS, seed: int = 0) -> None:
+                 near: float = 0.05, groups: tuple | list = POSE_PATH_GROUPS, optimizer: str = "own",
+                 seed: int = 0) -> None:
         super().__init__()
         for name, v, lo in (("frames", frames, 1), ("passes", passes, 0), ("free_points", free_points, 0),
                             ("max_pixels", max_pixels, 1)):
@@ -61,8 +62,12 @@ class SilhouettePoseFit(nn.Module):
             int(max_pixels)
         self.weight, self.outside_weight, self.coverage_weight = float(weight), float(outside_weight), \
             float(coverage_weight)
+        if optimizer not in ("own", "shared"):
+            raise ValueError(f"posefit.optimizer: expected 'own' or 'shared', got {optimizer!r}")
         self.margin_px, self.near, self.groups, self.seed = float(margin_px), float(near), tuple(groups), int(seed)
+        self.optimizer = optimizer
         self.bank: list[dict] | None = None
+        self._opt: torch.optim.Optimizer | None = None  # optimizer=own: Adam over the pose-path groups
 
     # ------------------------------------------------------------------ data
     def build(self, dm) -> dict:
@@ -145,9 +150,21 @@ class SilhouettePoseFit(nn.Module):
         """The `passes` pose-path steps after image step `step` (optimizer: the torch optimizer itself, so the
         Trainer's step count is not advanced). Returns the last pass's terms."""
         names = set(self.groups)
-        keep = [p for g in optimizer.param_groups if g.get("name") in names for p in g["params"]]
+        mine = [g for g in optimizer.param_groups if g.get("name") in names]
+        keep = [p for g in mine for p in g["params"]]
         keep_ids = {id(p) for p in keep}
         others = [p for g in optimizer.param_groups if g.get("name") not in names for p in g["params"]]
+        opt = optimizer
+        if self.optimizer == "own":
+            # Adam moments of their own: the silhouette's gradients are far smaller than the images', and in the
+            # shared moments they would move the networks by a fraction of the rate
+            if self._opt is None:
+                kw = {k: v for k, v in optimizer.defaults.items() if k != "lr"}
+                self._opt = type(optimizer)([{"params": list(g["params"]), "lr": g["lr"], "name": g["name"]}
+                                             for g in mine], **kw)
+            for g, m in zip(self._opt.param_groups, mine):
+                g["lr"] = m["lr"]  # the run's schedule
+            opt = self._opt
         out: dict[str, float] = {}
         for k in range(self.passes):
             optimizer.zero_grad(set_to_none=True)
@@ -160,7 +177,7 @@ class SilhouettePoseFit(nn.Module):
                     p.grad = None
             if grad_clip:
                 torch.nn.utils.clip_grad_norm_([p for p in keep if p.grad is not None], grad_clip)
-            optimizer.step()
-            out = {k2: float(v) for k2, v in terms.items()}
+            opt.step()
+            out = {k2: float(v.detach()) for k2, v in terms.items()}
         optimizer.zero_grad(set_to_none=True)
         return out
