@@ -45,7 +45,7 @@ class SilhouettePoseFit(nn.Module):
     def __init__(self, frames: int = 4, passes: int = 2, weight: float = 10.0, outside_weight: float = 1.0,
                  coverage_weight: float = 1.0, free_points: int = 1024, max_pixels: int = 512, margin_px: float = 1.0,
                  near: float = 0.05, groups: tuple | list = POSE_PATH_GROUPS, optimizer: str = "own",
-                 seed: int = 0) -> None:
+                 cover: str = "all", body_margin_px: float = 2.0, seed: int = 0) -> None:
         super().__init__()
         for name, v, lo in (("frames", frames, 1), ("passes", passes, 0), ("free_points", free_points, 0),
                             ("max_pixels", max_pixels, 1)):
@@ -62,6 +62,11 @@ class SilhouettePoseFit(nn.Module):
             int(max_pixels)
         self.weight, self.outside_weight, self.coverage_weight = float(weight), float(outside_weight), \
             float(coverage_weight)
+        if cover not in ("all", "garment"):
+            raise ValueError(f"posefit.cover: expected 'all' or 'garment', got {cover!r}")
+        if not (float(body_margin_px) >= 0):
+            raise ValueError(f"posefit.body_margin_px: expected a number >= 0, got {body_margin_px!r}")
+        self.cover, self.body_margin_px = cover, float(body_margin_px)
         if optimizer not in ("own", "shared"):
             raise ValueError(f"posefit.optimizer: expected 'own' or 'shared', got {optimizer!r}")
         self.margin_px, self.near, self.groups, self.seed = float(margin_px), float(near), tuple(groups), int(seed)
@@ -79,21 +84,47 @@ class SilhouettePoseFit(nn.Module):
         for i, r in enumerate(ds.records):
             by_frame.setdefault(int(r.frame), []).append(i)
         bank = []
+        body = getattr(dm, "body", None)
+        if self.cover == "garment" and body is None:
+            raise ValueError("posefit.cover=garment needs the DataModule's body model (dm.body)")
         for frame in sorted(by_frame):
             poses, transl = ds.poses.window(frame, ds.window_len, ds.window_step)
+            body_pts = self._posed_body(body, poses[-1], transl[-1]) if self.cover == "garment" else None
             views = []
             for i in by_frame[frame]:
                 rec = ds.records[i]
                 _, mask_b, K = ds._decoded(i)
                 mask = torch.from_numpy(np.asarray(mask_b, dtype=np.float32))
                 pix = (mask > 0.5).nonzero().flip(-1).to(torch.int16)  # [P,2] (x,y)
-                views.append({"viewmat": torch.as_tensor(rec.viewmat, dtype=torch.float32),
-                              "K": torch.as_tensor(K, dtype=torch.float32),
-                              "dist": mask_distance(mask).to(torch.float16), "pix": pix})
+                view = {"viewmat": torch.as_tensor(rec.viewmat, dtype=torch.float32),
+                        "K": torch.as_tensor(K, dtype=torch.float32),
+                        "dist": mask_distance(mask).to(torch.float16), "pix": pix}
+                if body_pts is not None:  # cover=garment: the mask pixels the posed body does not explain
+                    view["pix"] = self._beyond_body(pix, body_pts, view["viewmat"], view["K"])
+                views.append(view)
             bank.append({"frame": frame, "poses": poses.float(), "transl": transl.float(), "views": views})
         self.bank = bank
         return {"frames": len(bank), "images": sum(len(b["views"]) for b in bank),
                 "seconds": round(time.perf_counter() - t0, 3)}
+
+    @staticmethod
+    def _posed_body(body, pose: torch.Tensor, transl: torch.Tensor) -> torch.Tensor:
+        """The body model's vertices [V,3] posed by LBS of its own weights."""
+        with torch.no_grad():
+            v = body.canonical_vertices().detach().float()
+            A = body.canonical_transforms(pose[None].float(), transl[None].float())[0].float()  # [24,4,4]
+            T = torch.einsum("vj,jkl->vkl", body.skin_weights.float(), A)
+            return (T[:, :3, :3] @ v[..., None])[..., 0] + T[:, :3, 3]
+
+    def _beyond_body(self, pix: torch.Tensor, body_pts: torch.Tensor, viewmat: torch.Tensor,
+                     K: torch.Tensor) -> torch.Tensor:
+        uv, z = project_points(body_pts, viewmat, K)
+        uv = uv[z > self.near]
+        if not uv.shape[0] or not pix.shape[0]:
+            return pix
+        p = pix.float()
+        d = (uv[nearest_index(p, uv)] - p).norm(dim=-1)
+        return pix[d > self.body_margin_px]
 
     def draw(self, step: int, k: int) -> tuple[list[int], torch.Generator]:
         gen = torch.Generator().manual_seed(self.seed * 1_000_003 + step * 101 + k)
@@ -112,10 +143,16 @@ class SilhouettePoseFit(nn.Module):
         n_free = module.gaussians.num_points
         free = torch.randperm(n_free, generator=gen)[: self.free_points].to(dev)
         pts = module.deform_points(poses, transl, free)  # [B,S+V,3]
+        cover = pts
+        if self.cover == "garment":  # the garment's pixels are the sheet's to cover: its vertices and Gaussians
+            if module.sheet is None:
+                raise ValueError("posefit.cover=garment needs a garment sheet (sheet=skirt)")
+            verts = pts[:, len(free):]
+            cover = torch.cat([verts, module.sheet.interpolate(verts)], 1)
         outs, covs = [], []
         for b, i in enumerate(idx):
             for v in self.bank[i]["views"]:
-                o, c = self._image_terms(pts[b], v, gen)
+                o, c = self._image_terms(pts[b], cover[b], v, gen)
                 outs.append(o)
                 covs.append(c)
         terms = {"posefit_outside": torch.stack(outs).mean(), "posefit_coverage": torch.stack(covs).mean()}
@@ -123,7 +160,8 @@ class SilhouettePoseFit(nn.Module):
                                + self.coverage_weight * terms["posefit_coverage"])
         return total, terms
 
-    def _image_terms(self, points: torch.Tensor, view: dict, gen: torch.Generator):
+    def _image_terms(self, points: torch.Tensor, cover: torch.Tensor, view: dict, gen: torch.Generator):
+        """points [N,3] kept inside the mask, cover [M,3] pulled by its uncovered pixels -> (outside, coverage)."""
         dist = view["dist"].to(points)
         H, W = dist.shape
         uv, z = project_points(points, view["viewmat"].to(points), view["K"].to(points))
@@ -137,12 +175,14 @@ class SilhouettePoseFit(nn.Module):
         d = d_in + (uv - inside).norm(dim=-1)
         outside = ((d / H) ** 2).mean()
         pix = view["pix"]
-        if not pix.shape[0]:
+        uc, zc = project_points(cover, view["viewmat"].to(points), view["K"].to(points))
+        uc = uc[zc > self.near]
+        if not pix.shape[0] or not uc.shape[0]:
             return outside, outside * 0
         if pix.shape[0] > self.max_pixels:
             pix = pix[torch.randperm(pix.shape[0], generator=gen)[: self.max_pixels]]
-        pix = pix.to(uv)
-        near = uv[nearest_index(pix, uv.detach()).to(uv.device)]
+        pix = pix.to(uc)
+        near = uc[nearest_index(pix, uc.detach()).to(uc.device)]
         gap = ((near - pix).norm(dim=-1) - self.margin_px).clamp_min(0.0)
         return outside, ((gap / H) ** 2).mean()
 
