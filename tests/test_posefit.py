@@ -101,3 +101,35 @@ def test_posefit_trains_end_to_end_without_advancing_the_trainers_steps(scenes_r
     assert ckpt["global_step"] == 12
     rows = (tmp_path / "run" / "logs" / "csv" / "metrics.csv").read_text()
     assert "train/posefit_outside" in rows.splitlines()[0]
+
+
+def test_garment_cover_keeps_the_mask_pixels_the_simulated_cloth_explains(scenes_root):
+    """posefit.cover=garment: the pixels left to the garment sheet (farther than body_margin_px from the posed
+    body) lie on the simulated cloth's projection, and a flaring frame leaves more of them than the first frame."""
+    from realityavatar.build import build_data
+    from realityavatar.losses import nearest_index, project_points
+
+    cfg = compose(["data=synthetic_ci", "posefit=silhouette", "posefit.cover=garment"])
+    body = instantiate(cfg.body)
+    dm = build_data(cfg, body)
+    pf = instantiate(cfg.posefit)
+    pf.build(dm)
+    g = np.load(scenes_root / f"{cfg.data.sequence}-garment.npz")
+    frames = {int(f): i for i, f in enumerate(g["frames"])}
+    V, faces = torch.from_numpy(g["vertices"]).float(), torch.from_numpy(g["faces"]).long()
+    bary = torch.distributions.Dirichlet(torch.ones(3)).sample((40,))  # 40 points per triangle
+    near, counts = [], []
+    for b in pf.bank:
+        tri = V[frames[b["frame"]]][faces]  # [F,3,3]
+        cloth = torch.einsum("sk,fkd->fsd", bary, tri).reshape(-1, 3)
+        n = 0
+        for v in b["views"]:
+            pix = v["pix"].float()
+            n += len(pix)
+            if len(pix):
+                uv, _ = project_points(cloth, v["viewmat"], v["K"])
+                near.append((uv[nearest_index(pix, uv)] - pix).norm(dim=-1))
+        counts.append(n)
+    d = torch.cat(near)
+    assert len(d) > 50 and float((d < 1.5).float().mean()) > 0.95, float((d < 1.5).float().mean())
+    assert max(counts) > 2 * counts[0]
