@@ -29,9 +29,9 @@ def test_posefit_is_off_by_default_composes_and_refuses_bad_values():
     assert isinstance(instantiate(compose([]).posefit), NoPoseFit)
     pf = instantiate(compose(["posefit=silhouette"]).posefit)
     assert isinstance(pf, SilhouettePoseFit) and pf.passes == 2 and pf.optimizer == "own"
-    for bad, field in ((dict(frames=0), "posefit.frames"), (dict(passes=1.5), "posefit.passes"),
-                       (dict(weight=-1.0), "posefit.weight"), (dict(groups=["means"]), "posefit.groups"),
-                       (dict(optimizer="sgd"), "posefit.optimizer")):
+    for bad, field in (({"frames": 0}, "posefit.frames"), ({"passes": 1.5}, "posefit.passes"),
+                       ({"weight": -1.0}, "posefit.weight"), ({"groups": ["means"]}, "posefit.groups"),
+                       ({"optimizer": "sgd"}, "posefit.optimizer"), ({"cover": "body"}, "posefit.cover")):
         with pytest.raises(ValueError, match=field):
             SilhouettePoseFit(**bad)
 

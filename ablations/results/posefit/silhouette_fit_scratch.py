@@ -1,14 +1,17 @@
 """Scratch: how well a trained run's pose path meets its training silhouettes, per phase (posefit's own terms, all
 mask pixels, every Gaussian centre). Usage: python silhouette_fit_scratch.py <run> [...]"""
 import sys
+
 import numpy as np
 import torch
+
 sys.path.insert(0, str(__import__("pathlib").Path(__file__).resolve().parents[2]))
+import torch.nn.functional as F
 from probe import phase_of
+
 from realityavatar.build import build_data, load_run
 from realityavatar.losses import nearest_index, project_points
 from realityavatar.model.posefit import SilhouettePoseFit
-import torch.nn.functional as F
 
 torch.set_num_threads(2)
 ev = {"spin_start_frame": 15, "spin_stop_frame": 42}
