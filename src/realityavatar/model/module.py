@@ -518,10 +518,14 @@ class AvatarModule(pl.LightningModule):
         checkpoint["density_state"] = self.density.state_dict() if hasattr(self.density, "state_dict") else {}
         checkpoint["num_gaussians"] = self.gaussians.num_points
         checkpoint["realityavatar"] = dict(self.run_info)
+        if self.posefit is not None and self.posefit.optimizer_state() is not None:  # posefit.optimizer=own
+            checkpoint["posefit_optimizer"] = self.posefit.optimizer_state()
 
     def on_load_checkpoint(self, checkpoint: dict) -> None:
         if checkpoint.get("density_state") and hasattr(self.density, "load_state_dict"):
             self.density.load_state_dict(checkpoint["density_state"])
+        if self.posefit is not None and checkpoint.get("posefit_optimizer") is not None:
+            self.posefit.load_optimizer_state(checkpoint["posefit_optimizer"])
         saved = checkpoint.get("realityavatar", {})
         if "skin_pretrain" in saved:  # done in an earlier part of this run (or checkpoint without a pre-fit: none)
             self.run_info["skin_pretrain"] = saved["skin_pretrain"]

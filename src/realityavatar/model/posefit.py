@@ -73,6 +73,7 @@ class SilhouettePoseFit(nn.Module):
         self.optimizer = optimizer
         self.bank: list[dict] | None = None
         self._opt: torch.optim.Optimizer | None = None  # optimizer=own: Adam over the pose-path groups
+        self._pending: dict | None = None  # its state from a checkpoint, loaded when it is built
 
     # ------------------------------------------------------------------ data
     def build(self, dm) -> dict:
@@ -186,6 +187,13 @@ class SilhouettePoseFit(nn.Module):
         gap = ((near - pix).norm(dim=-1) - self.margin_px).clamp_min(0.0)
         return outside, ((gap / H) ** 2).mean()
 
+    def optimizer_state(self) -> dict | None:
+        """optimizer=own: its Adam state for the checkpoint (None before the first pass, or with shared moments)."""
+        return self._opt.state_dict() if self._opt is not None else self._pending
+
+    def load_optimizer_state(self, state: dict | None) -> None:
+        self._opt, self._pending = None, state
+
     def step(self, module, optimizer, step: int, grad_clip: float | None = None) -> dict[str, float]:
         """The `passes` pose-path steps after image step `step` (optimizer: the torch optimizer itself, so the
         Trainer's step count is not advanced). Returns the last pass's terms."""
@@ -202,6 +210,9 @@ class SilhouettePoseFit(nn.Module):
                 kw = {k: v for k, v in optimizer.defaults.items() if k != "lr"}
                 self._opt = type(optimizer)([{"params": list(g["params"]), "lr": g["lr"], "name": g["name"]}
                                              for g in mine], **kw)
+                if self._pending is not None:  # a resumed run continues with the moments it had
+                    self._opt.load_state_dict(self._pending)
+                    self._pending = None
             for g, m in zip(self._opt.param_groups, mine):
                 g["lr"] = m["lr"]  # the run's schedule
             opt = self._opt
