@@ -33,7 +33,8 @@ def body():
     return build_body("mannequin")
 
 
-@pytest.mark.parametrize("group", COMPONENT_GROUPS + ("render", "optim", "trainer", "body", "data", "callbacks", "logger"))
+@pytest.mark.parametrize("group", COMPONENT_GROUPS + ("render", "optim", "trainer", "body", "data", "callbacks", "logger",
+                                                      "posefit"))
 def test_every_option_composes(group):
     opts = _options(group)
     assert opts, f"conf/{group} has no options"
@@ -537,3 +538,17 @@ def test_unshade_divides_the_error_by_the_relative_light():
     out = unshade(err, sel, e, 1.0)
     assert torch.allclose(out[0, 0], err[0, 0]) and torch.allclose(out[0, 1], err[0, 1] / 2)
     assert torch.equal(out[1], err[1])
+
+
+def test_spin_target_experiment_is_the_command_it_was_measured_with():
+    """+experiment=spin_target composes exactly the command the README's 10,000-step spin numbers came from."""
+    from omegaconf import OmegaConf
+
+    a = compose(["+experiment=spin_target", "seed=0"])
+    b = compose(["+ablation=paper", "+variant=full", "data=synthetic_sweep", "seed=0", "+garment=plus_sheet_basis",
+                 "skinning.query_at=canonical", "iterations=10000"])
+    A, B = (OmegaConf.to_container(c, resolve=False) for c in (a, b))
+    A.pop("hydra", None)
+    B.pop("hydra", None)
+    assert A == B
+    assert a.iterations == 10000 and a.sheet.basis == 64 and a.data.sequence == "skirt_spin_demo"
