@@ -145,6 +145,17 @@ def mask_distance(mask: torch.Tensor) -> torch.Tensor:
     return torch.from_numpy(distance_transform_edt(~m)).to(mask)
 
 
+def outside_distance(uv: torch.Tensor, dist: torch.Tensor) -> torch.Tensor:
+    """Pixel coords uv [N,2], a mask's distance field dist [H,W] (pixels) -> each point's distance to the mask [N]:
+    the field sampled bilinearly inside the image, plus the distance to the image beyond it."""
+    H, W = dist.shape
+    lim = uv.new_tensor([W - 1.0, H - 1.0])
+    inside = torch.minimum(torch.maximum(uv, uv.new_zeros(2)), lim)
+    grid = (inside / lim * 2 - 1)[None, None]  # [1,1,N,2] in grid_sample's [-1,1] (align_corners=True)
+    d_in = F.grid_sample(dist[None, None], grid, mode="bilinear", align_corners=True)[0, 0, 0]  # [N]
+    return d_in + (uv - inside).norm(dim=-1)
+
+
 def nearest_index(queries: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
     """Index into points [N,2] of the nearest point to each query [P,2] (no gradient). On the CPU a k-d tree
     (O((N + P) log N); the dense [P,N] distance matrix was most of the silhouette term's cost at 10k Gaussians),
@@ -180,17 +191,11 @@ class SilhouetteChamfer(nn.Module):
     def forward(self, means: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor, mask: torch.Tensor,
                 alpha: torch.Tensor) -> dict[str, torch.Tensor]:
         """means [N,3] posed, viewmat [4,4], K [3,3], mask / alpha [H,W,1] -> {"sil_outside", "sil_coverage"}."""
-        H, W = mask.shape[:2]
+        H = mask.shape[0]
         uv, z = project_points(means, viewmat, K)
         front = z > self.near
         uv, scale = uv[front], float(H)
-        # Outside: distance field sampled bilinearly inside the image, plus the distance to the image beyond it.
-        dist = mask_distance(mask[..., 0])  # [H,W] pixels
-        lim = uv.new_tensor([W - 1.0, H - 1.0])
-        inside = torch.minimum(torch.maximum(uv, uv.new_zeros(2)), lim)
-        grid = (inside / lim * 2 - 1)[None, None]  # [1,1,N,2] in grid_sample's [-1,1] (align_corners=True)
-        d_in = F.grid_sample(dist[None, None], grid, mode="bilinear", align_corners=True)[0, 0, 0]  # [N]
-        d = d_in + (uv - inside).norm(dim=-1)
+        d = outside_distance(uv, mask_distance(mask[..., 0]))  # [N] pixels
         out = {"sil_outside": ((d / scale) ** 2).mean() if d.numel() else means.new_zeros(())}
         # Coverage: uncovered mask pixels -> their nearest projected centre.
         need = ((mask[..., 0] > 0.5) & (alpha[..., 0].detach() < self.covered_alpha)).nonzero()  # [P,2] (y,x)

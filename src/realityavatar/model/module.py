@@ -211,8 +211,7 @@ class AvatarModule(pl.LightningModule):
         at_rest = getattr(self.skinning, "query_at", "deformed") == "canonical"
         w = self.skinning(means[None].expand(x_e.shape[0], -1, -1) if at_rest else x_e)  # [B,S+P,24]
         A = self.body.canonical_transforms(poses[:, -1], transl[:, -1])  # [B,24,4,4]
-        T = torch.einsum("bnj,bjkl->bnkl", w, A)  # [B,S+P,4,4]
-        return (T[..., :3, :3] @ x_e[..., None])[..., 0] + T[..., :3, 3]
+        return self.body.lbs(x_e, w, A)
 
     def _shading_normals(self, means: torch.Tensor, out: dict, h_t: torch.Tensor, frame_idx: torch.Tensor | None,
                          codes: torch.Tensor | None, deform: bool) -> torch.Tensor | None:
@@ -463,10 +462,11 @@ class AvatarModule(pl.LightningModule):
         H, W = rgb.shape[1:3]
         # What actually rendered (gsplat may have fallen back to torch), reported in metrics.json.
         self.run_info["render"] = {"backend": metas[0]["backend"], "device": str(rgb.device), "dtype": str(rgb.dtype)}
-        stats = self.density.step_post_backward(self.gaussians, opt.optimizer if hasattr(opt, "optimizer") else opt, metas, step, (W, H))
+        raw = opt.optimizer if hasattr(opt, "optimizer") else opt  # the torch optimizer under Lightning's wrapper
+        stats = self.density.step_post_backward(self.gaussians, raw, metas, step, (W, H))
         bs = rgb.shape[0]
         if self.posefit is not None and deform:  # the pose path's own steps on other frames' silhouettes
-            raw = opt.optimizer if hasattr(opt, "optimizer") else opt  # not Lightning's: it would count the steps
+            # on the torch optimizer: Lightning's would count each of them as a training step
             for k, v in self.posefit.step(self, raw, step, self.grad_clip).items():
                 self.log(f"train/{k}", v, batch_size=bs)
         self.log("train/loss", total.detach(), prog_bar=True, batch_size=bs)

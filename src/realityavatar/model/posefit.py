@@ -30,10 +30,9 @@ import time
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from torch import nn
 
-from realityavatar.losses import mask_distance, nearest_index, project_points
+from realityavatar.losses import mask_distance, nearest_index, outside_distance, project_points
 
 POSE_PATH_GROUPS = ("encoder", "temporal", "deformer", "sheet_basis", "sheet_coeff")
 
@@ -96,7 +95,10 @@ class SilhouettePoseFit(nn.Module):
             raise ValueError("posefit.cover=garment needs the DataModule's body model (dm.body)")
         for frame in sorted(by_frame):
             poses, transl = ds.poses.window(frame, ds.window_len, ds.window_step)
-            body_pts = self._posed_body(body, poses[-1], transl[-1]) if self.cover == "garment" else None
+            body_pts = None
+            if self.cover == "garment":  # the body model's mesh in the frame's pose
+                with torch.no_grad():
+                    body_pts = body.posed_vertices(poses[-1].float(), transl[-1].float())
             views = []
             for i in by_frame[frame]:
                 rec = ds.records[i]
@@ -113,15 +115,6 @@ class SilhouettePoseFit(nn.Module):
         self.bank = bank
         return {"frames": len(bank), "images": sum(len(b["views"]) for b in bank),
                 "seconds": round(time.perf_counter() - t0, 3)}
-
-    @staticmethod
-    def _posed_body(body, pose: torch.Tensor, transl: torch.Tensor) -> torch.Tensor:
-        """The body model's vertices [V,3] posed by LBS of its own weights."""
-        with torch.no_grad():
-            v = body.canonical_vertices().detach().float()
-            A = body.canonical_transforms(pose[None].float(), transl[None].float())[0].float()  # [24,4,4]
-            T = torch.einsum("vj,jkl->vkl", body.skin_weights.float(), A)
-            return (T[:, :3, :3] @ v[..., None])[..., 0] + T[:, :3, 3]
 
     def _beyond_body(self, pix: torch.Tensor, body_pts: torch.Tensor, viewmat: torch.Tensor,
                      K: torch.Tensor) -> torch.Tensor:
@@ -170,17 +163,12 @@ class SilhouettePoseFit(nn.Module):
     def _image_terms(self, points: torch.Tensor, cover: torch.Tensor, view: dict, gen: torch.Generator):
         """points [N,3] kept inside the mask, cover [M,3] pulled by its uncovered pixels -> (outside, coverage)."""
         dist = view["dist"].to(points)
-        H, W = dist.shape
+        H = dist.shape[0]
         uv, z = project_points(points, view["viewmat"].to(points), view["K"].to(points))
         uv = uv[z > self.near]
         if not uv.shape[0]:
             return points.sum() * 0, points.sum() * 0
-        lim = uv.new_tensor([W - 1.0, H - 1.0])
-        inside = torch.minimum(torch.maximum(uv, uv.new_zeros(2)), lim)
-        grid = (inside / lim * 2 - 1)[None, None]
-        d_in = F.grid_sample(dist[None, None], grid, mode="bilinear", align_corners=True)[0, 0, 0]
-        d = d_in + (uv - inside).norm(dim=-1)
-        outside = ((d / H) ** 2).mean()
+        outside = ((outside_distance(uv, dist) / H) ** 2).mean()
         pix = view["pix"]
         uc, zc = project_points(cover, view["viewmat"].to(points), view["K"].to(points))
         uc = uc[zc > self.near]
@@ -206,12 +194,10 @@ class SilhouettePoseFit(nn.Module):
         names = set(self.groups)
         mine = [g for g in optimizer.param_groups if g.get("name") in names]
         keep = [p for g in mine for p in g["params"]]
-        keep_ids = {id(p) for p in keep}
         others = [p for g in optimizer.param_groups if g.get("name") not in names for p in g["params"]]
         opt = optimizer
         if self.optimizer == "own":
-            # Adam moments of their own: the silhouette's gradients are far smaller than the images', and in the
-            # shared moments they would move the networks by a fraction of the rate
+            # Adam moments of their own, built on the first pass from the run's groups (their current rates)
             if self._opt is None:
                 kw = {k: v for k, v in optimizer.defaults.items() if k != "lr"}
                 self._opt = type(optimizer)([{"params": list(g["params"]), "lr": g["lr"], "name": g["name"]}
@@ -230,8 +216,7 @@ class SilhouettePoseFit(nn.Module):
                 raise FloatingPointError(f"posefit loss became non-finite at step {step}, pass {k}: {terms}")
             total.backward()
             for p in others:
-                if id(p) not in keep_ids:
-                    p.grad = None
+                p.grad = None
             if grad_clip:
                 torch.nn.utils.clip_grad_norm_([p for p in keep if p.grad is not None], grad_clip)
             opt.step()
