@@ -189,7 +189,12 @@ def test_zju_datamodule(tmp_path, body):
     assert torch.allclose(s["image"][s["mask"][..., 0] == 0], torch.ones(3))  # the jpg's background is replaced
 
 
-@pytest.mark.parametrize("path", sorted((CONF / "data").glob("*.yaml")), ids=lambda p: p.stem)
+def _datasets(pattern: str) -> list[Path]:
+    """conf/data options that are datasets: the *_base files hold shared settings only."""
+    return sorted(p for p in (CONF / "data").glob(pattern) if not p.stem.endswith("_base"))
+
+
+@pytest.mark.parametrize("path", _datasets("*.yaml"), ids=lambda p: p.stem)
 def test_every_data_config_instantiates(path, body, monkeypatch):
     """Invariants each data config must keep (no YAML value re-typed here): disjoint train/test cameras, and for
     ZJU-MoCap every one of its 23 cameras used once."""
@@ -202,7 +207,7 @@ def test_every_data_config_instantiates(path, body, monkeypatch):
         assert sorted(dm.train_views + dm.test_views) == list(range(1, 24))
 
 
-@pytest.mark.parametrize("path", sorted((CONF / "data").glob("synthetic_*.yaml")), ids=lambda p: p.stem)
+@pytest.mark.parametrize("path", _datasets("synthetic_*.yaml"), ids=lambda p: p.stem)
 def test_synthetic_configs_build_the_scene_they_read(path, monkeypatch):
     """A synthetic data config's build settings (preset, sequence, overrides such as synthetic_sweep_soft's cloth)
     resolve to valid scene parameters whose scene name is the `sequence` the reader opens, so prepare_data builds the
@@ -219,11 +224,11 @@ def test_synthetic_configs_build_the_scene_they_read(path, monkeypatch):
     garment_params(p["garment"], p["cloth_params"])  # unknown or bad cloth keys raise here
 
 
-@pytest.mark.parametrize("path", sorted((CONF / "data").glob("i3d_*.yaml")), ids=lambda p: p.stem)
+@pytest.mark.parametrize("path", _datasets("i3d_*.yaml"), ids=lambda p: p.stem)
 def test_i3d_configs_read_their_layout(path, body, tmp_path):
     """Each I3D-Human config, pointed at a fixture folder in the published layout holding every camera 0..10, reads
     exactly its own training and test cameras and gives pose windows of its own length."""
-    cfg = OmegaConf.load(path)
+    cfg = compose_data(path.stem)
     write_i3d(tmp_path, cfg.sequence, body, train_frames=(0, 1), pose_frames=(2,), train_views=tuple(range(11)),
               test_views=tuple(range(11)))
     cfg.root = str(tmp_path)
@@ -235,13 +240,22 @@ def test_i3d_configs_read_their_layout(path, body, tmp_path):
     assert dm.datasets["train"][0]["poses"].shape == (cfg.window_len, 24, 3)
 
 
+@pytest.mark.parametrize("path", sorted((CONF / "data").glob("*_base.yaml")), ids=lambda p: p.stem)
+def test_base_data_configs_are_not_datasets(path, body):
+    """`data=i3d_base` (or another *_base) without a sequence stops at once, naming the missing key."""
+    from omegaconf.errors import MissingMandatoryValue
+
+    with pytest.raises(MissingMandatoryValue, match="data.sequence"):
+        instantiate(compose_data(path.stem), body=body)
+
+
 def test_paper_camera_splits():
     """The camera splits of the paper's I3D-Human protocol (transcribed from its experiments section), which the
     configs must reproduce: the one place the expected numbers come from outside the YAML."""
     splits = {"ID1_1": ([1, 3, 6, 8], [2, 4, 7, 9]), "ID1_2": ([0, 2, 5, 7], [1, 6, 8, 9]),
               "ID2_1": ([1, 3, 5, 7, 9], [2, 4, 6, 10]), "ID3_1": ([1, 3, 5, 7, 9], [2, 4, 6, 8, 10])}
     for seq, (tr, te) in splits.items():
-        cfg = OmegaConf.load(CONF / "data" / f"i3d_{seq}.yaml")
+        cfg = compose_data(f"i3d_{seq}")
         assert (cfg.sequence, list(cfg.train_views), list(cfg.test_views)) == (seq, tr, te)
 
 
@@ -251,7 +265,7 @@ def test_synthetic_ci_scene_joints_inside_masks(tmp_path):
     from realityavatar.body.mannequin import MannequinBody
 
     body = MannequinBody()
-    cfg = OmegaConf.load(CONF / "data" / "synthetic_ci.yaml")
+    cfg = compose_data("synthetic_ci")
     cfg.root = str(tmp_path)
     dm = instantiate(cfg, body=body)
     dm.prepare_data()
