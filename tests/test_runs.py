@@ -227,8 +227,7 @@ def _fake_job(d: Path, seed: int, metrics: bool = True) -> None:
 
 
 def test_collector_lists_missing_jobs(tmp_path):
-    sys.path.insert(0, str(ROOT))
-    from ablations.collect import main
+    from realityavatar.analysis.collect import main
 
     sweep = tmp_path / "sweep"
     sweep.mkdir()

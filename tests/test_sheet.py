@@ -146,24 +146,6 @@ def test_sheet_trains_beside_the_free_gaussians_and_reloads(scenes_root, tmp_pat
     assert float(module.sheet.basis.abs().max()) > 0  # its motion basis too (zero at the start), and it reloads
     groups = {g["name"]: g["lr"] for g in module.param_groups()}
     assert groups["sheet_basis"] == groups["sheet_coeff"] == groups["deformer"]
-    # ablations/sheet_freeform.py on this run: a per-frame offset of the sheet's vertices fitted to one training
-    # frame's images lowers its training loss and moves only that frame (the run itself is left as it was)
-    import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-    from ablations.sheet_freeform import fit_frame
-    from realityavatar.build import build_data
-
-    cfg_run, module, _ = load_run(tmp_path / "run")
-    for p in module.parameters():
-        p.requires_grad_(False)
-    dm = build_data(cfg_run, module.body)
-    frame = dm.datasets["train"].records[0].frame
-    state = {k: v.clone() for k, v in module.state_dict().items()}
-    r = fit_frame(module, dm, frame, steps=40, lr=5e-3)
-    assert r["after"]["train"]["psnr"] > r["before"]["train"]["psnr"] and r["offset_max_m"] > 0
-    assert all(torch.equal(v, module.state_dict()[k]) for k, v in state.items())
 
 
 def test_export_and_viewer_frames_carry_the_sheet(scenes_root):
@@ -198,15 +180,11 @@ def test_a_cell_torn_open_caps_its_gaussians_stretch():
 
 
 def test_stability_report_measures_extreme_poses_against_the_training_frames(scenes_root):
-    """ablations/stability.py's extreme-pose check reports the largest scale over the training frames' own pose
+    """The stability report's extreme-pose check reports the largest scale over the training frames' own pose
     windows (every training frame, not only the first) as the reference its growth is measured against."""
-    import sys
-    from pathlib import Path
-
     from torch.utils.data import default_collate
 
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-    from ablations.stability import extreme_poses, training_scale_max, training_scales
+    from realityavatar.analysis.stability import extreme_poses, training_scale_max, training_scales
 
     _, dm, module = _ci_sheet_module()
     module.on_fit_start()

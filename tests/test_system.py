@@ -479,67 +479,6 @@ def test_checkpoint_with_refined_gaussians_restores_model_and_optimizer(trained_
     assert module.density.grad2d is None or module.density.grad2d.shape[0] == g.num_points
 
 
-def test_error_sources_splits_the_error_by_region(trained_run, tmp_path):
-    """ablations/error_sources.py on a trained run: the regions' squared errors add up to the image's, the ground
-    truth's blur oracle falls with the blur width."""
-    import sys
-
-    sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-    from ablations.error_sources import BLUR_PX, error_sources
-
-    out, _ = trained_run
-    res = error_sources(out, tmp_path / "unlit")
-    assert set(res["phases"]) >= {"rest", "spin"} and res["e_scale"] > 0
-    assert -1 <= res["light_map_corr"] <= 1 and 0 <= res["light_map_deg"] <= 180
-    for ph, v in res["phases"].items():
-        parts = sum(v[f"mse_{k}"] for k in ("interior", "edge", "missed", "extra", "background"))
-        assert abs(parts - v["mse_total"]) < 1e-6 * max(1.0, v["mse_total"]), (ph, parts, v["mse_total"])
-        blurs = [v[f"blur_{s}"] for s in BLUR_PX]
-        assert all(a > b for a, b in zip(blurs, blurs[1:])), blurs
-        assert np.isfinite([v["psnr"], v["psnr_true_light"], v["psnr_true_albedo"], v["psnr_unshaded"]]).all()
-        assert -1 <= v["light_corr"] <= 1 and v["light_err"] >= 0 and v["light_err_flat"] >= 0
-
-
-def test_true_shading_is_lit_over_albedo_inside_the_mask(trained_run):
-    """error_sources.true_shading: lit / albedo on bright mask pixels, their median elsewhere (background, dark
-    albedo); and lit_oracle refuses a run that was not trained on the albedo-only scene, naming the field."""
-    import sys
-
-    import torch
-
-    sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-    from ablations.error_sources import lit_oracle, true_shading
-
-    albedo = torch.tensor([[[0.5] * 3, [0.8] * 3], [[0.02] * 3, [0.6] * 3]])
-    light = torch.tensor([[[0.4] * 3, [1.0] * 3], [[0.9] * 3, [0.7] * 3]])
-    mask = torch.tensor([[True, True], [True, False]])
-    S = true_shading(albedo * light, albedo, mask)
-    assert torch.allclose(S[0, 0], light[0, 0]) and torch.allclose(S[0, 1], light[0, 1])
-    fill = float(torch.tensor([0.4, 1.0]).median())  # the dark pixel and the one outside the mask take the median
-    assert torch.allclose(S[1], torch.full((2, 3), fill))
-    out, _ = trained_run
-    with pytest.raises(ValueError, match="build_overrides"):
-        lit_oracle(out, out / "lit")
-
-
-def test_unshade_divides_the_error_by_the_relative_light():
-    """error_sources.unshade: a pixel lit twice as brightly as the mean has its error halved, one lit at the mean
-    keeps it, pixels outside the selection are untouched."""
-    import sys
-
-    import torch
-
-    sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-    from ablations.error_sources import unshade
-
-    err = torch.full((2, 2, 3), 0.1)
-    sel = torch.tensor([[True, True], [False, False]])
-    e = torch.tensor([[[1.0] * 3, [2.0] * 3], [[4.0] * 3, [4.0] * 3]])
-    out = unshade(err, sel, e, 1.0)
-    assert torch.allclose(out[0, 0], err[0, 0]) and torch.allclose(out[0, 1], err[0, 1] / 2)
-    assert torch.equal(out[1], err[1])
-
-
 def test_spin_target_experiment_is_the_command_it_was_measured_with():
     """+experiment=spin_target composes exactly the command the README's 10,000-step spin numbers came from."""
     from omegaconf import OmegaConf

@@ -1,6 +1,7 @@
 """Stability report: abrupt stops, extreme unseen poses, pose-fit noise and seed spread.
 
-Usage: python ablations/stability.py <run_dir or sweep_dir> [...] --out ablations/results/stability [--view V]
+Usage: python -m realityavatar.analysis.stability <run_dir or sweep_dir> [...] --out ablations/results/stability
+       [--view V]
 Every number comes from rendering the trained runs; the report is Markdown + PNG + JSON.
 """
 
@@ -213,7 +214,7 @@ def analyse_run(run: Path, view: int | None, window: int) -> dict:
 
 
 def _mean_std(xs):
-    """Mean and sample std (ddof=1, as ablations/collect.py) of the values that exist."""
+    """Mean and sample std (ddof=1, as collect.py) of the values that exist."""
     xs = [x for x in xs if x is not None]
     if not xs:
         return float("nan"), float("nan")
@@ -312,7 +313,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     torch.set_grad_enabled(False)
     results = [analyse_run(r, args.view, args.window) for r in find_runs(args.paths)]
-    cmd = "python ablations/stability.py " + " ".join(sys.argv[1:] if argv is None else argv)
+    cmd = "python -m realityavatar.analysis.stability " + " ".join(sys.argv[1:] if argv is None else argv)
     write_report(results, Path(args.out), cmd)
     print((Path(args.out) / "stability.md").read_text())
     return 0

@@ -1,6 +1,6 @@
 """Geometry probe of trained runs: per-frame silhouette IoU, PSNR and motion-trend offset sizes around a spin and its stop.
 
-Usage: python ablations/probe.py <run_dir> [...] --out <folder> [--labels a,b,...]
+Usage: python -m realityavatar.analysis.probe <run_dir> [...] --out <folder> [--labels a,b,...]
 For every training frame it renders the training cameras and the held-out (novel-view) cameras, and measures the
 decoder's offsets |Δx| (median, 99th percentile, max over Gaussians). Frames are grouped into phases from the scene's
 motion events: rest (before the spin), spin, after (the second after the stop), settled (later); "stop" is the first
@@ -270,7 +270,7 @@ def scene_report(prefix: Path) -> int:
     meta_path, npz = Path(f"{prefix}-meta.json"), Path(f"{prefix}-garment.npz")
     for path in (meta_path, npz):
         if not path.is_file():
-            print(f"probe.py --scene: {path} not found (build the scene with realityavatar-make-scene)", file=sys.stderr)
+            print(f"probe --scene: {path} not found (build the scene with realityavatar-make-scene)", file=sys.stderr)
             return 2
     meta = json.loads(meta_path.read_text())
     events, fps = meta.get("motion", {}).get("events", {}), float(meta["fps"])
@@ -306,7 +306,7 @@ def main(argv: list[str] | None = None) -> int:
     if a.scene:
         return scene_report(Path(a.scene))
     if not a.runs or not a.out:
-        print("probe.py: give run folders and --out, or --scene ROOT/NAME", file=sys.stderr)
+        print("probe: give run folders and --out, or --scene ROOT/NAME", file=sys.stderr)
         return 2
     runs = [Path(r) for r in a.runs]
     labels = a.labels.split(",") if a.labels else [r.name for r in runs]

@@ -1,6 +1,7 @@
 """Render chosen frames of a trained run from a dataset camera: prediction | ground truth | 4x error, one row each.
 
-Usage: python ablations/frames.py <run_dir> --frames 10,34,46 [--split novel_view] [--view V] --out frames.png
+Usage: python -m realityavatar.analysis.frames <run_dir> --frames 10,34,46 [--split novel_view] [--view V]
+       --out frames.png
 """
 
 from __future__ import annotations

@@ -1,7 +1,8 @@
 """Speed-vs-accuracy chart from a hydra multirun: training time, render FPS and model size (final Gaussian count)
 against novel-view PSNR (marker area ∝ number of Gaussians, error bars = seed std), as PNG plus the CSV behind it.
 
-    python ablations/pareto.py outputs/sweeps/speed/<timestamp> [more multirun dirs] [--out ablations/results/speed]
+    python -m realityavatar.analysis.pareto outputs/sweeps/speed/<timestamp> [more multirun dirs] \
+        [--out ablations/results/speed]
 
 With a `gaussians.num_points` axis (the `budget` sweep) it also picks the model a scene needs: the row with the
 fewest final Gaussians whose novel-view PSNR is within --tolerance (0.2 dB) of the best row's, written to choice.json.
@@ -11,11 +12,7 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
-
-if __package__ in (None, ""):  # run as a script: make `ablations` importable from the repository root
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import matplotlib
 
@@ -24,7 +21,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
 
-from ablations.common import aggregate, display_label, load_runs, metric_key, provenance
+from realityavatar.analysis.collect import aggregate, display_label, load_runs, metric_key, provenance
 
 PSNR = metric_key("novel_view", "psnr")
 QUANTITIES = {"train_seconds": "train_seconds", "render_fps": "render_fps", PSNR: "novel_view_psnr",
