@@ -76,7 +76,7 @@ def build(n: int, backend: str, overrides: list[str]):
     from realityavatar.config import config_dir
 
     with initialize_config_dir(config_dir=config_dir(), version_base="1.3"):
-        cfg = compose("train", overrides=[f"gaussians.num_points={n}", f"render={backend}", "iterations=2000",
+        cfg = compose("train", overrides=[f"gaussians.num_points={n}", f"render.backend={backend}", "iterations=2000",
                                           "out_dir=/tmp/realityavatar_step_bench", *overrides])
     body = instantiate(cfg.body)
     module = build_module(cfg, body, num_train_frames=100, scene_extent=1.0).to(_device)
@@ -234,7 +234,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--n", type=int, nargs="+", default=[10000, 35000])
     ap.add_argument("--size", type=int, nargs="+", default=[128, 256, 512])
-    ap.add_argument("--backends", nargs="+", default=["torch", "numba"], help="conf/render options")
+    ap.add_argument("--backends", nargs="+", default=["torch", "numba"], help="render.backend values")
     ap.add_argument("--threads", type=int, default=1, help="torch (and numba) threads; 1 is the shared-CPU default")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--clock", choices=["wall", "cpu"], default="wall",

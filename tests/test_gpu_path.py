@@ -234,7 +234,7 @@ def test_metrics_do_not_depend_on_float32_accumulation():
 def test_run_records_the_backend_it_used(scenes_root, tmp_path):
     from realityavatar.train import run
 
-    cfg, choices = _prepare(compose([*TINY, "iterations=2", "render=gsplat"]), tmp_path)
+    cfg, choices = _prepare(compose([*TINY, "iterations=2", "render.backend=gsplat"]), tmp_path)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # gsplat on CPU tensors falls back with a warning
         metrics = run(cfg, choices)
@@ -313,7 +313,7 @@ def test_two_step_gpu_fit_on_ci_scene(scenes_root, tmp_path, backend):
     from realityavatar.evaluate import main as evaluate_main
     from realityavatar.train import run
 
-    cfg, choices = _prepare(compose([*TINY, "iterations=2", "trainer=gpu", f"render={backend}",
+    cfg, choices = _prepare(compose([*TINY, "iterations=2", "trainer=gpu", f"render.backend={backend}",
                                      "trainer.enable_progress_bar=false"]), tmp_path)
     metrics = run(cfg, choices)
     assert metrics["device"].startswith("cuda") and metrics["backend"] == backend

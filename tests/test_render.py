@@ -332,17 +332,23 @@ def test_depth_modes(mode):
 
 
 def test_configs_are_rasterize_kwargs():
+    from realityavatar.config import RENDER_BACKENDS, check_settings
+
     means, quats, scales, op, colors, vms, Ks, w, h = random_scene(20, seed=0, dtype=torch.float32)
+    default = OmegaConf.to_container(OmegaConf.load(CONF / "default.yaml"))
+    assert {"backend", "rasterize_mode", "near", "far", "tile_size", "background"} <= set(default)
+    assert set(RENDER_BACKENDS) == set(rast_mod._BACKENDS)  # what the config accepts is what rasterize takes
+    with pytest.raises(ValueError, match=r"render\.backend='gspalt': expected one of auto, numba, torch, gsplat"):
+        check_settings(OmegaConf.create({"render": {**default, "backend": "gspalt"}}))
     for name in ("torch", "gsplat", "auto"):
-        cfg = OmegaConf.to_container(OmegaConf.load(CONF / f"{name}.yaml"))
-        assert {"backend", "rasterize_mode", "near", "far", "tile_size", "background"} <= set(cfg)
+        cfg = {**default, "backend": name}  # render.backend=<name>
         with warnings.catch_warnings(record=True) as rec:
             warnings.simplefilter("always")
             img, _, meta = rasterize(means, quats, scales, op, colors, vms, Ks, w, h, **cfg)
         # auto on CPU: the compiled numba kernels where numba imports, else the torch backend
         expect = {"torch": "torch", "gsplat": "torch", "auto": "numba" if _has_numba() else "torch"}[name]
         assert meta["backend"] == expect and img.dtype == torch.float32
-        # render=gsplat on CPU tensors falls back to torch, and says so; torch and auto fall back silently by design
+        # render.backend=gsplat on CPU tensors falls back to torch, and says so; torch and auto fall back silently by design
         fell_back = [r for r in rec if "backend='gsplat' needs CUDA" in str(r.message)]
         assert len(fell_back) == (1 if name == "gsplat" else 0), (name, [str(r.message) for r in rec])
 

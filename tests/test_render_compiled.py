@@ -160,7 +160,7 @@ def test_numba_float32_human_scene_and_threads():
 
 def test_numba_config_and_auto():
     args = random_scene(20, seed=0, dtype=torch.float32)
-    cfg = OmegaConf.to_container(OmegaConf.load(CONF / "numba.yaml"))
+    cfg = {**OmegaConf.to_container(OmegaConf.load(CONF / "default.yaml")), "backend": "numba"}
     img, _, meta = rasterize(*args, **cfg)
     assert meta["backend"] == "numba" and img.dtype == torch.float32
     assert math.isfinite(nb.warm_up())

@@ -91,6 +91,9 @@ def _is_int(v) -> bool:
     return isinstance(v, int) and not isinstance(v, bool)
 
 
+RENDER_BACKENDS = ("auto", "numba", "torch", "gsplat")  # rasterize(backend=...) in render/splat.py
+
+
 def _is_num(v) -> bool:
     import math
 
@@ -111,6 +114,7 @@ SETTINGS = {
     "data.train_frame_subsample": (lambda v: _is_int(v) and v >= 1, "a whole number >= 1"),
     "data.val_items": (lambda v: _is_int(v) and v >= 0, "a whole number >= 0"),
     "gaussians.num_points": (lambda v: _is_int(v) and v >= 1, "a whole number >= 1"),
+    "render.backend": (lambda v: v in RENDER_BACKENDS, f"one of {', '.join(RENDER_BACKENDS)} (conf/render/default.yaml)"),
     "schedule.skin_pretrain_steps": (lambda v: _is_int(v) and v >= 0, "a whole number >= 0"),
     "eval.max_frames_per_split": (lambda v: v is None or (_is_int(v) and v >= 1), "null (every frame) or a whole number >= 1"),
     "eval.save_images": (lambda v: _is_int(v) and v >= 0, "a whole number >= 0 (0 = no image grids)"),
