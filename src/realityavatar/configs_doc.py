@@ -42,6 +42,8 @@ EFFECTS = {
     "skinning/mlp": f"−0.20 / −0.12 † dB ({_DYN})",
     "sampler/hard_frames": f"**kept, measured gain**: +0.25 / +0.10 dB over `sampler=uniform` ({_DYN})",
     "sampler/uniform": f"−0.25 / −0.10 dB ({_DYN})",
+    "deformer/motion_trend:activation": f"relu against silu: +0.17 † / +0.30 dB ({_SWEEP}, `0cb8667`; "
+                                        f"[ReLU decoder]({RESEARCH}2026-11-24-relu-decoder.md))",
     "train:schedule.deform_anneal": f"0 (off): −0.39 / −0.17 † dB ({_DYN})",
     "sheet/skirt": f"**kept, measured gain**: +0.28 / +0.36 dB over `sheet=none` ({_DYN})",
     "sheet/skirt:basis": f"64: +0.45 / +0.33 dB over `sheet=none` ({_DYN})",
