@@ -28,6 +28,7 @@ def test_parse_reads_values_and_the_comments_beside_them(tmp_path):
         "# @package _global_\n"
         "# What the file is for.\n"
         "defaults:\n"
+        "  # the shared part\n"
         "  - base          # the shared settings\n"
         "  - _self_\n"
         "\n"
@@ -42,7 +43,7 @@ def test_parse_reads_values_and_the_comments_beside_them(tmp_path):
     assert header == "What the file is for."
     got = {r["key"]: (r["value"], r["comment"]) for r in rows}
     assert got["defaults"] == ("[base, _self_]", "")
-    assert rows[0]["items"][0] == ("base", "the shared settings")
+    assert rows[0]["items"] == [("base", "the shared settings", "the shared part"), ("_self_", "", "")]
     assert got["a"] == ("1", "why a and more on a")
     assert got["b"] == ("'x # not a comment'", "about b")
     assert got["c"] == ("", "a group")

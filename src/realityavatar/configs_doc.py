@@ -95,10 +95,10 @@ def parse(path: Path) -> tuple[str, list[dict]]:
             continue
         seen_key = True
         text = body.strip()
-        if text.startswith("- "):  # an item of the last key's block list, with its own comment
+        if text.startswith("- "):  # an item of the last key's block list: (item, its comment, comment lines above)
             row = last[0]
-            row["items"].append((text[2:].strip(), " ".join(pending + ([comment] if comment else []))))
-            row["value"] = "[" + ", ".join(i for i, _ in row["items"]) + "]"
+            row["items"].append((text[2:].strip(), comment, " ".join(pending)))
+            row["value"] = "[" + ", ".join(i for i, _, _ in row["items"]) + "]"
             pending = []
             continue
         if text in ("{}", "null", "~"):  # an empty file body: no keys
@@ -133,10 +133,10 @@ def _defaults() -> dict[str, str]:
     out = {}
     for row in rows:
         if row["key"] == "defaults":
-            for item, comment in row["items"]:
+            for item, comment, above in row["items"]:
                 if ":" in item:
                     g, o = (s.strip() for s in item.split(":", 1))
-                    out[g] = (o.strip("'\""), comment)
+                    out[g] = (o.strip("'\""), comment, above)
     return out
 
 
@@ -174,7 +174,7 @@ def _key_table(rows: list[dict], effect_of) -> list[str]:
 def render() -> str:
     groups = _groups()
     _check_effects(groups)
-    defaults = {g: o for g, (o, _) in _defaults().items()}
+    defaults = {g: o for g, (o, _, _) in _defaults().items()}
     lines = [
         "# Configuration reference",
         "",
@@ -207,7 +207,9 @@ def render() -> str:
         if p.stem == "train":
             lines += ["Its defaults list, the option each group starts from:", "", "| group | option | comment |",
                       "|---|---|---|"]
-            lines += [f"| `{g}` | {o} | {_cell(c)} |" for g, (o, c) in _defaults().items()] + [""]
+            for g, (o, c, above) in _defaults().items():
+                lines += ([f"| *{_cell(above)}* | | |"] if above else []) + [f"| `{g}` | {o} | {_cell(c)} |"]
+            lines += [""]
         lines += _key_table(rows, lambda k, s=p.stem: EFFECTS.get(f"{s}:{k}")) + [""]
     for group, paths in groups.items():
         lines += [f"## `{group}`", ""]
