@@ -38,33 +38,8 @@ EXPECTED = {
     "scenes": (8, {"+variant": {"full", "no_lstm"}, "seed": {"0"},
                    "data": {"synthetic_sweep", "synthetic_sweep_dress_spin", "synthetic_sweep_skirt_flap",
                             "synthetic_sweep_dress_walk"}}),
-    "dynamics": (39, {"+garment": {"default", "no_silhouette", "no_grid", "no_shading", "no_hard_frames", "no_anneal",
-                                   "no_learnt_normals",
-                                   "plus_hull", "plus_graph", "plus_sheet", "plus_sheet_basis", "plus_dynamics",
-                                   "plus_light_normals"},
-                      "seed": SEEDS,
-                      "data": {"synthetic_sweep"}}),
+    "dynamics": (3, {"seed": SEEDS, "data": {"synthetic_sweep"}}),  # its variants: one override per command
 }
-# conf/garment option -> (silhouette, skinning, gaussians, deformer, shading, sampler, sheet) it selects
-GARMENT_CHOICES = {"default": ("chamfer", "grid", "default", "motion_trend", "irradiance", "hard_frames", "none"),
-                   "no_silhouette": ("none", "grid", "default", "motion_trend", "irradiance", "hard_frames", "none"),
-                   "no_grid": ("chamfer", "mlp", "default", "motion_trend", "irradiance", "hard_frames", "none"),
-                   "no_shading": ("chamfer", "grid", "default", "motion_trend", "none", "hard_frames", "none"),
-                   "no_hard_frames": ("chamfer", "grid", "default", "motion_trend", "irradiance", "uniform", "none"),
-                   "no_anneal": ("chamfer", "grid", "default", "motion_trend", "irradiance", "hard_frames", "none"),
-                   "plus_hull": ("chamfer", "grid", "hull", "motion_trend", "irradiance", "hard_frames", "none"),
-                   "plus_graph": ("chamfer", "grid", "default", "motion_trend_nodes", "irradiance", "hard_frames",
-                                  "none"),
-                   "plus_sheet": ("chamfer", "grid", "default", "motion_trend", "irradiance", "hard_frames", "skirt"),
-                   "plus_sheet_basis": ("chamfer", "grid", "default", "motion_trend", "irradiance", "hard_frames",
-                                        "skirt"),
-                   "plus_dynamics": ("chamfer", "grid", "default", "motion_trend", "irradiance", "hard_frames", "none"),
-                   "plus_light_normals": ("chamfer", "grid", "default", "motion_trend", "irradiance", "hard_frames",
-                                          "none"),
-                   "no_learnt_normals": ("chamfer", "grid", "default", "motion_trend", "irradiance", "hard_frames",
-                                         "none"),
-                   "all": ("chamfer", "grid", "hull", "motion_trend_nodes", "irradiance", "hard_frames", "skirt"),
-                   "none": ("none", "mlp", "default", "motion_trend", "none", "uniform", "none")}
 VARIANT_CHOICES = {"full": ("latentbone", "lstm"), "no_zc": ("no_zc", "lstm"),
                    "no_lstm": ("latentbone", "none"), "no_split": ("no_split", "lstm")}
 # Option names fixed by the project; a stand-in tree with exactly these lets the sweep files be checked on
@@ -72,8 +47,8 @@ VARIANT_CHOICES = {"full": ("latentbone", "lstm"), "no_zc": ("no_zc", "lstm"),
 GROUPS = {
     "data": ["synthetic_ci", "synthetic_demo", "synthetic_sweep", "synthetic_sweep_dress_spin",
              "synthetic_sweep_skirt_flap", "synthetic_sweep_dress_walk"], "sampler": ["uniform", "hard_frames"], "body": ["mannequin", "smpl"],
-    "gaussians": ["default", "hull"], "encoder": ["latentbone", "no_split", "no_zc"], "temporal": ["lstm", "gru", "none"],
-    "deformer": ["motion_trend", "motion_trend_nodes"], "silhouette": ["chamfer", "none"], "skinning": ["mlp", "grid"], "color": ["mlp", "sh"],
+    "gaussians": ["default"], "encoder": ["latentbone", "no_split", "no_zc"], "temporal": ["lstm", "gru", "none"],
+    "deformer": ["motion_trend"], "silhouette": ["chamfer", "none"], "skinning": ["mlp", "grid"], "color": ["mlp", "sh"],
     "shading": ["irradiance", "none"], "density": ["default", "off"], "sheet": ["none", "skirt"],
     "loss": ["default"], "render": ["default"], "optim": ["default"], "trainer": ["cpu", "gpu", "ci"],
 }
@@ -101,7 +76,7 @@ def standin_conf(tmp_path_factory) -> Path:
             if group == "render":
                 body["backend"] = "auto"
             (conf / group / f"{opt}.yaml").write_text(yaml.safe_dump(body))
-    for sub in ("ablation", "variant", "garment", "preset", "hydra/launcher"):
+    for sub in ("ablation", "variant", "preset", "hydra/launcher"):
         (conf / sub).mkdir(parents=True)
         for f in (CONF / sub).glob("*.yaml"):
             (conf / sub / f.name).write_text(f.read_text())
@@ -146,9 +121,6 @@ def test_sweep_expands_to_expected_jobs(standin_conf, name):
         assert str(cfg.seed) == ov["seed"]
         if "+variant" in ov:
             assert (choices["encoder"], choices["temporal"]) == VARIANT_CHOICES[ov["+variant"]]
-        if "+garment" in ov:
-            assert (choices["silhouette"], choices["skinning"], choices["gaussians"], choices["deformer"],
-                    choices["shading"], choices["sampler"], choices["sheet"]) == GARMENT_CHOICES[ov["+garment"]]
         for key in ("temporal", "color", "density", "trainer", "data"):
             if key in ov:
                 assert choices[key] == ov[key]
@@ -165,6 +137,28 @@ def test_command_line_values_replace_the_files_axis(standin_conf):
     (jobs,) = BasicSweeper.split_arguments(OverridesParser.create().parse_overrides(args), None)
     assert sorted(map(sorted, jobs)) == sorted(
         sorted(["+variant=" + v, "seed=5", "data=synthetic_sweep"]) for v in ("full", "no_lstm"))
+
+
+def test_dynamics_commands_compose_and_each_changes_the_model():
+    """The dynamics sweep is one command per mechanism (conf/ablation/dynamics.yaml's header): each composes in the
+    real tree, builds its density strategy, and differs from the default model's config (a command that changes
+    nothing would measure the default twice)."""
+    from hydra.utils import instantiate
+    from omegaconf import OmegaConf
+
+    from realityavatar.config import _register
+
+    _register()
+    prefix = "#   realityavatar-train -m +ablation=dynamics"
+    commands = [line[len(prefix):].split("(")[0].split() for line in (CONF / "ablation" / "dynamics.yaml").read_text()
+                .splitlines() if line.startswith(prefix)]
+    assert len(commands) >= 2 and commands[0] == [], commands  # the default model first, then one per mechanism
+    with initialize_config_dir(str(CONF), version_base="1.3"):
+        base = OmegaConf.to_container(compose("train", overrides=["+ablation=dynamics", "seed=0"]))
+        for extra in commands[1:]:
+            cfg = compose("train", overrides=["+ablation=dynamics", "seed=0", *extra])
+            instantiate(cfg.density)
+            assert OmegaConf.to_container(cfg) != base, extra
 
 
 def _assert_real_tree_complete() -> None:
@@ -184,19 +178,6 @@ def test_sweep_jobs_compose_in_the_real_tree(name):
         ov = dict(o.split("=", 1) for o in job)
         if "+variant" in ov:
             assert (choices["encoder"], choices["temporal"]) == VARIANT_CHOICES[ov["+variant"]]
-        if "+garment" in ov:
-            assert (choices["silhouette"], choices["skinning"], choices["gaussians"], choices["deformer"],
-                    choices["shading"], choices["sampler"], choices["sheet"]) == GARMENT_CHOICES[ov["+garment"]]
-        if ov.get("+garment", "").startswith("plus_sheet"):  # the sheet's motion basis only where named
-            assert cfg.sheet.basis == (64 if ov["+garment"] == "plus_sheet_basis" else 0)
-        if "+garment" in ov:  # pose deltas in the encoder only where named
-            assert cfg.encoder.dynamics == ("deltas" if ov["+garment"] == "plus_dynamics" else "none"), ov
-            if choices["shading"] == "irradiance":  # learnt normals unless the decoder's field or the body's is named
-                assert cfg.shading.normals == {"plus_light_normals": "jacobian", "no_learnt_normals": "body"}.get(
-                    ov["+garment"], "learnt"), ov
-        if "+garment" in ov:  # the decoder's coarse-to-fine window: half the run, off only where named
-            off = ov["+garment"] in ("no_anneal", "none")
-            assert cfg.schedule.deform_anneal == (0 if off else cfg.iterations // 2), ov
         for key in ("temporal", "color", "density", "trainer", "data"):
             if key in ov:
                 assert choices[key] == ov[key]
