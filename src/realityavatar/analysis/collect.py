@@ -570,7 +570,8 @@ def collect(dirs: list[str | Path] | str | Path, out: str | Path | None = None, 
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(prog="python -m realityavatar.analysis.collect", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("dirs", nargs="+", type=Path, help="multirun folder(s), e.g. outputs/sweeps/paper/<timestamp>")
     p.add_argument("--out", type=Path, default=None, help="output folder (default ablations/results/<sweep name>)")
     p.add_argument("--reference", default=None, help="row label to compare against (default: variant full, else first)")

@@ -19,7 +19,8 @@ from realityavatar.build import build_data, load_run
 
 @torch.no_grad()
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="python -m realityavatar.analysis.frames",
+                                 description=__doc__.splitlines()[0])
     ap.add_argument("run")
     ap.add_argument("--frames", required=True, help="comma-separated global frame ids")
     ap.add_argument("--split", default="novel_view", choices=("train", "novel_view", "novel_pose"))

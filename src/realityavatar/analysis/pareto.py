@@ -128,7 +128,8 @@ def pareto(dirs, out: str | Path | None = None, prefer: str = "eval", name: str 
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(prog="python -m realityavatar.analysis.pareto", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("dirs", nargs="+", type=Path, help="multirun folder(s)")
     p.add_argument("--out", type=Path, default=None, help="output folder (default ablations/results/<sweep name>)")
     p.add_argument("--prefer", choices=("eval", "train"), default="eval",

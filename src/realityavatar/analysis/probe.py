@@ -293,7 +293,8 @@ def scene_report(prefix: Path) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="python -m realityavatar.analysis.probe",
+                                 description=__doc__.splitlines()[0])
     ap.add_argument("runs", nargs="*")
     ap.add_argument("--out", default=None)
     ap.add_argument("--scene", default=None, metavar="ROOT/NAME",

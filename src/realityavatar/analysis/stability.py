@@ -305,7 +305,8 @@ def write_report(results: list[dict], out: Path, command: str) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="python -m realityavatar.analysis.stability",
+                                 description=__doc__.splitlines()[0])
     ap.add_argument("paths", nargs="+", help="run folders or sweep folders holding them")
     ap.add_argument("--out", default="ablations/results/stability")
     ap.add_argument("--view", type=int, default=None, help="held-out camera id (default: the first)")
