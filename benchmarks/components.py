@@ -1,4 +1,4 @@
-"""Forward+backward time of the per-Gaussian model path (decoder, skinning, colour) and the hash encoding alone.
+"""Forward+backward time of the per-Gaussian model path (encoder, temporal, decoder, skinning, colour).
 
 python benchmarks/components.py [--points 10000 35000] [--repeats 3] [--out benchmarks/results/components_cpu.json]
 Times are the best of `repeats` runs (the machine may be shared); batch of 1 frame, 6-frame window.
@@ -17,7 +17,6 @@ import torch
 from realityavatar.model.color import MLPColor
 from realityavatar.model.deform import MotionTrendDecoder, apply_deformation
 from realityavatar.model.encoders import LatentBoneEncoder
-from realityavatar.model.encodings import HashEncoding
 from realityavatar.model.skinning import SkinningField, lbs_gaussians
 from realityavatar.model.temporal import RecurrentTemporal
 
@@ -32,10 +31,10 @@ def best_of(fn, repeats: int) -> float:
     return min(times)
 
 
-def path_step(n: int, encoding: str):
+def path_step(n: int):
     torch.manual_seed(0)
     enc, tem = LatentBoneEncoder(), RecurrentTemporal("lstm", 128, 128)
-    dec, skin = MotionTrendDecoder(cond_dim=128, encoding=encoding), SkinningField()
+    dec, skin = MotionTrendDecoder(cond_dim=128), SkinningField()
     col = MLPColor(num_frames=100)
     means = (torch.rand(n, 3) - 0.5).requires_grad_()
     log_s = torch.full((n, 3), -4.0, requires_grad=True)
@@ -62,13 +61,8 @@ def main() -> None:
     args = ap.parse_args()
     rows = []
     for n in args.points:
-        h = HashEncoding()
-        x = torch.rand(n, 3)
-        rows.append({"what": "hash encoding 16x2, 2^16", "points": n,
-                     "seconds": best_of(lambda: h(x).square().sum().backward(), args.repeats)})
-        for encoding in ("hash", "frequency"):
-            rows.append({"what": f"encoder+lstm+decoder({encoding})+skinning+lbs+colour", "points": n,
-                         "seconds": best_of(path_step(n, encoding), args.repeats)})
+        rows.append({"what": "encoder+lstm+decoder+skinning+lbs+colour", "points": n,
+                     "seconds": best_of(path_step(n), args.repeats)})
     print(f"{'what':58s} {'N':>7s} {'fwd+bwd ms':>11s}")
     for r in rows:
         print(f"{r['what']:58s} {r['points']:7d} {1000 * r['seconds']:11.1f}")

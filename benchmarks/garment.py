@@ -1,5 +1,5 @@
-"""Cost of the garment-motion mechanisms per training step: silhouette chamfer, deformation graph vs per-Gaussian
-decoder, skinning grid vs skinning MLP, world-lit shading (irradiance map on the posed body normal).
+"""Cost of the garment-motion mechanisms per training step: silhouette chamfer, the per-Gaussian decoder, skinning
+grid vs skinning MLP, world-lit shading (irradiance map on the posed body normal).
 
 Usage: python benchmarks/garment.py [--threads 1] [--out benchmarks/results/garment_cpu.json]
 Prints seconds and GEMM units (8 float32 matmuls of 1024³ timed in the same process) for forward+backward.
@@ -38,7 +38,7 @@ def timeit(fn, repeats: int = 5) -> float:
 
 def main(argv=None) -> int:
     from realityavatar.losses import SilhouetteChamfer
-    from realityavatar.model.deform import MotionTrendDecoder, NodeDeformer
+    from realityavatar.model.deform import MotionTrendDecoder
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--threads", type=int, default=1)
@@ -66,15 +66,14 @@ def main(argv=None) -> int:
     for n in (5000, 10000):
         x = torch.randn(n, 3) * 0.3
         h = torch.randn(1, 128)
-        for name, dec in (("decoder per Gaussian", MotionTrendDecoder(encoding="frequency")),
-                          ("decoder on 256 graph nodes", NodeDeformer(num_nodes=256, encoding="frequency"))):
-            dec(x, h)  # fit the box / the nodes once, as training does
+        dec = MotionTrendDecoder()
+        dec(x, h)  # fit the box once, as training does
 
-            def step(dec=dec):
-                out = dec(x, h)
-                (out["dx"].sum() + out["ds"].sum() + out["dq"].sum() + out["f_mt"].sum()).backward()
+        def step(dec=dec):
+            out = dec(x, h)
+            (out["dx"].sum() + out["ds"].sum() + out["dq"].sum() + out["f_mt"].sum()).backward()
 
-            rows.append({"part": name, "resolution": None, "gaussians": n, "seconds": timeit(step)})
+        rows.append({"part": "decoder per Gaussian", "resolution": None, "gaussians": n, "seconds": timeit(step)})
     from realityavatar.body import build_body
     from realityavatar.model.skinning import SkinningField, SkinningGrid
 

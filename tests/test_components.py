@@ -9,7 +9,6 @@ from pathlib import Path
 import pytest
 import torch
 
-
 sys.path.insert(0, str(Path(__file__).parent))
 from fixtures_data import RandomBody
 
@@ -24,8 +23,7 @@ from realityavatar.geometry import (
 from realityavatar.model.color import MLPColor, SHColor
 from realityavatar.model.deform import MotionTrendDecoder, apply_deformation
 from realityavatar.model.density import DensityControl, NoDensityControl
-from realityavatar.model.encoders import PART_DIMS, LatentBoneEncoder, part_dims, pose_features
-from realityavatar.model.encodings import HashEncoding
+from realityavatar.model.encoders import PART_DIMS, LatentBoneEncoder, pose_features
 from realityavatar.model.gaussians import PARAM_NAMES, CanonicalGaussians
 from realityavatar.model.skinning import SkinningField, lbs_gaussians, pretrain_skinning, skinning_loss
 from realityavatar.model.temporal import NoTemporal, RecurrentTemporal
@@ -113,47 +111,6 @@ def test_pose_features_invariant_to_heading_but_not_to_spin():
     assert torch.allclose(feats["torso"][:, -1, 30:], torch.zeros(2, 9), atol=1e-6)
 
 
-def test_pose_feature_deltas():
-    """`dynamics="deltas"` appends each window frame's change since the previous one: zero for the oldest frame and
-    for a still body, the root's turn for a spin, heading-invariant; the base features are unchanged."""
-    poses, transl = _poses()
-    base = pose_features(poses, transl)
-    feats = pose_features(poses, transl, "deltas")
-    assert {k: v.shape[-1] for k, v in feats.items()} == part_dims("deltas") == {k: 2 * d for k, d in PART_DIMS.items()}
-    for k, d in PART_DIMS.items():
-        assert torch.equal(feats[k][..., :d], base[k]), k
-        assert torch.equal(feats[k][:, 0, d:], torch.zeros_like(feats[k][:, 0, d:])), k  # no frame before the oldest
-        n = 30 if k == "torso" else d  # the torso's joints; its root terms are the turn and the move below
-        assert torch.allclose(feats[k][:, 1:, d:d + n], base[k][:, 1:, :n] - base[k][:, :-1, :n], atol=1e-6), k
-    # a still body (every frame the same) has zero deltas; a spin about the vertical has the root's turn per step
-    still = poses[:, -1:].expand_as(poses).clone()
-    tstill = transl[:, -1:].expand_as(transl).clone()
-    assert torch.allclose(pose_features(still, tstill, "deltas")["torso"][..., 39:], torch.zeros(2, 5, 39), atol=1e-6)
-    spin = still.clone()
-    spin[:, :, 0] = torch.tensor([0.0, 1.0, 0.0]) * (0.4 * torch.arange(5.0))[:, None]  # 0.4 rad per window step
-    turn = pose_features(spin, tstill, "deltas")["torso"][:, 1:, 39 + 30:39 + 36]
-    expected = pose_features(torch.zeros(1, 2, 24, 3) + torch.tensor([0.0, 0.4, 0.0]) * torch.tensor([0.0, 1.0])[:, None, None],
-                             torch.zeros(1, 2, 3))["torso"][0, 0, 30:36]  # 6D of a 0.4 rad turn (sign as seen back)
-    assert turn.abs().amax() > 0.1
-    assert torch.allclose(turn, turn[:1, :1].expand_as(turn), atol=1e-6)  # the same turn every step
-    assert torch.allclose(turn[0, 0].abs(), expected.abs(), atol=1e-5)
-    # heading-invariant like the base features
-    R0 = axis_angle_to_matrix(torch.tensor([0.0, 1.3, 0.0]))
-    from realityavatar.geometry import matrix_to_axis_angle
-
-    p2 = poses.clone()
-    p2[:, :, 0] = matrix_to_axis_angle(R0 @ axis_angle_to_matrix(poses[:, :, 0]))
-    t2 = (R0 @ transl[..., None]).squeeze(-1) + torch.tensor([1.0, 0.0, -2.0])
-    for k, v in pose_features(p2, t2, "deltas").items():
-        assert torch.allclose(v, feats[k], atol=1e-5), k
-    # the encoder sizes its input layers from them; an unknown option names the field
-    enc = LatentBoneEncoder(dynamics="deltas", out_dim=32)
-    assert enc.part_layers["torso"][0].in_features == 2 * PART_DIMS["torso"] + 16
-    assert enc(poses, transl).shape == (2, 5, 32)
-    with pytest.raises(ValueError, match="encoder.dynamics"):
-        LatentBoneEncoder(dynamics="velocity")
-
-
 def test_pose_features_rejects_nan():
     poses, transl = _poses()
     poses[0, 1, 3, 0] = float("nan")
@@ -182,33 +139,6 @@ def test_latentbone_encoder_options(split, zc):
         assert enc.input_layer[0].in_features == sum(PART_DIMS.values()) + zc
 
 
-@pytest.mark.parametrize("split", [True, False])
-def test_latentbone_fourier_features(split):
-    """encoder.fourier_sigma > 0 adds sin(xW), cos(xW) of each part's features to its input (W fixed, N(0, sigma^2)):
-    the input layers widen by 2 x fourier_features, W is rebuilt identically from the config and stays out of the
-    state dict (checkpoints of either setting load into the other), and it is off at 0."""
-    poses, transl = _poses()
-    off = LatentBoneEncoder(part_split=split, out_dim=32)
-    on = LatentBoneEncoder(part_split=split, out_dim=32, fourier_sigma=1.0, fourier_features=8)
-    first = (lambda e: e.part_layers["legs"][0]) if split else (lambda e: e.input_layer[0])
-    assert first(on).in_features == first(off).in_features + 16
-    assert not any(k.startswith("fourier") for k in on.state_dict())
-    W = on.fourier_legs if split else on.fourier_all
-    assert W.shape[1] == 8 and 0.5 < float(W.std()) < 1.5
-    again = LatentBoneEncoder(part_split=split, out_dim=32, fourier_sigma=1.0, fourier_features=8)
-    again.load_state_dict(on.state_dict())
-    torch.testing.assert_close(again(poses, transl), on(poses, transl))
-    # what the input layer reads: [x, sin(xW), cos(xW)]
-    x = torch.randn(3, W.shape[0])
-    out = on._fourier(x, "legs" if split else "all")
-    torch.testing.assert_close(out, torch.cat([x, torch.sin(x @ W), torch.cos(x @ W)], -1))
-    torch.testing.assert_close(off._fourier(x, "legs" if split else "all"), x)
-    on(poses, transl).square().sum().backward()
-    _all_grads(on)
-    with pytest.raises(ValueError, match="encoder.fourier_sigma"):
-        LatentBoneEncoder(fourier_sigma=-1.0)
-
-
 # ---------------------------------------------------------------------- temporal
 def test_temporal_none_ignores_history_lstm_does_not():
     torch.manual_seed(0)
@@ -228,46 +158,9 @@ def test_temporal_none_ignores_history_lstm_does_not():
 
 
 # ---------------------------------------------------------------------- motion-trend decoder
-def _hash_reference(enc: HashEncoding, u: torch.Tensor) -> torch.Tensor:
-    """Per point, per level, per corner loop (slow, obviously correct)."""
-    out = torch.zeros(u.shape[0], enc.num_levels, enc.features_per_level)
-    T = enc.table_size
-    for n in range(u.shape[0]):
-        for lvl in range(enc.num_levels):
-            R = int(enc.resolution[lvl])
-            p = u[n].clamp(0, 1) * R
-            b = p.floor().long().clamp(max=R)
-            fr = p - b
-            for cx in (0, 1):
-                for cy in (0, 1):
-                    for cz in (0, 1):
-                        c = [int(b[0]) + cx, int(b[1]) + cy, int(b[2]) + cz]
-                        if bool(enc.dense[lvl]):
-                            i = c[0] + (R + 1) * (c[1] + (R + 1) * c[2])
-                        else:
-                            i = (c[0] * 1 ^ c[1] * 2654435761 ^ c[2] * 805459861) % T
-                        w = (fr[0] if cx else 1 - fr[0]) * (fr[1] if cy else 1 - fr[1]) * (fr[2] if cz else 1 - fr[2])
-                        out[n, lvl] += w * enc.table[int(enc.offsets[lvl]) + i].detach()
-    return out.reshape(u.shape[0], -1)
-
-
-def test_hash_encoding_matches_reference_and_trains():
-    enc = HashEncoding(num_levels=4, features_per_level=2, log2_table_size=8, base_resolution=2, max_resolution=40, init_std=1.0)
-    assert bool(enc.dense[0]) and not bool(enc.dense[-1])  # both code paths exercised
-    u = torch.rand(20, 3, generator=torch.Generator().manual_seed(0))
-    u[0] = torch.tensor([1.0, 0.0, 1.0])  # upper boundary
-    y = enc(u)
-    assert torch.allclose(y, _hash_reference(enc, u), atol=1e-5)
-    y.sum().backward()
-    g = enc.table.grad
-    # the total gradient mass equals the sum of trilinear weights: points x levels x features
-    assert torch.allclose(g.sum(), torch.tensor(20.0 * 4 * 2), atol=1e-3)
-
-
-@pytest.mark.parametrize("encoding", ["hash", "frequency"])
-def test_motion_trend_decoder_identity_start_and_grads(encoding):
+def test_motion_trend_decoder_identity_start_and_grads():
     torch.manual_seed(0)
-    dec = MotionTrendDecoder(cond_dim=16, encoding=encoding, hidden_dim=32, feature_dim=16, hash_levels=4, hash_log2_table_size=10)
+    dec = MotionTrendDecoder(cond_dim=16, hidden_dim=32, feature_dim=16)
     x = torch.randn(100, 3) * 0.4
     log_s = torch.randn(100, 3) - 4
     q = torch.nn.functional.normalize(torch.randn(100, 4), dim=-1)
@@ -284,18 +177,16 @@ def test_motion_trend_decoder_identity_start_and_grads(encoding):
     _all_grads(dec)
 
 
-def test_both_encodings_give_the_means_the_same_gradient_path():
-    """The decoder's encoding sees x_c detached for either encoding, so hash and frequency differ only in features."""
+def test_the_encoding_gives_the_means_no_gradient_path():
+    """The decoder's encoding sees x_c detached: the means get their gradient from x_e = x_c + dx only."""
     torch.manual_seed(0)
-    for encoding in ("hash", "frequency"):
-        dec = MotionTrendDecoder(cond_dim=8, encoding=encoding, hidden_dim=16, feature_dim=4, hash_levels=2,
-                                 hash_log2_table_size=8)
-        with torch.no_grad():
-            dec.out.weight.normal_()  # outputs depend on x_c
-        x = (torch.randn(30, 3) * 0.3).requires_grad_()
-        out = dec(x, torch.randn(2, 8))
-        (out["dx"].sum() + out["f_mt"].sum()).backward()
-        assert x.grad is None or x.grad.abs().max() == 0, encoding
+    dec = MotionTrendDecoder(cond_dim=8, hidden_dim=16, feature_dim=4)
+    with torch.no_grad():
+        dec.out.weight.normal_()  # outputs depend on x_c
+    x = (torch.randn(30, 3) * 0.3).requires_grad_()
+    out = dec(x, torch.randn(2, 8))
+    (out["dx"].sum() + out["f_mt"].sum()).backward()
+    assert x.grad is None or x.grad.abs().max() == 0
 
 
 def test_apply_deformation_follows_paper_equations():
@@ -432,11 +323,9 @@ def _meta(n, high_idx, value=1e-2):
     return {"means2d": means2d, "radii": torch.ones(1, n, dtype=torch.int32)}
 
 
-@pytest.mark.parametrize("code_dim", [0, 3])
-def test_density_clone_split_prune_with_optimizer_state(body, code_dim):
-    """code_dim > 0: the Gaussians' deformation codes (gaussians.deform_code_dim) follow every edit too."""
-    g = CanonicalGaussians(body, num_points=20, feature_dim=4, seed=0, deform_code_dim=code_dim)
-    assert g.param_names == PARAM_NAMES + (("deform_codes",) if code_dim else ())
+def test_density_clone_split_prune_with_optimizer_state(body):
+    g = CanonicalGaussians(body, num_points=20, feature_dim=4, seed=0)
+    assert g.param_names == PARAM_NAMES
     with torch.no_grad():
         g.log_scales[:10] = math.log(0.001)  # small -> clone
         g.log_scales[10:] = math.log(0.05)  # large -> split
@@ -445,7 +334,6 @@ def test_density_clone_split_prune_with_optimizer_state(body, code_dim):
     opt = _adam_with_state(g)
     old_avg = {n: opt.state[getattr(g, n)]["exp_avg"].clone() for n in g.param_names}
     old_means = g.means.detach().clone()
-    old_codes = g.deform_codes.detach().clone() if code_dim else None
     old_scales = g.scales().detach().clone()
     dc = DensityControl(refine_start=0, refine_stop=100, refine_every=10, grad_threshold=2e-4, prune_opacity=0.05,
                         grow_scale3d=0.01, scene_scale=1.0, reset_every=0, max_points=1000)
@@ -467,9 +355,6 @@ def test_density_clone_split_prune_with_optimizer_state(body, code_dim):
     assert torch.allclose(g.means[: len(kept)], old_means[kept])
     assert torch.allclose(g.means[len(kept): len(kept) + 3], old_means[[0, 1, 2]])  # clones copy
     assert torch.allclose(g.scales()[-4:], old_scales[[12, 13, 12, 13]] / 1.6, rtol=1e-5)  # split children
-    if code_dim:  # clones and split children carry their source's code
-        assert torch.equal(g.deform_codes[: len(kept) + 3], old_codes[kept + [0, 1, 2]])
-        assert torch.equal(g.deform_codes[-4:], old_codes[[12, 13, 12, 13]])
     # training continues with the edited optimizer
     for n in g.param_names:
         getattr(g, n).grad = torch.ones_like(getattr(g, n))
@@ -502,7 +387,7 @@ def test_density_cap_reset_state_and_disabled(body):
 
 def test_density_gradient_of_a_multi_image_batch_is_scaled_by_its_images(body):
     """gsplat's rule: the loss is a mean over a batch's images, so a Gaussian seen by V samples (one meta each, as a
-    frame_views batch renders them) with 1/V of one image's gradient each accumulates what one image gives alone."""
+    batch of V images renders them) with 1/V of one image's gradient each accumulates what one image gives alone."""
     g = CanonicalGaussians(body, num_points=20, feature_dim=4, seed=0)
     kw = dict(refine_start=0, refine_stop=100, refine_every=10, grad_threshold=2e-4, prune_opacity=0.05,
               grow_scale3d=0.01, scene_scale=1.0, reset_every=0, max_points=1000)
@@ -517,7 +402,7 @@ def test_density_gradient_of_a_multi_image_batch_is_scaled_by_its_images(body):
 def test_coarse_to_fine_window_opens_the_frequency_bands_in_turn():
     """schedule.deform_anneal (Nerfies' coarse-to-fine window): at alpha 0 only the input passes, a band fades in as
     alpha passes it, at alpha = num_freqs the encoding is the plain one bit for bit; the schedule opens it linearly
-    from deform_start over deform_anneal steps; the hash encoding has no window."""
+    from deform_start over deform_anneal steps."""
     from realityavatar.model.encodings import FrequencyEncoding
 
     enc = FrequencyEncoding(4)
@@ -536,12 +421,10 @@ def test_coarse_to_fine_window_opens_the_frequency_bands_in_turn():
 
     from realityavatar.model.module import Schedule
 
-    d = MotionTrendDecoder(cond_dim=8, encoding="frequency", hidden_dim=16, num_layers=2, feature_dim=4, num_freqs=6)
+    d = MotionTrendDecoder(cond_dim=8, hidden_dim=16, num_layers=2, feature_dim=4, num_freqs=6)
     assert d.encoding.alpha == 6.0  # a decoder nobody set (a module outside training) sees every band
     sched = Schedule(deform_start=10, deform_anneal=100)
     for step, alpha in ((0, 0.0), (10, 0.0), (60, 3.0), (110, 6.0), (500, 6.0), (None, 6.0)):
         d.set_window(sched.deform_window(step))
         assert d.encoding.alpha == alpha, (step, d.encoding.alpha)
     assert Schedule(deform_anneal=0).deform_window(0) == 1.0  # 0: every band from the start
-    hashed = MotionTrendDecoder(cond_dim=8, encoding="hash", hidden_dim=16, num_layers=2, feature_dim=4)
-    hashed.set_window(0.0)  # no bands to open

@@ -347,38 +347,21 @@ def test_sampler_feedback_passes_per_image_losses_to_the_sampler():
 
 
 def test_unknown_sampler_option_names_the_field(scene_root, body):
-    with pytest.raises(ValueError, match="data.sampler.kind"):
-        make(scene_root, body, sampler={"kind": "hardest"})
-    with pytest.raises(ValueError, match="unknown option"):
-        make(scene_root, body, sampler={"kind": "hard_frames", "temperature": 2})
+    """The sampler is built from conf/sampler like every other group (_target_ + _partial_, called with the training
+    images' frames and the seed): each option gives its class, a value that is not a sampler names data.sampler, an
+    unknown option names itself, an unknown sampler names the group."""
+    from realityavatar.config import compose
+    from realityavatar.data.datamodule import EpochShuffle, HardFrameSampler
 
-
-def test_frame_view_batches_are_one_frame_from_several_cameras(scene_root, body):
-    """data.sampler=frame_views: each batch is one training frame's images (all its cameras, or `views` distinct ones),
-    every frame once per epoch; a resumed loader continues with the batches the uninterrupted one yields."""
-    from realityavatar.data.datamodule import FrameViewBatches
-
-    dm = make(scene_root, body, sampler={"kind": "frame_views", "views": None})
-    batches = list(dm.train_dataloader())
-    assert len(batches) == 8
-    assert all(len(set(b["frame"].tolist())) == 1 and sorted(b["view"].tolist()) == [0, 1, 3] for b in batches)
-    assert sorted(int(b["frame"][0]) for b in batches) == list(range(8))
-    frames = [f for f in range(10) for _ in range(4)]  # image i: frame i // 4, camera i % 4
-    s = FrameViewBatches(frames, seed=5, views=2)
-    epoch = list(s)
-    assert sorted(b[0] // 4 for b in epoch) == list(range(10))
-    assert all(len(b) == 2 and b[0] // 4 == b[1] // 4 and b[0] != b[1] for b in epoch)
-    assert len({tuple(b) for _ in range(5) for b in s}) > 10  # the camera subsets vary between epochs
-    it = iter(s)
-    head = [next(it) for _ in range(4)]
-    state = s.state_dict()
-    rest = list(it)
-    t = FrameViewBatches(frames, seed=5, views=2)
-    t.load_state_dict(state)
-    assert list(t) == rest and len(head) + len(rest) == 10
-    with pytest.raises(ValueError, match="data.batch_size"):
-        make(scene_root, body, sampler={"kind": "frame_views", "views": 2}, batch_size=2)
-    with pytest.raises(ValueError, match="data.sampler.views"):
-        FrameViewBatches(frames, seed=0, views=0)
-    with pytest.raises(ValueError, match="unknown option"):
-        make(scene_root, body, sampler={"kind": "frame_views", "mix": 0.5})
+    for name, cls in (("uniform", EpochShuffle), ("hard_frames", HardFrameSampler)):
+        dm = make(scene_root, body, sampler=instantiate(compose([f"sampler={name}"]).data.sampler))
+        dm.train_dataloader()
+        assert type(dm.train_sampler) is cls
+    with pytest.raises(TypeError, match="data.sampler"):
+        make(scene_root, body, sampler={"kind": "hard_frames"})
+    bad = compose(["sampler=hard_frames", "+data.sampler.temperature=2"]).data.sampler
+    dm = make(scene_root, body, sampler=instantiate(bad))
+    with pytest.raises(TypeError, match="temperature"):
+        dm.train_dataloader()
+    with pytest.raises(Exception, match="sampler"):
+        compose(["sampler=hardest"])

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from realityavatar.losses import AvatarLoss
+from realityavatar.losses import ColourL1, MaskLoss, PerceptualLoss, SkinningLoss, TrainingRender, total_loss
 from realityavatar.metrics import (
     LPIPS,
     alexnet_features,
@@ -148,7 +148,7 @@ def test_lpips_not_computed_without_weights(tmp_path):
         LPIPS("alex", str(bb), str(wrong))  # vgg lin weights for an alex net
 
 
-# ---------------------------------------------------------------------- AvatarLoss
+# ---------------------------------------------------------------------- loss terms
 def _batch(seed=0):
     g = torch.Generator().manual_seed(seed)
     pred = torch.rand(2, 24, 24, 3, generator=g, requires_grad=True)
@@ -158,45 +158,56 @@ def _batch(seed=0):
     return pred, alpha, gt, mask
 
 
-def test_avatar_loss_dssim_fallback_and_terms():
-    loss = AvatarLoss(lambda_mask=0.1, lambda_dssim=0.2, lambda_skin_start=10.0, lambda_skin_end=0.1)
-    assert loss.perceptual_kind == "dssim"
+def _render(pred, alpha, gt, mask, step=0, skinning=None):
+    from types import SimpleNamespace
+
+    from realityavatar.body import build_body
+
+    avatar = SimpleNamespace(body=build_body("mannequin"), skinning=skinning)
+    return TrainingRender(pred, alpha, {"image": gt, "mask": mask}, {}, avatar, step)
+
+
+def test_loss_terms_dssim_fallback_weights_and_schedule():
+    """The default terms sum in order with their weights: L1 + 0.1 mask + 0.2 D-SSIM (no VGG19 weights) +
+    λ_skin skinning, λ_skin 10 before the skinning term's switch step and 0.1 from it on."""
+    terms = {"rgb": ColourL1(), "mask": MaskLoss(weight=0.1), "perceptual": PerceptualLoss(weight=0.01, dssim_weight=0.2),
+             "skinning": SkinningLoss(weight=10.0, weight_after=0.1, switch=5, samples=32)}
+    assert terms["perceptual"].kind == "dssim" and terms["perceptual"].weight == 0.2
     pred, alpha, gt, mask = _batch()
     field = SkinningField(hidden_dim=16, num_layers=1)
-    pts, w = torch.randn(32, 3), torch.softmax(torch.randn(32, 24), -1)
-    for decayed, lam in ((False, 10.0), (True, 0.1)):  # the module's Schedule.skin_switch decides `decayed`
-        total, terms = loss(pred, alpha, gt, mask, skinning=field, skin_points=pts, skin_weights=w, skin_decayed=decayed)
-        expected = terms["l1"] + 0.1 * terms["mask"] + 0.2 * terms["perceptual"] + lam * terms["skin"]
+    for step, lam in ((4, 10.0), (5, 0.1)):
+        total, logs = total_loss(terms, _render(pred, alpha, gt, mask, step, field))
+        expected = logs["l1"] + 0.1 * logs["mask"] + 0.2 * logs["perceptual"] + lam * logs["skin"]
         assert float(total.detach()) == pytest.approx(float(expected), rel=1e-6)
-    assert float(terms["l1"]) == pytest.approx(float((pred - gt).abs().mean()), rel=1e-6)
-    assert float(terms["mask"]) == pytest.approx(float(((alpha - mask) ** 2).mean()), rel=1e-6)
+    assert float(logs["l1"]) == pytest.approx(float((pred - gt).abs().mean()), rel=1e-6)
+    assert float(logs["mask"]) == pytest.approx(float(((alpha - mask) ** 2).mean()), rel=1e-6)
     total.backward()
     assert pred.grad.abs().sum() > 0 and alpha.grad.abs().sum() > 0
     assert all(p.grad is not None for p in field.parameters())
-    # identical images: no photometric loss
-    t0, terms0 = loss(gt, mask, gt, mask)
-    assert float(t0) == pytest.approx(0.0, abs=1e-6) and "skin" not in terms0
+    # identical images: no photometric loss; a term that is not in the list is not computed
+    t0, logs0 = total_loss({k: terms[k] for k in ("rgb", "mask", "perceptual")}, _render(gt, mask, gt, mask))
+    assert float(t0) == pytest.approx(0.0, abs=1e-6) and "skin" not in logs0
 
 
-def test_avatar_loss_vgg19_when_weights_exist(tmp_path):
+def test_perceptual_term_is_vgg19_when_weights_exist(tmp_path):
     feats = vgg_features("vgg19")[:30]
     torch.save({f"features.{k}": v for k, v in feats.state_dict().items()}, tmp_path / "vgg19.pth")
-    loss = AvatarLoss(perceptual="auto", vgg19_weights=str(tmp_path / "vgg19.pth"), lambda_perceptual=0.01)
-    assert loss.perceptual_kind == "vgg19" and loss.lambda_perceptual == 0.01
-    assert not any(p.requires_grad for p in loss.parameters())
+    term = PerceptualLoss(kind="auto", vgg19_weights=str(tmp_path / "vgg19.pth"), weight=0.01)
+    assert term.kind == "vgg19" and term.weight == 0.01
+    assert not any(p.requires_grad for p in term.parameters())
     pred, alpha, gt, mask = _batch()
-    total, terms = loss(pred, alpha, gt, mask)
-    assert float(terms["perceptual"]) > 0
+    total, logs = total_loss({"perceptual": term}, _render(pred, alpha, gt, mask))
+    assert float(logs["perceptual"]) > 0
     total.backward()
     assert pred.grad.abs().sum() > 0
-    same, t_same = loss(gt, mask, gt, mask)
-    assert float(t_same["perceptual"]) == pytest.approx(0.0, abs=1e-6)
+    _, logs_same = total_loss({"perceptual": term}, _render(gt, mask, gt, mask))
+    assert float(logs_same["perceptual"]) == pytest.approx(0.0, abs=1e-6)
 
 
-def test_avatar_loss_bad_options(tmp_path):
-    with pytest.raises(ValueError, match="loss.perceptual"):
-        AvatarLoss(perceptual="lpips")
+def test_loss_terms_bad_options(tmp_path):
+    with pytest.raises(ValueError, match="loss.perceptual.kind"):
+        PerceptualLoss(kind="lpips")
     with pytest.raises(FileNotFoundError, match="vgg19_weights"):
-        AvatarLoss(perceptual="vgg19", vgg19_weights=str(tmp_path / "missing.pth"))
-    with pytest.raises(ValueError, match="mask_loss"):
-        AvatarLoss(mask_loss="huber")
+        PerceptualLoss(kind="vgg19", vgg19_weights=str(tmp_path / "missing.pth"))
+    with pytest.raises(ValueError, match="loss.mask.kind"):
+        MaskLoss(kind="huber")

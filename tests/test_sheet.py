@@ -126,16 +126,17 @@ def test_sheet_trains_beside_the_free_gaussians_and_reloads(scenes_root, tmp_pat
     from realityavatar.config import prepare_run
     from realityavatar.train import run
 
-    assert compose([]).sheet.get("_target_") is None  # off by default
+    assert compose([]).sheet._target_.endswith("NoSheet")  # off by default: a source with no points
     cfg, choices = prepare_run(compose(["data=synthetic_ci", "trainer=ci", "iterations=30", "sheet=skirt",
                                         "sheet.rows=4", "sheet.cols=12", "sheet.per_cell=2", "sheet.basis=4",
-                                        "sheet.strain_weight=0.1",
+                                        "+loss.sheet_strain._target_=realityavatar.losses.SheetStrain",
+                                        "+loss.sheet_strain.weight=0.1",
                                         "gaussians.num_points=300", "density.refine_start=5", "density.refine_every=5",
                                         "eval.max_frames_per_split=1", "eval.save_video=false",
                                         "eval.save_images=0"]), tmp_path / "run")
     run(cfg, choices)
     _, module, _ = load_run(tmp_path / "run")
-    assert module.sheet is not None and module.sheet.num_points == 4 * 12 * 2
+    assert module.sheet.num_points == 4 * 12 * 2 and "sheet_strain" in module.losses
     import json
 
     m = json.loads((tmp_path / "run" / "metrics.json").read_text())
@@ -228,7 +229,7 @@ def test_strain_penalises_stretch_down_the_sheet_not_around_it():
     assert torch.all(down > 0)  # descending the loss moves the hem ring back up its column
     assert float(sh.strain(wide.reshape(1, -1, 3))) < float(s.detach())  # a 3x flare costs less than 2x long columns
     with pytest.raises(ValueError, match="strain"):
-        GarmentSheet(build_body("mannequin"), rows=3, cols=8, per_cell=1, profile="canonical", strain_weight=-1.0)
+        GarmentSheet(build_body("mannequin"), rows=3, cols=8, per_cell=1, profile="canonical", strain_free=-1.0)
 
 
 def test_motion_basis_is_a_linear_map_of_the_temporal_state():

@@ -19,41 +19,29 @@ from realityavatar.runs import CKPT_NAME, read_checkpoint
 def build_module(cfg: DictConfig, body, num_train_frames: int, scene_extent: float, data=None) -> AvatarModule:
     """Instantiate every component from its config group and hand them to the LightningModule.
 
-    data: the set-up DataModule, for components initialised from the training data (gaussians=hull); None when a
-    run is rebuilt from its checkpoint.
+    data: the set-up DataModule, for components laid out from the training data (sheet.profile=rest: the rest
+    frame's masks); None when a run is rebuilt from its checkpoint.
     """
-    from hydra.utils import get_class
-
-    extra = {}
-    if data is not None and getattr(get_class(cfg.gaussians._target_), "NEEDS_VIEWS", False):
-        from realityavatar.model.hull import hull_views
-
-        extra["views"] = hull_views(data, cfg.gaussians.get("hull_frame"))
-    gaussians = instantiate(cfg.gaussians, body=body, **extra)
+    # The order of construction is the order of the global random draws: it fixes every run's initial weights.
+    gaussians = instantiate(cfg.gaussians, body=body)
     encoder = instantiate(cfg.encoder)
     temporal = instantiate(cfg.temporal)
-    n_frames = max(int(num_train_frames), 1)  # the per-frame tables' rows: Z_r, the decoder's frame codes
-    deformer = instantiate(cfg.deformer, num_frames=n_frames)
+    deformer = instantiate(cfg.deformer)
     skinning = instantiate(cfg.skinning)
-    color = instantiate(cfg.color, num_frames=n_frames)
+    color = instantiate(cfg.color, num_frames=max(int(num_train_frames), 1))  # the per-frame latent table Z_r
     density = instantiate(cfg.density)
-    loss = instantiate(cfg.loss)
-    silhouette = instantiate(cfg.silhouette) if cfg.get("silhouette") is not None else None
-    shading = instantiate(cfg.shading) if cfg.get("shading") is not None else None  # configs from before the option
-    flow = instantiate(cfg.flow) if cfg.get("flow") is not None else None  # configs from before the option: none
-    posefit = instantiate(cfg.posefit) if cfg.get("posefit") is not None else None  # configs from before: none
-    sheet_cfg = cfg.get("sheet")
-    sheet = None
-    if sheet_cfg is not None and sheet_cfg.get("_target_"):
-        kw = {}
-        if data is not None and sheet_cfg.get("profile", "rest") == "rest":  # laid out in a rest frame (its masks)
-            from realityavatar.model.hull import hull_views
+    # The loss terms, summed in this order: conf/loss's, then the silhouette group's (silhouette=none: no term).
+    losses = {name: instantiate(term) for name, term in cfg.loss.items()}
+    losses.update({"silhouette": instantiate(cfg.silhouette)} if cfg.silhouette else {})
+    shading = instantiate(cfg.shading)
+    views = {}
+    if data is not None and cfg.sheet.get("profile") == "rest":  # laid out in a rest frame (its masks)
+        from realityavatar.model.hull import hull_views
 
-            kw["views"] = hull_views(data, sheet_cfg.get("hull_frame"))
-        sheet = instantiate(sheet_cfg, body=body, **kw)
+        views["views"] = hull_views(data, cfg.sheet.get("hull_frame"))
+    sheet = instantiate(cfg.sheet, body=body, **views)
     m = cfg.get("metrics", {}) or {}
     lpips, lpips_status = build_lpips("vgg", m.get("lpips_backbone_weights"), m.get("lpips_weights"))
-    render = OmegaConf.to_container(cfg.render, resolve=True)
     module = AvatarModule(
         body=body,
         gaussians=gaussians,
@@ -62,22 +50,19 @@ def build_module(cfg: DictConfig, body, num_train_frames: int, scene_extent: flo
         deformer=deformer,
         skinning=skinning,
         color=color,
+        shading=shading,
+        sheet=sheet,
         density=density,
-        loss=loss,
+        losses=losses,
         optimizer=instantiate(cfg.optim.optimizer),
         lr=OmegaConf.to_container(cfg.optim.lr, resolve=True),
         final_factor=OmegaConf.to_container(cfg.optim.final_factor, resolve=True),
-        render=render,
-        schedule=Schedule(**OmegaConf.to_container(cfg.schedule, resolve=True)),
+        render=OmegaConf.to_container(cfg.render, resolve=True),
+        schedule=Schedule.from_config(OmegaConf.to_container(cfg.schedule, resolve=True)),
         grad_clip=cfg.optim.get("grad_clip"),
         max_steps=int(cfg.iterations),
         scene_extent=scene_extent,
         lpips=lpips,
-        silhouette=silhouette,
-        shading=shading,
-        flow=flow,
-        sheet=sheet,
-        posefit=posefit,
     )
     module.lpips_status = lpips_status  # "computed" or why not, recorded in metrics.json
     return module
@@ -85,8 +70,6 @@ def build_module(cfg: DictConfig, body, num_train_frames: int, scene_extent: flo
 
 def build_data(cfg: DictConfig, body):
     dm = instantiate(cfg.data, body=body)
-    if cfg.get("flow") is not None and float(cfg.flow.get("weight", 0.0)) > 0:
-        dm.flow = instantiate(cfg.flow).spec  # training samples carry the flow to the earlier image (flow=dis)
     dm.prepare_data()
     dm.setup("fit")
     return dm

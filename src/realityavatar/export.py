@@ -107,13 +107,12 @@ def gaussians_for_export(module, poses: torch.Tensor | None = None, transl: torc
         N = means.shape[0]
         rot = torch.eye(3, device=dev, dtype=dt).expand(N, 3, 3)[None]
         f_mt = g.means.new_zeros(1, N, module.deformer.feature_dim)  # canonical: no motion-trend feature
-        x_e, n_c = means[None], None
+        x_e = means[None]
     else:
         posed = module.deform(poses[None].to(dev, dt), transl[None].to(dev, dt))
         means, quats, scales, rot, f_mt = posed["means"][0], posed["quats"][0], posed["scales"][0], posed["rot"], posed["f_mt"]
         x_e, opacities, N = posed["x_e"], posed["opacities"], posed["means"].shape[1]
-        n_c = posed.get("n_c")
-    light = module.shading(x_e, rot, n_c)  # world-fixed light [1,N,3] (shading=irradiance), or None
+    light = module.shading(x_e, rot)  # world-fixed light [1,N,3] (shading=irradiance), or None
     out = {"means": means, "quats": quats, "scales": scales, "opacities": opacities}
     sh_coeffs = getattr(module.color, "sh_coefficients", None)
     if callable(sh_coeffs) and poses is None and light is None:

@@ -1,14 +1,19 @@
-"""Training loss L1 + λ1 mask + λ2 perceptual (VGG19 features, or D-SSIM without weights) + λ3 skinning."""
+"""Training loss terms: L1 + λ1 mask + λ2 perceptual (VGG19 features, or D-SSIM without weights) + λ3 skinning
+(paper §Optimization), the long-range silhouette term and the garment sheet's strain; each term a component with its
+weight (and schedule), summed by `total_loss` in the configured order."""
 
 from __future__ import annotations
 
 import os
+from collections.abc import Mapping
+from dataclasses import dataclass
 from typing import Literal
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
+from realityavatar.geometry import sample_surface
 from realityavatar.kernels import dssim
 from realityavatar.metrics import load_features_state, vgg_features
 from realityavatar.model.skinning import skinning_loss
@@ -48,82 +53,126 @@ class VGG19Loss(nn.Module):
         return loss
 
 
-class AvatarLoss(nn.Module):
-    """L = L1 + λ_mask L_mask + λ_p L_percep + λ_skin(step) L_skin (paper §Optimization).
+@dataclass
+class TrainingRender:
+    """What a loss term sees of one training step: the rendered batch and the avatar that rendered it."""
 
-    perceptual="auto" uses VGG19 when `vgg19_weights` points to a file, else D-SSIM = (1 - SSIM)/2 (kornia,
-    11x11 window) weighted by lambda_dssim (VGG feature losses and D-SSIM differ in scale, so each has its own
-    λ). `perceptual_kind` records which one is used ("vgg19" | "dssim"). The skinning weight follows
-    3DGS-Avatar: lambda_skin_start, then lambda_skin_end once the caller says so (`skin_decayed`, from the
-    module's Schedule.skin_switch: step-dependent switches live in the schedule, not here).
-    """
+    rgb: torch.Tensor  # [B,H,W,3]
+    alpha: torch.Tensor  # [B,H,W,1]
+    batch: dict  # the DataModule's batch: image [B,H,W,3], mask [B,H,W,1], viewmat, K, ...
+    posed: dict  # Avatar.deform's output: means [B,N,3], ... (sheet=skirt: sheet_verts [B,P,3])
+    avatar: nn.Module  # model/avatar.py Avatar: body, skinning, sheet, ...
+    step: int
 
-    def __init__(
-        self,
-        lambda_mask: float = 0.1,
-        lambda_perceptual: float = 0.01,
-        lambda_dssim: float = 0.2,
-        lambda_skin_start: float = 10.0,
-        lambda_skin_end: float = 0.1,
-        mask_loss: Literal["mse", "bce", "l1"] = "mse",
-        perceptual: Literal["auto", "vgg19", "dssim"] = "auto",
-        vgg19_weights: str | None = None,
-    ) -> None:
+
+def total_loss(terms: Mapping[str, nn.Module], out: TrainingRender) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """The training loss: the sum of the configured terms in their order (conf/loss plus the silhouette group), each
+    term(out) -> (its weighted value, {name: detached value to log}). A term that is off is not in `terms`."""
+    total, logs = None, {}
+    for term in terms.values():
+        value, logged = term(out)
+        total = value if total is None else total + value
+        logs.update(logged)
+    return total, logs
+
+
+class ColourL1(nn.Module):
+    """weight x mean |rendered - ground-truth colour| (the paper's L1)."""
+
+    def __init__(self, weight: float = 1.0) -> None:
         super().__init__()
-        if perceptual not in ("auto", "vgg19", "dssim"):
-            raise ValueError(f"loss.perceptual: expected 'auto', 'vgg19' or 'dssim', got {perceptual!r}")
-        if mask_loss not in ("mse", "bce", "l1"):
-            raise ValueError(f"loss.mask_loss: expected 'mse', 'bce' or 'l1', got {mask_loss!r}")
-        have_vgg = bool(vgg19_weights) and os.path.isfile(str(vgg19_weights))
-        if perceptual == "vgg19" and not have_vgg:
-            raise FileNotFoundError(f"loss.vgg19_weights: perceptual=vgg19 needs a torchvision vgg19 .pth, got {vgg19_weights!r}")
-        self.perceptual_kind = "vgg19" if (perceptual == "vgg19" or (perceptual == "auto" and have_vgg)) else "dssim"
-        self.vgg = VGG19Loss(str(vgg19_weights)) if self.perceptual_kind == "vgg19" else None
-        self.lambda_mask = lambda_mask
-        self.lambda_perceptual = lambda_perceptual if self.perceptual_kind == "vgg19" else lambda_dssim
-        self.lambda_skin_start = lambda_skin_start
-        self.lambda_skin_end = lambda_skin_end
-        self.mask_loss = mask_loss
+        self.weight = float(weight)
 
-    def lambda_skin(self, decayed: bool) -> float:
-        return self.lambda_skin_end if decayed else self.lambda_skin_start
+    def forward(self, out: TrainingRender) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        v = (out.rgb - out.batch["image"]).abs().mean()
+        return self.weight * v, {"l1": v.detach()}
 
-    def forward(
-        self,
-        pred_rgb: torch.Tensor,
-        pred_alpha: torch.Tensor,
-        gt_rgb: torch.Tensor,
-        gt_mask: torch.Tensor,
-        *,
-        skinning: nn.Module | None = None,
-        skin_points: torch.Tensor | None = None,
-        skin_weights: torch.Tensor | None = None,
-        skin_decayed: bool = False,
-    ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-        """pred_rgb, gt_rgb [B,H,W,3]; pred_alpha, gt_mask [B,H,W,1]; skin samples [P,3], [P,24] -> (total, terms)."""
-        terms: dict[str, torch.Tensor] = {"l1": (pred_rgb - gt_rgb).abs().mean()}
-        a = pred_alpha
-        if self.mask_loss == "mse":
-            terms["mask"] = ((a - gt_mask) ** 2).mean()
-        elif self.mask_loss == "l1":
-            terms["mask"] = (a - gt_mask).abs().mean()
+
+class MaskLoss(nn.Module):
+    """weight x the rendered alpha's disagreement with the mask: mean squared (mse), absolute (l1) or BCE (bce)."""
+
+    def __init__(self, weight: float = 0.1, kind: Literal["mse", "bce", "l1"] = "mse") -> None:
+        super().__init__()
+        if kind not in ("mse", "bce", "l1"):
+            raise ValueError(f"loss.mask.kind: expected 'mse', 'bce' or 'l1', got {kind!r}")
+        self.weight, self.kind = float(weight), kind
+
+    def forward(self, out: TrainingRender) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        a, m = out.alpha, out.batch["mask"]
+        if self.kind == "mse":
+            v = ((a - m) ** 2).mean()
+        elif self.kind == "l1":
+            v = (a - m).abs().mean()
         else:
-            terms["mask"] = F.binary_cross_entropy(a.clamp(1e-5, 1 - 1e-5), gt_mask)
-        if self.lambda_perceptual > 0:
-            x = pred_rgb.permute(0, 3, 1, 2)
-            y = gt_rgb.permute(0, 3, 1, 2)
-            if self.vgg is not None:
-                terms["perceptual"] = self.vgg(x, y)
-            else:
-                terms["perceptual"] = dssim(x, y)  # kornia's ssim_loss(x, y, 11); fused Numba kernel on the CPU
-        total = terms["l1"] + self.lambda_mask * terms["mask"]
-        if "perceptual" in terms:
-            total = total + self.lambda_perceptual * terms["perceptual"]
-        if skinning is not None and skin_points is not None and skin_weights is not None:
-            terms["skin"] = skinning_loss(skinning, skin_points, skin_weights)
-            total = total + self.lambda_skin(skin_decayed) * terms["skin"]
-        terms = {k: v.detach() for k, v in terms.items()}
-        return total, terms
+            v = F.binary_cross_entropy(a.clamp(1e-5, 1 - 1e-5), m)
+        return self.weight * v, {"mask": v.detach()}
+
+
+class PerceptualLoss(nn.Module):
+    """weight x VGG19 feature loss when `vgg19_weights` points to a file (kind auto or vgg19), else
+    dssim_weight x D-SSIM = (1 - SSIM)/2 (11x11 window; VGG feature losses and D-SSIM differ in scale, so each has
+    its own weight). `kind` records which one is used ("vgg19" | "dssim")."""
+
+    def __init__(self, weight: float = 0.01, dssim_weight: float = 0.2, kind: Literal["auto", "vgg19", "dssim"] = "auto",
+                 vgg19_weights: str | None = None) -> None:
+        super().__init__()
+        if kind not in ("auto", "vgg19", "dssim"):
+            raise ValueError(f"loss.perceptual.kind: expected 'auto', 'vgg19' or 'dssim', got {kind!r}")
+        have_vgg = bool(vgg19_weights) and os.path.isfile(str(vgg19_weights))
+        if kind == "vgg19" and not have_vgg:
+            raise FileNotFoundError(f"loss.perceptual.vgg19_weights: kind=vgg19 needs a torchvision vgg19 .pth, got "
+                                    f"{vgg19_weights!r}")
+        self.kind = "vgg19" if (kind == "vgg19" or (kind == "auto" and have_vgg)) else "dssim"
+        self.vgg = VGG19Loss(str(vgg19_weights)) if self.kind == "vgg19" else None
+        self.weight = float(weight if self.kind == "vgg19" else dssim_weight)
+
+    def forward(self, out: TrainingRender) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        x, y = out.rgb.permute(0, 3, 1, 2), out.batch["image"].permute(0, 3, 1, 2)
+        # kornia's ssim_loss(x, y, 11); fused Numba kernel on the CPU
+        v = self.vgg(x, y) if self.kind == "vgg19" else dssim(x, y)
+        return self.weight * v, {"perceptual": v.detach()}
+
+
+class SkinningLoss(nn.Module):
+    """The paper's L_skin: the skinning field against the body's weights at `samples` points drawn from the canonical
+    body surface each step; weight until step `switch`, weight_after from then on (3DGS-Avatar's 10 -> 0.1)."""
+
+    def __init__(self, weight: float = 10.0, weight_after: float = 0.1, switch: int = 0, samples: int = 1024) -> None:
+        super().__init__()
+        self.weight, self.weight_after, self.switch = float(weight), float(weight_after), int(switch)
+        self.samples = int(samples)
+        self._surface: tuple[torch.Tensor, torch.Tensor] | None = None
+
+    def weight_at(self, step: int) -> float:
+        return self.weight_after if step >= self.switch else self.weight
+
+    def targets(self, body, like: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """`samples` surface points [S,3] and the body's weights there [S,24], from a fixed pool of 20x as many."""
+        if self._surface is None or self._surface[0].device != like.device or self._surface[0].dtype != like.dtype:
+            gen = torch.Generator().manual_seed(1234)
+            verts = body.canonical_vertices().detach()
+            self._surface = sample_surface(verts, body.faces, body.skin_weights, 20 * self.samples, gen)
+        pts, w = self._surface  # on the body's device, in its dtype
+        idx = torch.randint(0, pts.shape[0], (self.samples,), device=pts.device)
+        return pts[idx], w[idx]
+
+    def forward(self, out: TrainingRender) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        pts, w = self.targets(out.avatar.body, out.rgb)
+        v = skinning_loss(out.avatar.skinning, pts, w)
+        return self.weight_at(out.step) * v, {"skin": v.detach()}
+
+
+class SheetStrain(nn.Module):
+    """weight x the garment sheet's stretch down the garment beyond sheet.strain_free (model/sheet.py `strain`),
+    on the posed vertices; only with sheet=skirt: `'+loss.sheet_strain={_target_:realityavatar.losses.SheetStrain}'`."""
+
+    def __init__(self, weight: float = 1.0) -> None:
+        super().__init__()
+        self.weight = float(weight)
+
+    def forward(self, out: TrainingRender) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        v = out.avatar.sheet.strain(out.posed["sheet_verts"])
+        return self.weight * v, {"sheet_strain": v.detach()}
 
 
 def project_points(points: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -186,10 +235,19 @@ class SilhouetteChamfer(nn.Module):
             raise ValueError("silhouette: weights must be >= 0")
         self.weight, self.outside_weight, self.coverage_weight = float(weight), float(outside_weight), float(coverage_weight)
         self.covered_alpha, self.max_pixels, self.near = float(covered_alpha), int(max_pixels), float(near)
-        self.last_pulled: torch.Tensor | None = None  # set by forward: the Gaussians uncovered pixels pulled
 
-    def forward(self, means: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor, mask: torch.Tensor,
-                alpha: torch.Tensor) -> dict[str, torch.Tensor]:
+    def forward(self, out: TrainingRender) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """Both terms of every sample's image, averaged over the batch, weighted."""
+        B = out.rgb.shape[0]
+        sil: dict[str, torch.Tensor] = {}
+        for b in range(B):
+            for k, v in self.image_terms(out.posed["means"][b], out.batch["viewmat"][b], out.batch["K"][b],
+                                         out.batch["mask"][b], out.alpha[b]).items():
+                sil[k] = sil.get(k, 0.0) + v / B
+        return self.total(sil), {k: v.detach() for k, v in sil.items()}
+
+    def image_terms(self, means: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor, mask: torch.Tensor,
+                    alpha: torch.Tensor) -> dict[str, torch.Tensor]:
         """means [N,3] posed, viewmat [4,4], K [3,3], mask / alpha [H,W,1] -> {"sil_outside", "sil_coverage"}."""
         H = mask.shape[0]
         uv, z = project_points(means, viewmat, K)
@@ -205,75 +263,9 @@ class SilhouetteChamfer(nn.Module):
             pix = need.flip(-1).to(uv.dtype)  # [P,2] (x,y)
             nearest = nearest_index(pix, uv.detach())  # [P]
             out["sil_coverage"] = (((uv[nearest] - pix) / scale) ** 2).sum(-1).mean()
-            # Which Gaussians the uncovered pixels pulled (indices into `means`), for density=coverage.
-            self.last_pulled = front.nonzero().squeeze(-1)[nearest.to(front.device)].detach()
         else:
             out["sil_coverage"] = means.new_zeros(())
-            self.last_pulled = None
         return out
 
     def total(self, terms: dict[str, torch.Tensor]) -> torch.Tensor:
         return self.weight * (self.outside_weight * terms["sil_outside"] + self.coverage_weight * terms["sil_coverage"])
-
-
-class NoSilhouette(nn.Module):
-    """Ablation: no long-range silhouette term (only the per-pixel mask loss supervises the silhouette)."""
-
-    weight = 0.0
-
-    def forward(self, means, viewmat, K, mask, alpha) -> dict[str, torch.Tensor]:
-        return {}
-
-    def total(self, terms: dict[str, torch.Tensor]) -> torch.Tensor:
-        return torch.zeros(())  # never added by the module: forward returns no terms
-
-
-class FlowLoss(nn.Module):
-    """Image-flow supervision of the Gaussians' motion (`flow=dis`): against sliding over the garment.
-
-    Each training image (frame t, camera c) comes with the optical flow to camera c's image at t - frame_gap
-    (`data.flow.flow_pair`: DIS both ways, forward-backward checked, inside the eroded mask). The module deforms the
-    Gaussians for that earlier frame too (no gradient), projects both positions into camera c and renders each
-    Gaussian's image displacement (u_{t-gap} - u_t, in image heights, clamped to +-max_motion) with the image's blend
-    weights, detached (a second raster pass), so the term moves Gaussians and never fades or shrinks them. The term
-    is the L1 between that rendered flow and alpha x the image flow over the valid pixels (mean over them): a
-    Gaussian is pulled to move with the material under it, also along the cloth, where the photometric loss is blind
-    once the texture is blurred.
-    """
-
-    def __init__(self, weight: float = 1.0, frame_gap: int = 1, preset: str = "medium", fb_tol: float = 1.0,
-                 erode: int = 1, source: str = "dis", dir: str | None = None, max_motion: float = 0.1,
-                 eps_px: float = 0.5, prev_grad: bool = False) -> None:
-        super().__init__()
-        from realityavatar.data.flow import FlowSpec
-
-        if not (weight >= 0):
-            raise ValueError(f"flow.weight: expected a number >= 0, got {weight!r}")
-        if not (max_motion > 0):
-            raise ValueError(f"flow.max_motion: expected a number > 0 (image heights), got {max_motion!r}")
-        if not (eps_px > 0):
-            raise ValueError(f"flow.eps_px: expected a number > 0 (pixels), got {eps_px!r}")
-        self.weight, self.max_motion, self.eps_px = float(weight), float(max_motion), float(eps_px)
-        self.prev_grad = bool(prev_grad)
-        self.spec = FlowSpec(frame_gap=int(frame_gap), source=str(source), dir=dir, preset=str(preset),
-                             fb_tol=float(fb_tol), erode=int(erode))
-
-    def forward(self, pred: torch.Tensor, alpha: torch.Tensor, flow: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
-        """pred [B,H,W,2] rendered displacement (image heights), alpha [B,H,W,1], flow [B,H,W,2] (pixels),
-        valid [B,H,W,1] -> mean Charbonnier penalty over valid pixels, in image heights (0 when none).
-
-        Per pixel sqrt(|e|^2 + eps^2) - eps with e the end-point error in pixels: like L1 for errors well above
-        eps_px, quadratic below, so a Gaussian that already moves with the flow gets no push. (With plain L1 the
-        sign of a vanishing error drove every Gaussian at full strength, and Adam made that noise a random walk:
-        with the exact flow, seed 0, held-out IoU at rest fell from 0.94 to 0.67.)"""
-        H = flow.shape[1]
-        e = (pred * H - alpha.detach() * flow) * valid  # pixels
-        pen = (e.square().sum(-1, keepdim=True) + self.eps_px**2).sqrt() - self.eps_px
-        return (pen * valid).sum() / valid.sum().clamp_min(1.0) / H
-
-
-class NoFlow(nn.Module):
-    """No flow term (the default): the training samples carry no flow and the module renders no displacement."""
-
-    weight = 0.0
-    spec = None

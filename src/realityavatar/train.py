@@ -112,10 +112,10 @@ def _run(cfg: DictConfig, choices: dict | None, out_dir: Path, resume_from: Path
         "train_seconds": state.train_seconds(),
         "iterations": int(trainer.global_step),
         "num_gaussians": int(module.gaussians.num_points),  # the free Gaussians (density control's)
-        **({"num_sheet_gaussians": int(module.sheet.num_points), "sheet": module.run_info.get("sheet", {})}
-           if getattr(module, "sheet", None) is not None else {}),
+        "num_sheet_gaussians": int(module.sheet.num_points),  # sheet=skirt's (none: 0)
+        "sheet": module.run_info.get("sheet", {}),
         "num_parameters": module.num_parameters(),
-        "perceptual": getattr(module.loss_fn, "perceptual_kind", "unknown"),
+        "perceptual": module.losses["perceptual"].kind if "perceptual" in module.losses else "none",
         "lpips": module.lpips_status,
         # From a real training render: Lightning's teardown has moved the module back to the CPU by now, and gsplat
         # may have fallen back to torch.

@@ -7,9 +7,8 @@ frame, frame_idx, view, split.
 from __future__ import annotations
 
 import logging
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 import pytorch_lightning as pl
@@ -26,9 +25,6 @@ from realityavatar.data.records import (
     load_record,
 )
 from realityavatar.geometry import camera_centres
-
-if TYPE_CHECKING:
-    from realityavatar.data.flow import FlowSpec
 
 log = logging.getLogger(__name__)
 READERS = ("i3d", "zju")
@@ -49,7 +45,6 @@ class AvatarDataset(Dataset):
         image_scale: float = 1.0,
         undistort: bool = True,
         cache_images: bool = False,
-        flow: FlowSpec | None = None,
     ) -> None:
         self.records = list(records)
         self.poses = poses
@@ -61,11 +56,6 @@ class AvatarDataset(Dataset):
         self.undistort = undistort
         self.cache_images = cache_images
         self._cache: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
-        # flow=dis: each sample also carries the flow to the same camera's image frame_gap frames earlier (computed
-        # once per image and kept: float16 flow + valid mask, ~6 bytes a pixel) and that frame's pose window.
-        self.flow = flow
-        self._by_frame_view = {(r.frame, r.view): j for j, r in enumerate(self.records)}
-        self._flow_cache: dict[int, tuple[np.ndarray, np.ndarray]] = {}
 
     def __len__(self) -> int:
         return len(self.records)
@@ -100,46 +90,15 @@ class AvatarDataset(Dataset):
             "view": int(rec.view),
             "split": self.split,
         }
-        if self.flow is not None:
-            out.update(self._flow_item(i, rec, poses, transl))
         return out
-
-    def _flow_item(self, i: int, rec, poses: torch.Tensor, transl: torch.Tensor) -> dict:
-        """flow [H,W,2] (pixels, to the earlier image), flow_valid [H,W,1], prev_poses / prev_transl (the pose window
-        ending frame_gap frames earlier). A first frame (no earlier image of its camera) has no valid flow pixel."""
-        from realityavatar.data.flow import flow_pair, read_flow_file
-
-        j = self._by_frame_view.get((rec.frame - self.flow.frame_gap, rec.view))
-        hit = self._flow_cache.get(i)
-        if hit is None:
-            img_t, m_t, _ = self._decoded(i)
-            H, W = m_t.shape[:2]
-            if j is None:
-                hit = (np.zeros((H, W, 2), np.float16), np.zeros((H, W), bool))
-            elif self.flow.source == "files":
-                f, v = read_flow_file(self.flow.dir, rec.view, rec.frame, (H, W))
-                hit = (f, v & m_t)
-            else:
-                img_p, m_p, _ = self._decoded(j)
-                bg = (self.background.numpy() * 255.0).astype(np.float32)
-                comp = lambda im, m: (im * m[..., None] + bg * (1 - m[..., None])).astype(np.uint8)  # noqa: E731
-                f, v = flow_pair(comp(img_t, m_t.astype(np.float32)), m_t, comp(img_p, m_p.astype(np.float32)), m_p,
-                                 self.flow)
-                hit = (f.astype(np.float16), v)
-            self._flow_cache[i] = hit
-        f, v = hit
-        prev = rec.frame - self.flow.frame_gap if j is not None else rec.frame
-        prev_poses, prev_transl = self.poses.window(prev, self.window_len, self.window_step)
-        return {"flow": torch.from_numpy(f.astype(np.float32)), "flow_valid": torch.from_numpy(v).float()[..., None],
-                "prev_poses": prev_poses, "prev_transl": prev_transl}
 
 
 class EpochShuffle(torch.utils.data.Sampler):
     """Random order that depends only on (seed, epoch), with a position: a resumed run continues the epoch it
     stopped in with the samples it had not seen yet, in the order the uninterrupted run would have used."""
 
-    def __init__(self, n: int, seed: int) -> None:
-        self.n, self.seed = int(n), int(seed)
+    def __init__(self, frames: Sequence[int], seed: int) -> None:
+        self.n, self.seed = len(frames), int(seed)
         self.epoch, self.consumed = 0, 0  # consumed: samples of `epoch` already handed out
 
     def set_epoch(self, epoch: int) -> None:  # Lightning calls this at every epoch start
@@ -158,6 +117,9 @@ class EpochShuffle(torch.utils.data.Sampler):
             i = order[self.consumed]
             self.consumed += 1
             yield i
+
+    def observe(self, indices: torch.Tensor, losses: torch.Tensor) -> None:
+        """The uniform order ignores the training losses (HardFrameSampler draws by them)."""
 
     def state_dict(self) -> dict:
         return {"epoch": self.epoch, "consumed": self.consumed, "n": self.n, "seed": self.seed}
@@ -185,7 +147,7 @@ class HardFrameSampler(EpochShuffle):
     """
 
     def __init__(self, frames: Sequence[int], seed: int, mix: float = 0.3, power: float = 2.0, ema: float = 0.3) -> None:
-        super().__init__(len(frames), seed)
+        super().__init__(frames, seed)
         if not 0.0 <= float(mix) <= 1.0:
             raise ValueError(f"data.sampler.mix must be in [0, 1], got {mix!r}")
         if not 0.0 < float(ema) <= 1.0:
@@ -249,74 +211,27 @@ class HardFrameSampler(EpochShuffle):
             self.observed = int(state.get("observed", 0))
 
 
-class FrameViewBatches(torch.utils.data.Sampler):
-    """Batches of one training frame seen from several cameras (data.sampler=frame_views): every frame once per
-    epoch in EpochShuffle's seeded, resumable order, each batch `views` of that frame's images (all of them when
-    views is null or at least their number; otherwise a subset drawn from a generator seeded by (seed, epoch, k)).
-    The module deforms the frame once and renders it from every camera of the batch, so one step's deformation
-    update sees the frame's silhouettes from all sides instead of one.
-    """
-
-    def __init__(self, frames: Sequence[int], seed: int, views: int | None = None) -> None:
-        if views is not None and int(views) < 1:
-            raise ValueError(f"data.sampler.views must be null (all cameras of a frame) or >= 1, got {views!r}")
-        ids = sorted({int(f) for f in frames})
-        col = {f: j for j, f in enumerate(ids)}
-        frame_of = [col[int(f)] for f in frames]
-        self.images_of = [[i for i, j in enumerate(frame_of) if j == c] for c in range(len(ids))]
-        self.views = None if views is None else int(views)
-        self.sampler = EpochShuffle(len(ids), seed)  # Lightning calls batch_sampler.sampler.set_epoch
-
-    def __len__(self) -> int:
-        return len(self.sampler)
-
-    def __iter__(self):
-        for j in self.sampler:
-            imgs = self.images_of[j]
-            if self.views is None or self.views >= len(imgs):
-                yield list(imgs)
-                continue
-            s = self.sampler
-            g = torch.Generator().manual_seed((s.seed * 1_000_003 + s.epoch) * 1_000_033 + s.consumed)
-            pick = torch.randperm(len(imgs), generator=g)[: self.views].sort().values.tolist()
-            yield [imgs[i] for i in pick]
-
-    def state_dict(self) -> dict:
-        return self.sampler.state_dict()
-
-    def load_state_dict(self, state: dict) -> None:
-        self.sampler.load_state_dict(state)
-
-
 class SamplerFeedback(pl.Callback):
-    """Passes each training step's per-image losses to the training sampler when it wants them (`observe`)."""
+    """Passes each training step's per-image losses to the training sampler (`observe`)."""
 
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
         sampler = getattr(trainer.datamodule, "train_sampler", None) if trainer.datamodule is not None else None
-        if sampler is None or not hasattr(sampler, "observe"):
+        if sampler is None:
             return
         if not isinstance(outputs, dict) or "image_loss" not in outputs or "index" not in batch:
             return
         sampler.observe(batch["index"].detach().cpu(), outputs["image_loss"].detach().cpu())
 
 
-SAMPLERS = ("uniform", "hard_frames", "frame_views")
-
-
 class ResumableLoader(DataLoader):
     """A DataLoader whose position Lightning saves in the checkpoint and restores on resume (its sampler's state)."""
 
-    def _stateful(self):
-        return self.batch_sampler if isinstance(self.batch_sampler, FrameViewBatches) else self.sampler
-
     def state_dict(self) -> dict:
-        s = self._stateful()
-        return s.state_dict() if hasattr(s, "state_dict") else {}
+        return self.sampler.state_dict()
 
     def load_state_dict(self, state: dict) -> None:
-        s = self._stateful()
-        if state and hasattr(s, "load_state_dict"):
-            s.load_state_dict(state)
+        if state:
+            self.sampler.load_state_dict(state)
 
 
 class AvatarDataModule(pl.LightningDataModule):
@@ -364,7 +279,7 @@ class AvatarDataModule(pl.LightningDataModule):
         zju_novel_pose_frames: Sequence[int] | None = None,
         check_images: bool = True,
         shuffle_seed: int | None = None,
-        sampler: dict | None = None,
+        sampler: Callable[..., EpochShuffle] = EpochShuffle,
     ) -> None:
         super().__init__()
         if reader not in READERS:
@@ -400,20 +315,10 @@ class AvatarDataModule(pl.LightningDataModule):
             "novel_pose": None if zju_novel_pose_frames is None else list(zju_novel_pose_frames),
         }
         self.check_images = bool(check_images)
-        self.sampler = dict(sampler or {"kind": "uniform"})
-        self.flow: FlowSpec | None = None  # set from the run's `flow` group (build_data) before setup
-        kind = self.sampler.pop("kind", "uniform")
-        if kind not in SAMPLERS:
-            raise ValueError(f"data.sampler.kind: unknown sampler {kind!r}; expected one of {SAMPLERS}")
-        options = {"uniform": set(), "hard_frames": {"mix", "power", "ema"}, "frame_views": {"views"}}[kind]
-        unknown = set(self.sampler) - options
-        if unknown:
-            raise ValueError(f"data.sampler: unknown option(s) {sorted(unknown)} for kind {kind!r} (it takes "
-                             f"{sorted(options) or 'no options'})")
-        if kind == "frame_views" and int(batch_size) != 1:
-            raise ValueError(f"data.batch_size={batch_size}: data.sampler=frame_views makes each batch one frame's "
-                             "cameras (data.sampler.views); leave data.batch_size at 1")
-        self.sampler_kind = kind
+        # the training order: a sampler class (or hydra partial, conf/sampler) called with (frames, seed) at set-up
+        self.sampler = sampler
+        if not callable(sampler):
+            raise TypeError(f"data.sampler: expected a sampler (conf/sampler, _target_ + _partial_: true), got {sampler!r}")
         self.train_sampler: EpochShuffle | None = None
         self.shuffle_seed = shuffle_seed  # None: torch.initial_seed() at set-up (the run's seed_everything seed)
         self.scene: SceneData | None = None
@@ -506,18 +411,8 @@ class AvatarDataModule(pl.LightningDataModule):
         kw = {"train_frame_index": frame_index, "window_len": self.window_len, "window_step": self.window_step,
               "background": self.background, "image_scale": self.image_scale, "undistort": self.undistort,
               "cache_images": self.cache_images}
-        self.datasets = {s: AvatarDataset(recs, scene.poses, s, **kw, flow=self.flow if s == "train" else None)
-                         for s, recs in selected.items() if recs}
+        self.datasets = {s: AvatarDataset(recs, scene.poses, s, **kw) for s, recs in selected.items() if recs}
         self.test_split_names = [s for s in ("novel_view", "novel_pose") if s in self.datasets]
-        if self.flow is not None and "train" in self.datasets:
-            ds = self.datasets["train"]
-            paired = sum((r.frame - self.flow.frame_gap, r.view) in ds._by_frame_view for r in ds.records)
-            log.info("flow: %d of %d training images have the same camera's image %d frame(s) earlier",
-                     paired, len(ds), self.flow.frame_gap)
-            if paired == 0:
-                raise ValueError(f"flow.frame_gap={self.flow.frame_gap}: no training image has its camera's image "
-                                 f"{self.flow.frame_gap} frame(s) earlier (training frames {self.train_frame_ids[:5]}"
-                                 "...); set flow.frame_gap to the training frames' spacing or flow=none")
         if self.shuffle_seed is None:
             self.shuffle_seed = int(torch.initial_seed()) % (2**31)
         if self.check_images:
@@ -579,16 +474,7 @@ class AvatarDataModule(pl.LightningDataModule):
         # resumed run restores that RNG and must see the same stream as the uninterrupted run).
         gen = torch.Generator().manual_seed(int(self.shuffle_seed or 0))
         if shuffle:
-            seed = self.shuffle_seed or 0
-            if self.sampler_kind == "frame_views":
-                batches = FrameViewBatches([r.frame for r in ds.records], seed, **self.sampler)
-                self.train_sampler = batches
-                return ResumableLoader(ds, batch_sampler=batches, num_workers=self.num_workers,
-                                       persistent_workers=self.num_workers > 0, generator=gen)
-            if self.sampler_kind == "hard_frames":
-                sampler = HardFrameSampler([r.frame for r in ds.records], seed, **self.sampler)
-            else:
-                sampler = EpochShuffle(len(ds), seed)
+            sampler = self.sampler([r.frame for r in ds.records], self.shuffle_seed or 0)
             self.train_sampler = sampler
             return ResumableLoader(ds, batch_size=self.batch_size, sampler=sampler,
                                    num_workers=self.num_workers, persistent_workers=self.num_workers > 0,

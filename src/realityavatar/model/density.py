@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import torch
 from torch import nn
@@ -121,7 +121,7 @@ class DensityControl:
         self.count = self.count.to(dev)
         W, H = image_size
         # gsplat's rule: the loss is a mean over the batch's images, so each image's means2d gradient is scaled back
-        # by their number (C cameras in one meta, or one meta per sample of a multi-image batch: frame_views).
+        # by their number (C cameras in one meta, or one meta per sample of a multi-image batch).
         # A render may hold more Gaussians than these N (a garment sheet's follow the free ones): the first N are
         # the ones density control edits.
         n_images = sum(int(m["means2d"].reshape(-1, m["means2d"].shape[-2], 2).shape[0]) for m in metas
@@ -237,57 +237,3 @@ class DensityControl:
         cap = float(inverse_sigmoid(torch.tensor(min(2 * self.prune_opacity, 0.99))))
         swapped = gaussians.replace({"opacity_logits": gaussians.opacity_logits.clamp_max(cap)})
         _swap_in_optimizer(optimizer, swapped, lambda n, v: torch.zeros_like(v))
-
-
-
-class CoverageDensityControl(DensityControl):
-    """DensityControl plus growth where the mask is not covered (`density=coverage`).
-
-    The silhouette chamfer finds, for every mask pixel the prediction leaves uncovered, its nearest projected
-    Gaussian centre and pulls it (`losses.SilhouetteChamfer`); the module passes those indices here
-    (`observe_coverage`). A Gaussian pulled by at least `coverage_min` uncovered pixels since the last refine is
-    cloned there (the `coverage_clones` most pulled ones, within max_points), before the gradient-based
-    clone/split/prune: a flaring skirt's surface grows, and the Gaussians seeded on the legs that follow it spread
-    apart and leave gaps (measured with the flow term, README "Flow supervision").
-    """
-
-    def __init__(self, coverage_clones: int = 256, coverage_min: int = 4, **kwargs) -> None:
-        super().__init__(**kwargs)
-        if int(coverage_clones) < 0 or int(coverage_min) < 1:
-            raise ValueError(f"density: coverage_clones must be >= 0 and coverage_min >= 1, got {coverage_clones}, "
-                             f"{coverage_min}")
-        self.coverage_clones, self.coverage_min = int(coverage_clones), int(coverage_min)
-        self.demand: torch.Tensor | None = None  # [N] uncovered mask pixels that pulled each Gaussian
-
-    def state_dict(self) -> dict:
-        return {**super().state_dict(), "demand": self.demand}
-
-    def load_state_dict(self, state: dict) -> None:
-        super().load_state_dict(state)
-        self.demand = state.get("demand")
-
-    @torch.no_grad()
-    def observe_coverage(self, indices: torch.Tensor, num_points: int) -> None:
-        """indices [P] (long): the nearest Gaussian of each uncovered mask pixel of one image."""
-        if self.demand is None or self.demand.shape[0] != num_points:
-            self.demand = torch.zeros(num_points, device=indices.device)
-        self.demand = self.demand.to(indices.device)
-        self.demand += torch.bincount(indices, minlength=num_points)[:num_points].to(self.demand.dtype)
-
-    def refine(self, gaussians: CanonicalGaussians, optimizer: torch.optim.Optimizer | None, step: int) -> dict:
-        N = gaussians.num_points
-        n_cov = 0
-        if self.demand is not None and self.demand.shape[0] == N and self.coverage_clones > 0:
-            room = max(self.max_points - N, 0)
-            cand = (self.demand >= self.coverage_min).nonzero().squeeze(-1)
-            cand = cand[self.demand[cand].argsort(descending=True)[: min(self.coverage_clones, room)]]
-            if cand.numel():
-                mask = torch.zeros(N, dtype=torch.bool, device=gaussians.means.device)
-                mask[cand] = True
-                self.duplicate(gaussians, optimizer, mask)
-                n_cov = int(cand.numel())
-                pad = self.grad2d.new_zeros(n_cov)
-                self.grad2d, self.count = torch.cat([self.grad2d, pad]), torch.cat([self.count, pad])
-        stats = super().refine(gaussians, optimizer, step)
-        self.demand = torch.zeros(gaussians.num_points, device=gaussians.means.device)
-        return {**stats, "coverage_cloned": n_cov}

@@ -16,9 +16,6 @@ TORSO = (3, 6, 9, 12, 15)
 PART_NAMES = ("left_arm", "right_arm", "legs", "torso")
 # Feature sizes: 6 per joint (6D rotation); legs + hip-to-hip rotation; torso + root orientation (6) + translation (3).
 PART_DIMS = {"left_arm": 6 * 5, "right_arm": 6 * 5, "legs": 6 * 8 + 6, "torso": 6 * 5 + 6 + 3}
-# `dynamics: deltas` appends each part's change since the previous window frame: the same sizes again
-# (joint 6D rotations, hip-to-hip rotation; the root's turn in its own frame and its move in the current root frame).
-DYNAMICS = ("none", "deltas")
 
 
 def _rot6d(R: torch.Tensor) -> torch.Tensor:
@@ -27,31 +24,13 @@ def _rot6d(R: torch.Tensor) -> torch.Tensor:
     return (R[..., :, :2] - eye).flatten(-2)
 
 
-def _check_dynamics(dynamics: str) -> None:
-    if dynamics not in DYNAMICS:
-        raise ValueError(f"encoder.dynamics: expected one of {DYNAMICS}, got {dynamics!r}")
-
-
-def part_dims(dynamics: str = "none") -> dict[str, int]:
-    """Feature size per part: PART_DIMS, doubled with `dynamics: deltas`."""
-    _check_dynamics(dynamics)
-    return {p: d * (2 if dynamics == "deltas" else 1) for p, d in PART_DIMS.items()}
-
-
-def pose_features(poses: torch.Tensor, transl: torch.Tensor, dynamics: str = "none") -> dict[str, torch.Tensor]:
+def pose_features(poses: torch.Tensor, transl: torch.Tensor) -> dict[str, torch.Tensor]:
     """poses [B,T,24,3] axis-angle (last frame = current), transl [B,T,3] -> {part: [B,T,D_part]}.
 
     The global orientation and translation of every window frame are expressed in the current frame's root
     frame (R_root(t)^T R_root(t_k), R_root(t)^T (transl_k - transl_t)): invariant to absolute heading and
     position, but carrying spin and velocity history (a spin that stops abruptly changes only these).
-
-    dynamics="deltas" appends, per window frame k, what changed since frame k-1 (zero for the oldest frame), as
-    SeqAvatar and Dyco feed pose deltas: each joint's 6D rotation and the hip-to-hip rotation minus frame k-1's,
-    the root's turn R_root(k-1)^T R_root(k) in 6D (in the body's own frame, so heading-invariant) and its move
-    R_root(t)^T (transl_k - transl_{k-1}) in the current root frame. The current frame's deltas are its velocity
-    over one window step, which the "w/o LSTM" variant (current frame only) then sees too.
     """
-    _check_dynamics(dynamics)
     check_pose(poses, transl, "pose_features")
     if poses.ndim != 4 or transl.shape != poses.shape[:2] + (3,):
         raise ValueError(
@@ -64,21 +43,11 @@ def pose_features(poses: torch.Tensor, transl: torch.Tensor, dynamics: str = "no
     rel_transl = (R_root_t.transpose(-1, -2) @ (transl - transl[:, -1:])[..., None]).squeeze(-1)  # [B,T,3]
     hips = _rot6d(R[:, :, 1].transpose(-1, -2) @ R[:, :, 2])  # [B,T,6] right hip in the left hip's frame
     B, T = poses.shape[:2]
-    feats = {
+    return {
         "left_arm": six[:, :, list(LEFT_ARM)].reshape(B, T, -1),
         "right_arm": six[:, :, list(RIGHT_ARM)].reshape(B, T, -1),
         "legs": torch.cat([six[:, :, list(LEGS)].reshape(B, T, -1), hips], -1),
         "torso": torch.cat([six[:, :, list(TORSO)].reshape(B, T, -1), rel_orient, rel_transl], -1),
-    }
-    if dynamics == "none":
-        return feats
-    R0 = R[:, :, 0]
-    turn = _rot6d(R0[:, :-1].transpose(-1, -2) @ R0[:, 1:])  # [B,T-1,6] root turn since the previous window frame
-    move = rel_transl[:, 1:] - rel_transl[:, :-1]  # [B,T-1,3] root move, current root frame
-    deltas = {p: f[:, 1:] - f[:, :-1] for p, f in feats.items() if p != "torso"}
-    deltas["torso"] = torch.cat([(six[:, 1:] - six[:, :-1])[:, :, list(TORSO)].reshape(B, T - 1, -1), turn, move], -1)
-    return {
-        p: torch.cat([f, torch.cat([torch.zeros_like(f[:, :1]), deltas[p]], 1)], -1) for p, f in feats.items()
     }
 
 
@@ -111,29 +80,11 @@ class LatentBoneEncoder(nn.Module):
         out_dim: int = 128,
         num_layers: int = 2,
         latent_init_std: float = 0.1,
-        dynamics: str = "none",
-        fourier_sigma: float = 0.0,
-        fourier_features: int = 64,
     ) -> None:
         super().__init__()
-        dims = part_dims(dynamics)
-        self.dynamics = dynamics
+        dims = PART_DIMS
         if num_layers < 1:
             raise ValueError(f"encoder.num_layers: expected >= 1, got {num_layers}")
-        if fourier_sigma < 0 or (fourier_sigma > 0 and fourier_features < 1):
-            raise ValueError(f"encoder.fourier_sigma must be >= 0 and encoder.fourier_features >= 1, got "
-                             f"{fourier_sigma}, {fourier_features}")
-        # fourier_sigma > 0: each part's per-frame features x also enter as sin(x W), cos(x W), W a fixed Gaussian
-        # matrix of std fourier_sigma (random Fourier features; drawn from a fixed seed, so rebuilt identically from the
-        # config and kept out of the checkpoint)
-        self.fourier_sigma = float(fourier_sigma)
-        groups = PART_NAMES if part_split else ("all",)
-        sizes = dims if part_split else {"all": sum(dims.values())}
-        gen = torch.Generator().manual_seed(0)
-        for g in groups:
-            W = torch.randn(sizes[g], fourier_features, generator=gen) * fourier_sigma if fourier_sigma > 0 else torch.zeros(0)
-            self.register_buffer(f"fourier_{g}", W, persistent=False)
-        extra = 2 * fourier_features if fourier_sigma > 0 else 0  # input columns each Fourier group adds
         self.part_split = part_split
         self.clothes_latent_dim = clothes_latent_dim
         self.out_dim = out_dim
@@ -143,11 +94,11 @@ class LatentBoneEncoder(nn.Module):
             self.register_parameter("z_c", None)
         if part_split:
             self.part_layers = nn.ModuleDict(
-                {p: nn.Sequential(nn.Linear(dims[p] + extra + clothes_latent_dim, part_dim), nn.SiLU())
+                {p: nn.Sequential(nn.Linear(dims[p] + clothes_latent_dim, part_dim), nn.SiLU())
                  for p in PART_NAMES}
             )
         else:
-            total = sum(dims.values()) + extra
+            total = sum(dims.values())
             self.input_layer = nn.Sequential(nn.Linear(total + clothes_latent_dim, 4 * part_dim), nn.SiLU())
         self.mlp = _mlp(4 * part_dim, hidden_dim, out_dim, num_layers)
 
@@ -156,20 +107,13 @@ class LatentBoneEncoder(nn.Module):
             return x
         return torch.cat([x, self.z_c.expand(x.shape[:-1] + (-1,))], -1)
 
-    def _fourier(self, x: torch.Tensor, group: str) -> torch.Tensor:
-        """x [...,D] -> [x, sin(x W), cos(x W)] with fourier_sigma > 0, else x."""
-        if self.fourier_sigma <= 0:
-            return x
-        z = x @ getattr(self, f"fourier_{group}").to(x)
-        return torch.cat([x, torch.sin(z), torch.cos(z)], -1)
-
     def forward(self, poses: torch.Tensor, transl: torch.Tensor) -> torch.Tensor:
         """poses [B,T,24,3], transl [B,T,3] -> f_p [B,T,out_dim]."""
-        feats = pose_features(poses, transl, self.dynamics)
+        feats = pose_features(poses, transl)
         if self.part_split:
-            h = torch.cat([self.part_layers[p](self._with_latent(self._fourier(feats[p], p))) for p in PART_NAMES], -1)
+            h = torch.cat([self.part_layers[p](self._with_latent(feats[p])) for p in PART_NAMES], -1)
         else:
-            h = self.input_layer(self._with_latent(self._fourier(torch.cat([feats[p] for p in PART_NAMES], -1), "all")))
+            h = self.input_layer(self._with_latent(torch.cat([feats[p] for p in PART_NAMES], -1)))
         return self.mlp(h)
 
     def param_groups(self) -> dict[str, list[nn.Parameter]]:

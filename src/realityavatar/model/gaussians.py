@@ -11,12 +11,8 @@ from torch import nn
 from realityavatar.body.base import BodyModel
 from realityavatar.geometry import sample_surface
 
-# Order matters only for readability; density control and checkpoint resizing iterate over these names (an
-# instance's `param_names`: these, plus "deform_codes" when gaussians.deform_code_dim > 0 and "normal_residuals" with
-# gaussians.normal_residual).
+# Order matters only for readability; density control and checkpoint resizing iterate over these names.
 PARAM_NAMES = ("means", "log_scales", "quats", "opacity_logits", "features")
-CODE_NAME = "deform_codes"
-NORMAL_NAME = "normal_residuals"
 
 
 def inverse_sigmoid(x: torch.Tensor) -> torch.Tensor:
@@ -39,8 +35,6 @@ class CanonicalGaussians(nn.Module):
         init_opacity: float = 0.1,
         feature_init_std: float = 0.01,
         seed: int = 0,
-        deform_code_dim: int = 0,
-        normal_residual: bool = False,
     ) -> None:
         super().__init__()
         if num_points < 1:
@@ -49,17 +43,12 @@ class CanonicalGaussians(nn.Module):
             raise ValueError(f"gaussians.feature_dim: expected a positive size, got {feature_dim}")
         if not 0.0 < init_opacity < 1.0:
             raise ValueError(f"gaussians.init_opacity: expected a value in (0,1), got {init_opacity}")
-        if deform_code_dim < 0:
-            raise ValueError(f"gaussians.deform_code_dim: expected a size >= 0, got {deform_code_dim}")
         self.feature_dim = feature_dim
-        self.deform_code_dim = int(deform_code_dim)
-        self.normal_residual = bool(normal_residual)
-        self.param_names = (PARAM_NAMES + ((CODE_NAME,) if self.deform_code_dim > 0 else ())
-                            + ((NORMAL_NAME,) if self.normal_residual else ()))
+        self.param_names = PARAM_NAMES
         gen = torch.Generator().manual_seed(seed)
         verts = body.canonical_vertices().detach().float().cpu()  # [V,3]
         faces = body.faces.cpu()
-        points = self.initial_points(body, num_points, gen)  # [N,3]
+        points = sample_surface(verts, faces, None, num_points, gen)[0]  # [N,3] uniform on the canonical surface
         if init_scale is None:
             # Uniform samples with density N/A lie about 0.5*sqrt(A/N) from their nearest neighbour.
             tri = verts[faces]
@@ -73,20 +62,7 @@ class CanonicalGaussians(nn.Module):
         self.quats = nn.Parameter(quats)
         self.opacity_logits = nn.Parameter(torch.full((num_points,), float(inverse_sigmoid(torch.tensor(init_opacity)))))
         self.features = nn.Parameter(torch.randn(num_points, feature_dim, generator=gen) * feature_init_std)
-        if self.deform_code_dim > 0:
-            # A learnt code per Gaussian that the motion-trend decoder reads beside its canonical position: Gaussians
-            # that sit side by side in canonical space (a skirt's and the thigh's under it) can then move apart.
-            self.deform_codes = nn.Parameter(torch.randn(num_points, self.deform_code_dim, generator=gen) * 0.01)
-        if self.normal_residual:
-            # A learnt canonical 3-vector per Gaussian added to the shading's normal grid at its position (starts at
-            # 0): Gaussians that share a voxel (the skirt's and the thigh's under it) can be lit by different normals.
-            self.normal_residuals = nn.Parameter(torch.zeros(num_points, 3))
         self.register_load_state_dict_pre_hook(self._resize_to_checkpoint)
-
-    def initial_points(self, body: BodyModel, n: int, gen: torch.Generator) -> torch.Tensor:
-        """n uniform samples [n,3] on the body's canonical-pose surface."""
-        verts = body.canonical_vertices().detach().float().cpu()
-        return sample_surface(verts, body.faces.cpu(), None, n, gen)[0]
 
     @property
     def num_points(self) -> int:
@@ -103,6 +79,23 @@ class CanonicalGaussians(nn.Module):
     def rotations(self) -> torch.Tensor:
         """[N,4] unit quaternions (wxyz)."""
         return F.normalize(self.quats, dim=-1)
+
+    # ------------------------------------------------------------------ the source interface (model/avatar.py)
+    def points(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The decoder moves every Gaussian: means [N,3], log-scales [N,3], quaternions [N,4]."""
+        return self.means, self.log_scales, self.quats
+
+    def move(self, dx: torch.Tensor, h_t: torch.Tensor) -> torch.Tensor:
+        """The decoder's offsets [B,N,3] are the Gaussians' whole motion before skinning."""
+        return dx
+
+    def splats(self, posed: dict) -> dict:
+        """Each posed point is a Gaussian."""
+        return posed
+
+    def canonical(self) -> dict:
+        return {"means": self.means, "quats": self.quats, "scales": torch.exp(self.log_scales),
+                "opacities": self.opacities()}
 
     def param_groups(self) -> dict[str, list[nn.Parameter]]:
         """One optimizer group per attribute, named like the parameters (they need different learning rates)."""
@@ -144,37 +137,3 @@ class CanonicalGaussians(nn.Module):
 
     def extra_repr(self) -> str:
         return f"num_points={self.num_points}, feature_dim={self.feature_dim}"
-
-
-class HullGaussians(CanonicalGaussians):
-    """Canonical Gaussians seeded on the body surface and on the garment: a fraction `garment_fraction` of them
-    starts on the part of a rest frame's visual hull (carved from the training masks) that lies away from the
-    body, brought to canonical space by inverse LBS with the nearest body vertex's weights (cf. Animatable
-    Gaussians' template, 4K4D's visual-hull initialisation). Without `views` (a run rebuilt from its
-    checkpoint) it samples the body surface only; the checkpoint's values replace them.
-    """
-
-    NEEDS_VIEWS = True  # build_module passes the DataModule's hull views
-
-    def __init__(self, body: BodyModel, views=None, garment_fraction: float = 0.3, hull_frame: int | None = None,
-                 hull_voxel: float = 0.015, min_body_distance: float = 0.02, max_body_distance: float = 0.6,
-                 exclude_bones: tuple[int, ...] = (), **kwargs) -> None:
-        if not 0.0 <= garment_fraction < 1.0:
-            raise ValueError(f"gaussians.garment_fraction: expected a value in [0,1), got {garment_fraction}")
-        if hull_voxel <= 0:
-            raise ValueError(f"gaussians.hull_voxel: expected a positive size in metres, got {hull_voxel}")
-        self._hull_args = (views, garment_fraction, hull_voxel, min_body_distance, max_body_distance,
-                           tuple(int(b) for b in exclude_bones))
-        self.num_garment_points = 0
-        super().__init__(body, **kwargs)
-        self.garment_fraction, self.hull_frame = garment_fraction, hull_frame  # hull_frame: read by build_module
-
-    def initial_points(self, body: BodyModel, n: int, gen: torch.Generator) -> torch.Tensor:
-        from realityavatar.model.hull import garment_points
-
-        views, frac, voxel, dmin, dmax, exclude = self._hull_args
-        if views is None or frac <= 0:
-            return super().initial_points(body, n, gen)
-        garment = garment_points(body, views, int(round(frac * n)), voxel, dmin, dmax, exclude, generator=gen)
-        self.num_garment_points = int(garment.shape[0])
-        return torch.cat([super().initial_points(body, n - garment.shape[0], gen), garment])

@@ -1,4 +1,4 @@
-"""Visual hull of one frame carved from the training masks, and its garment part brought to canonical space."""
+"""Visual hull of one frame carved from the training masks (the garment sheet's rest layout, sheet.profile=rest)."""
 
 from __future__ import annotations
 
@@ -20,12 +20,12 @@ def hull_views(dm, frame: int | None = None) -> HullViews:
     """The training-split masks of `frame` (default: the first training frame, the rest pose of a sequence)."""
     ds = dm.datasets.get("train")
     if ds is None:
-        raise ValueError("gaussians=hull: the DataModule has no training split to carve a visual hull from")
+        raise ValueError("sheet.profile=rest: the DataModule has no training split to carve a visual hull from")
     frames = sorted({r.frame for r in ds.records})
     frame = frames[0] if frame is None else int(frame)
     idx = [i for i, r in enumerate(ds.records) if r.frame == frame]
     if len(idx) < 2:
-        raise ValueError(f"gaussians.hull_frame={frame}: need >= 2 training cameras at that frame, found {len(idx)}")
+        raise ValueError(f"sheet.hull_frame={frame}: need >= 2 training cameras at that frame, found {len(idx)}")
     masks, Ks, E = [], [], []
     for i in idx:
         _, mask, K = ds._decoded(i)
@@ -66,7 +66,7 @@ def carve(views: HullViews, lo: np.ndarray, hi: np.ndarray, voxel: float) -> np.
 
 
 def body_and_hull(body, views: HullViews, voxel: float, margin: float = 0.45,
-                  what: str = "gaussians=hull") -> tuple[np.ndarray, np.ndarray]:
+                  what: str = "sheet.profile=rest") -> tuple[np.ndarray, np.ndarray]:
     """The views' frame: its posed body vertices [V,3] and the surface voxels of its visual hull inside the body's
     box widened by `margin` (0.05 m up and down) [P,3], both float64; an empty hull raises, naming `what`."""
     pose, transl = views.pose.float(), views.transl.float()
@@ -88,31 +88,3 @@ def to_canonical(body, views: HullViews, x: torch.Tensor, nearest) -> torch.Tens
     T = torch.einsum("nj,jab->nab", w, A.cpu())  # [n,4,4]
     xh = torch.cat([x, torch.ones(len(x), 1)], -1)[..., None]
     return (torch.linalg.inv(T) @ xh)[:, :3, 0]
-
-
-def garment_points(body, views: HullViews, n: int, voxel: float = 0.015, min_body_distance: float = 0.02,
-                   max_body_distance: float = 0.6, exclude_bones=(), margin: float = 0.45,
-                   generator: torch.Generator | None = None) -> torch.Tensor:
-    """n canonical-space points on the part of the visual hull away from the body (the garment), [n,3].
-
-    Hull surface points between min_ and max_body_distance from the posed body surface are sampled (jittered
-    inside their voxel) and taken to canonical space by inverse LBS with the nearest body vertex's weights.
-    Points whose nearest vertex is mostly skinned to `exclude_bones` are dropped: with few cameras the hull
-    around hanging arms holds large phantom volumes.
-    """
-    from scipy.spatial import cKDTree
-
-    with torch.no_grad():
-        verts, surf = body_and_hull(body, views, voxel, margin)
-        dist, nearest = cKDTree(verts).query(surf)
-        keep = (dist > min_body_distance) & (dist < max_body_distance)
-        if len(exclude_bones):
-            arm = body.skin_weights.cpu().numpy()[:, list(exclude_bones)].sum(-1)  # [V]
-            keep &= arm[nearest] < 0.5
-        if not keep.any():
-            return torch.zeros(0, 3)
-        surf, nearest = surf[keep], nearest[keep]
-        pick = torch.randint(0, len(surf), (n,), generator=generator).numpy()
-        jitter = (torch.rand(n, 3, generator=generator).numpy() - 0.5) * voxel
-        x = torch.from_numpy(surf[pick] + jitter).float()  # [n,3] posed
-        return to_canonical(body, views, x, nearest[pick])

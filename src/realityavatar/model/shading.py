@@ -15,21 +15,20 @@ from torch import nn
 from realityavatar.model.skinning import check_grid_settings, diffuse_to_grid, sample_grid
 from realityavatar.render import sh_basis
 
-
-NORMALS = ("body", "jacobian", "learnt")
+NORMALS = ("body", "learnt")
 
 
 class NoShading(nn.Module):
     """The paper's colour as it is: no shading factor (`shading=none`)."""
 
-    normals_from = "body"
-
-    def forward(self, x_e: torch.Tensor, rot: torch.Tensor, n_c: torch.Tensor | None = None,
-                residual: torch.Tensor | None = None) -> None:
+    def forward(self, x_e: torch.Tensor, rot: torch.Tensor) -> None:
         return None
 
     def init_from_body(self, vertices: torch.Tensor, faces: torch.Tensor, seed: int = 0) -> None:
         return None
+
+    def param_groups(self) -> dict[str, list[nn.Parameter]]:
+        return {}
 
     built = True
 
@@ -46,11 +45,6 @@ class IrradianceShading(nn.Module):
       undefined (|n_c| -> 0) E falls back to the average light.
     - c starts at 0 (E = 1: the paper's colour) and trains with optim.lr.shading. Geometry gets no gradient from
       the shading (x_e and R are detached): it may not move Gaussians to where their light is better.
-    - `normals="jacobian"`: the body normal is looked up at the Gaussian's canonical position x_c instead and carried
-      through the decoder's offset field, n = cof(I + dΔx/dx_c) n_c (normals transform with the cofactor of the
-      deformation gradient), before LBS. A flaring skirt's offsets grow with the depth below the waist, so its normal
-      tilts up as the cloth's does and the light it gets changes with the flare. The module computes n (finite
-      differences of the decoder, no gradient) and passes it as `n_c`; see `deformed_normals`.
     - `normals="learnt"`: the normal grid is a trained parameter (group `shading_normals`), starting from the body's
       diffused normals. The photometric loss reaches it through E only (x_e stays detached), so it learns the normal
       the light needs at each canonical place a Gaussian occupies: a hanging skirt's surface outside the legs, and,
@@ -68,14 +62,11 @@ class IrradianceShading(nn.Module):
         smooth_ramp: float = 0.1,
         max_voxels: int = 400_000,
         normals: str = "body",
-        jacobian_eps: float = 0.05,
     ) -> None:
         super().__init__()
         if normals not in NORMALS:
             raise ValueError(f"shading.normals: expected one of {NORMALS}, got {normals!r}")
-        if not jacobian_eps > 0:
-            raise ValueError(f"shading.jacobian_eps: expected > 0 (metres), got {jacobian_eps}")
-        self.normals_from, self.jacobian_eps = normals, float(jacobian_eps)
+        self.normals_from = normals
         if not 1 <= int(sh_degree) <= 3:
             raise ValueError(f"shading.sh_degree: expected 1, 2 or 3 (0 would be a constant gain), got {sh_degree}")
         check_grid_settings("shading (irradiance)", voxel_size, padding, k, smooth_iters, smooth_ramp)
@@ -120,15 +111,9 @@ class IrradianceShading(nn.Module):
         log_e = Y[..., :1] * self.coeffs[0] + length * (Y[..., 1:] @ self.coeffs[1:])
         return torch.exp(log_e)
 
-    def forward(self, x_e: torch.Tensor, rot: torch.Tensor, n_c: torch.Tensor | None = None,
-                residual: torch.Tensor | None = None) -> torch.Tensor:
-        """x_e [B,N,3] deformed canonical positions, rot [B,N,3,3] canonical-to-posed -> factor [B,N,3].
-        n_c [B,N,3]: canonical normals to use instead of the grid's at x_e (normals="jacobian").
-        residual [N,3]: each Gaussian's learnt canonical normal residual (gaussians.normal_residual), added to the
-        normal; the sum is kept to length <= 1 like the grid's."""
-        n_c = self.normals(x_e.detach()) if n_c is None else n_c.detach()
-        if residual is not None:
-            n_c = _at_most_unit(n_c + residual)
+    def forward(self, x_e: torch.Tensor, rot: torch.Tensor) -> torch.Tensor:
+        """x_e [B,N,3] deformed canonical positions, rot [B,N,3,3] canonical-to-posed -> factor [B,N,3]."""
+        n_c = self.normals(x_e.detach())
         n_w = (rot.detach() @ n_c[..., None]).squeeze(-1)
         return self.irradiance(n_w)
 
@@ -139,31 +124,6 @@ class IrradianceShading(nn.Module):
 def _at_most_unit(n: torch.Tensor) -> torch.Tensor:
     """Vectors [...,3] longer than 1 scaled to unit length; shorter ones (where nearby normals disagree) kept."""
     return n / n.norm(dim=-1, keepdim=True).clamp_min(1.0)
-
-
-def cofactor(F_: torch.Tensor) -> torch.Tensor:
-    """Cofactor matrices det(F) F^-T of F [...,3,3] (columns: cross products of F's columns); normals of a surface
-    deformed by a map with Jacobian F transform as cof(F) n."""
-    f1, f2, f3 = F_[..., :, 0], F_[..., :, 1], F_[..., :, 2]
-    return torch.stack([torch.linalg.cross(f2, f3, dim=-1), torch.linalg.cross(f3, f1, dim=-1),
-                        torch.linalg.cross(f1, f2, dim=-1)], dim=-1)
-
-
-@torch.no_grad()
-def deformed_normals(n_c: torch.Tensor, x_c: torch.Tensor, dx: torch.Tensor, offsets, eps: float) -> torch.Tensor:
-    """Body normals n_c [N,3] at canonical points x_c [N,3] carried through the offset field x -> x + Δx(x).
-
-    dx [B,N,3]: Δx at x_c; offsets(x [3N,3]) -> Δx there [B,3N,3] (the decoder, called once on the three shifted
-    copies). The Jacobian is a forward difference with step eps (metres). The result keeps |n_c| (short where
-    the body's normals disagree), and is n_c itself where the deformed normal is degenerate.
-    """
-    N = x_c.shape[0]
-    shifted = torch.cat([x_c + eps * e for e in torch.eye(3, dtype=x_c.dtype, device=x_c.device)])
-    d = offsets(shifted).reshape(dx.shape[0], 3, N, 3)  # [B,k,N,3]: Δx at x_c + eps e_k
-    J = ((d - dx[:, None]) / eps).permute(0, 2, 3, 1)  # [B,N,3(out),3(in)]
-    n = (cofactor(torch.eye(3, dtype=J.dtype, device=J.device) + J) @ n_c[None, ..., None]).squeeze(-1)
-    length = n.norm(dim=-1, keepdim=True)
-    return torch.where(length > 1e-6, n / length.clamp_min(1e-6) * n_c.norm(dim=-1, keepdim=True), n_c[None])
 
 
 def vertex_normals(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:

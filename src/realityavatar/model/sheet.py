@@ -47,7 +47,7 @@ class GarmentSheet(nn.Module):
                  bottom_joints: tuple[int, ...] = (4, 5), bottom_offset: float = 0.0, hull_frame: int | None = None,
                  hull_voxel: float = 0.015, hull_quantile: float = 0.25, feature_dim: int = 32,
                  init_opacity: float = 0.1, normal_scale: float = 0.005, feature_init_std: float = 0.01,
-                 seed: int = 0, max_stretch: float = 16.0, strain_weight: float = 0.0, strain_free: float = 0.2,
+                 seed: int = 0, max_stretch: float = 16.0, strain_free: float = 0.2,
                  basis: int = 0, cond_dim: int = 128, views=None) -> None:
         super().__init__()
         if rows < 1 or cols < 3 or per_cell < 1:
@@ -62,9 +62,9 @@ class GarmentSheet(nn.Module):
             raise ValueError(f"sheet.hull_quantile: expected a value in [0,1], got {hull_quantile}")
         self.rows, self.cols, self.per_cell = int(rows), int(cols), int(per_cell)
         self.max_stretch = float(max_stretch)  # <= 0: unbounded
-        if strain_weight < 0 or strain_free < 0:
-            raise ValueError(f"sheet.strain_weight and sheet.strain_free must be >= 0, got {strain_weight}, {strain_free}")
-        self.strain_weight, self.strain_free = float(strain_weight), float(strain_free)  # see `strain`
+        if strain_free < 0:
+            raise ValueError(f"sheet.strain_free must be >= 0, got {strain_free}")
+        self.strain_free = float(strain_free)  # see `strain` (the loss term losses.SheetStrain)
         self.feature_dim = int(feature_dim)
         self.profile, self.hull_frame = profile, hull_frame  # hull_frame: read by build_module
         # profile=rest keeps its layout (posed) and that frame's pose for `canonicalise`; both are checkpointed
@@ -234,6 +234,33 @@ class GarmentSheet(nn.Module):
             groups.update(sheet_basis=[self.basis], sheet_coeff=list(self.coeff.parameters()))
         return groups
 
+    # ------------------------------------------------------------------ the source interface (model/avatar.py)
+    def points(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The decoder moves the sheet's vertices [P,3] (zero log-scales, identity quaternions: placeholders that
+        `splats` replaces)."""
+        V = self.vertices
+        return V, V.new_zeros(V.shape), F.pad(V.new_ones(len(V), 1), (0, 3))
+
+    def move(self, dx: torch.Tensor, h_t: torch.Tensor) -> torch.Tensor:
+        """The decoder's offsets of the vertices [B,P,3], plus the motion basis's (sheet.basis > 0)."""
+        return dx + self.basis_offsets(h_t) if self.num_basis else dx
+
+    def splats(self, posed: dict) -> dict:
+        """The posed vertices (entries [B,P,...]) -> the sheet's Gaussians [B,M,...], which follow their cells: position,
+        tangent frame and stretch from the posed vertices (`place`), the canonical-to-posed rotation of the cell's
+        first corner, the rest interpolated bilinearly. sheet_verts: the posed vertices (the strain term's input)."""
+        placed = self.place(posed["means"])
+        return {"means": placed["means"], "quats": placed["quats"], "scales": placed["scales"],
+                "rot": posed["rot"][:, self.corners[:, 0]], "f_mt": self.interpolate(posed["f_mt"]),
+                "weights": self.interpolate(posed["weights"]), "x_e": self.interpolate(posed["x_e"]),
+                "sheet_verts": posed["means"]}
+
+    def canonical(self) -> dict:
+        """The sheet's Gaussians placed on its canonical vertices."""
+        placed = self.place(self.vertices[None])
+        return {"means": placed["means"][0], "quats": placed["quats"][0], "scales": placed["scales"][0],
+                "opacities": self.opacities()}
+
     def basis_offsets(self, h_t: torch.Tensor) -> torch.Tensor:
         """Temporal state [B,H] -> canonical offsets of the vertices [B,P,3]: sum_k c_k(h_t) B_k. One coefficient
         vector moves every vertex, so a frame's gradient shapes the whole garment's motion (a low-rank cloth model,
@@ -313,3 +340,38 @@ class GarmentSheet(nn.Module):
     def extra_repr(self) -> str:
         return f"rows={self.rows}, cols={self.cols}, per_cell={self.per_cell}, gaussians={self.num_points}"
 
+
+class NoSheet(nn.Module):
+    """No garment sheet (`sheet=none`, the default): a source with no points and no Gaussians."""
+
+    num_points = 0
+    num_basis = 0
+    layout: dict = {}  # noqa: RUF012  (read-only: nothing laid out)
+
+    def __init__(self, body: BodyModel | None = None, feature_dim: int = 0, **unused) -> None:
+        super().__init__()
+        self.feature_dim = int(feature_dim)
+        self.register_buffer("features", torch.zeros(0, self.feature_dim), persistent=False)
+
+    def points(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        e = self.features.new_zeros(0, 3)
+        return e, e, self.features.new_zeros(0, 4)
+
+    def move(self, dx: torch.Tensor, h_t: torch.Tensor) -> torch.Tensor:
+        return dx
+
+    def splats(self, posed: dict) -> dict:
+        return posed
+
+    def opacities(self) -> torch.Tensor:
+        return self.features.new_zeros(0)
+
+    def canonical(self) -> dict:
+        e = self.features.new_zeros(0, 3)
+        return {"means": e, "quats": self.features.new_zeros(0, 4), "scales": e, "opacities": self.opacities()}
+
+    def param_groups(self) -> dict[str, list[nn.Parameter]]:
+        return {}
+
+    def canonicalise(self, body: BodyModel, skinning: nn.Module) -> None:
+        return None

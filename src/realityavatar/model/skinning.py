@@ -62,6 +62,9 @@ class SkinningField(nn.Module):
             return None
         return {"steps": int(steps), "loss": pretrain_skinning(self, vertices, faces, weights, steps=steps)}
 
+    def param_groups(self) -> dict[str, list[nn.Parameter]]:
+        return {"skinning": list(self.parameters())}
+
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """x [...,3] -> weights [...,24] (rows sum to 1)."""
         u = (x - self.center) / self.half_extent
@@ -126,6 +129,9 @@ class SkinningGrid(nn.Module):
         self.hi.copy_(hi.to(self.hi))
         return {"steps": 0, "voxels": list(grid.shape[:1:-1]), "voxel_size": self.voxel_size,
                 "surface_fit": float(((self(pts.to(self.lo)) - w.to(self.lo)) ** 2).sum(-1).mean())}
+
+    def param_groups(self) -> dict[str, list[nn.Parameter]]:
+        return {"skinning": list(self.parameters())}
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """x [...,3] -> weights [...,24] (rows sum to 1); outside the grid the border voxels' weights."""

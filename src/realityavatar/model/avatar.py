@@ -1,0 +1,161 @@
+"""The avatar's forward pass, the one path that training, evaluation, export, the viewer and the benchmarks call:
+
+    sources (canonical Gaussians, garment sheet) -> pose encoder -> temporal -> motion-trend decoder -> skinning (LBS)
+    -> colour (x world-fixed light) -> splats
+
+A *source* is a set of canonical points that the decoder and skinning move, and the Gaussians they become once posed
+(model/gaussians.py CanonicalGaussians: each point is a Gaussian; model/sheet.py GarmentSheet: the points are a
+garment surface's vertices and its Gaussians follow their cells; NoSheet: no points). Every source answers:
+
+    points()             canonical means [P,3], log-scales [P,3], quaternions [P,4] of the points the decoder moves
+    move(dx, h_t)        the decoder's offsets of its points [B,P,3], plus the source's own (the sheet's motion basis)
+    splats(posed)        its posed points (means, quats, scales, rot, f_mt, weights, x_e: [B,P,...]) -> its Gaussians
+    opacities()          [M] opacities of its Gaussians
+    features             [M,F] colour features of its Gaussians
+    canonical()          its Gaussians in canonical space: means, quats, scales [M,...], opacities [M]
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from realityavatar.body.base import BodyModel
+from realityavatar.geometry import camera_centres
+from realityavatar.model.deform import apply_deformation
+from realityavatar.model.skinning import lbs_gaussians
+from realityavatar.render import rasterize
+
+# Per-point entries of a posed dict, split between the sources and joined again in source order.
+PER_POINT = ("means", "quats", "scales", "rot", "f_mt", "weights", "x_e")
+
+
+def join(parts: list[torch.Tensor], dim: int = 0) -> torch.Tensor:
+    """Concatenate the non-empty parts along `dim` (one part: itself, no copy)."""
+    parts = [p for p in parts if p.shape[dim]]
+    return parts[0] if len(parts) == 1 else torch.cat(parts, dim)
+
+
+class Avatar(nn.Module):
+    """Canonical Gaussians (+ garment sheet) -> pose encoder -> temporal -> motion-trend decoder -> skinning -> colour.
+
+    Holds the model's components; AvatarModule (model/module.py) adds training and evaluation around it.
+    """
+
+    def __init__(self, body: BodyModel, gaussians: nn.Module, encoder: nn.Module, temporal: nn.Module,
+                 deformer: nn.Module, skinning: nn.Module, color: nn.Module, shading: nn.Module, sheet: nn.Module,
+                 render: dict) -> None:
+        super().__init__()
+        self.body = body
+        self.gaussians = gaussians
+        self.encoder = encoder
+        self.temporal = temporal
+        self.deformer = deformer
+        self.skinning = skinning
+        self.color = color
+        self.shading = shading
+        self.sheet = sheet  # sheet=skirt: Gaussians bound to a deformable garment surface, after the free ones
+        self.render_cfg = dict(render)
+        self.background = list(self.render_cfg.pop("background", [0.0, 0.0, 0.0]))
+        # The decoder's normalisation box follows the initial canonical Gaussians (not those of its first forward at
+        # deform_start, which have moved and been densified); a loaded checkpoint replaces it with the trained box.
+        if not bool(deformer.bounds_fitted):
+            deformer.fit_bounds(gaussians.means.detach())
+
+    @property
+    def sources(self) -> tuple[nn.Module, ...]:
+        return (self.gaussians, self.sheet)
+
+    def deform(self, poses: torch.Tensor, transl: torch.Tensor, deform: bool = True) -> dict:
+        """poses [B,T,24,3], transl [B,T,3] -> the posed Gaussians of the current (last) frame of every source.
+        Geometry does not depend on the frame index (only the colour's per-frame latent does, see `shade`).
+        deform=False: the canonical warm-up before schedule.deform_start (decoder skipped, identity offsets).
+
+        Returns dict: means [B,N,3], quats [B,N,4], scales [B,N,3], opacities [N], rot [B,N,3,3] (canonical-to-posed
+        rotation per Gaussian, for canonical view directions), f_mt [B,N,F], weights [B,N,24], x_e [B,N,3], B.
+        """
+        B = poses.shape[0]
+        h_t = self.temporal(self.encoder(poses, transl))  # [B,H]
+        # every source's points ride through one decoder, skinning and LBS pass
+        points = [s.points() for s in self.sources]
+        sizes = [p[0].shape[0] for p in points]
+        means, log_scales, quats = (join([p[i] for p in points]) for i in range(3))
+        if deform:
+            out = self.deformer(means, h_t)
+            out["dx"] = join([s.move(dx, h_t) for s, dx in zip(self.sources, out["dx"].split(sizes, 1))], 1)
+        else:
+            out = identity_deformation(B, means, self.deformer.feature_dim)
+        x_e, log_s_e, q_e = apply_deformation(means, log_scales, quats, out)  # [B,N,3],[B,N,3],[B,N,4]
+        # skinning.query_at: the weights at the deformed canonical position (default) or at the undeformed one
+        at_rest = self.skinning.query_at == "canonical"
+        w = self.skinning(means[None].expand(B, -1, -1) if at_rest else x_e)  # [B,N,24]
+        A = self.body.canonical_transforms(poses[:, -1], transl[:, -1])  # [B,24,4,4]
+        means_o, quats_o, rot = lbs_gaussians(x_e, q_e, w, A)
+        posed = {"means": means_o, "quats": quats_o, "scales": torch.exp(log_s_e), "rot": rot, "f_mt": out["f_mt"],
+                 "weights": w, "x_e": x_e}
+        chunks = {k: v.split(sizes, 1) for k, v in posed.items()}
+        per_source = [s.splats({k: c[i] for k, c in chunks.items()}) for i, s in enumerate(self.sources)]
+        posed = {k: v for part in per_source for k, v in part.items() if k not in PER_POINT}  # e.g. sheet_verts
+        for k in PER_POINT:
+            first = per_source[0][k]
+            posed[k] = join([first] + [part[k].to(first) for part in per_source[1:]], 1)
+        posed["opacities"] = self.opacities()
+        posed["B"] = B
+        return posed
+
+    def opacities(self) -> torch.Tensor:
+        """[N] opacities of every rendered Gaussian: the free ones, then the garment sheet's."""
+        first = self.gaussians.opacities()
+        return join([first] + [s.opacities().to(first) for s in self.sources[1:]])
+
+    def all_features(self) -> torch.Tensor:
+        """Colour features of every rendered Gaussian: the free ones, then the garment sheet's [N(+M),F]."""
+        first = self.gaussians.features
+        return join([first] + [s.features.to(first) for s in self.sources[1:]])
+
+    def canonical_gaussians(self) -> dict:
+        """Every rendered Gaussian in canonical space (the free ones, then the sheet's placed on its canonical
+        vertices): means [N,3], quats [N,4], scales [N,3], opacities [N]."""
+        parts = [s.canonical() for s in self.sources]
+        return {k: join([parts[0][k]] + [p[k].to(parts[0][k]) for p in parts[1:]]) for k in parts[0]}
+
+    def shade(self, posed: dict, viewmats: torch.Tensor, frame_idx: torch.Tensor) -> torch.Tensor:
+        """View-dependent colour of every Gaussian for each sample's camera: [B,N,3]."""
+        cam_centre = camera_centres(viewmats)  # [B,3]
+        d = F.normalize(posed["means"] - cam_centre[:, None, :], dim=-1)  # [B,N,3] posed view dir
+        # Canonicalise: undo each Gaussian's blended skinning rotation.
+        d_c = (posed["rot"].transpose(-1, -2) @ d[..., None]).squeeze(-1)
+        rgb = self.color(self.all_features(), F.normalize(d_c, dim=-1), posed["f_mt"], frame_idx)
+        light = self.shading(posed["x_e"], posed["rot"])  # world-fixed light, or None (shading=none)
+        return rgb if light is None else rgb * light
+
+    def splat(self, posed: dict, b: int, rgb: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor, W: int, H: int):
+        """Rasterize sample b of `posed` with colours rgb [N,3] from one camera (viewmat [1,4,4], K [1,3,3]) over
+        the run's background."""
+        bg = torch.tensor(self.background, dtype=rgb.dtype, device=rgb.device)[None]
+        return rasterize(posed["means"][b], posed["quats"][b], posed["scales"][b], posed["opacities"], rgb,
+                         viewmat, K, W, H, backgrounds=bg, **self.render_cfg)
+
+    def render_batch(self, batch: dict, deform: bool = True):
+        """Render every sample of a batch from its own camera. Returns rgb [B,H,W,3], alpha [B,H,W,1], metas, posed."""
+        viewmats, Ks = batch["viewmat"], batch["K"]
+        W, H = int(batch["width"][0]), int(batch["height"][0])
+        posed = self.deform(batch["poses"], batch["transl"], deform=deform)
+        rgb = self.shade(posed, viewmats, batch["frame_idx"])  # [B,N,3]
+        images, alphas, metas = [], [], []
+        for b in range(posed["B"]):
+            img, alpha, meta = self.splat(posed, b, rgb[b], viewmats[b : b + 1], Ks[b : b + 1], W, H)
+            images.append(img[0])
+            alphas.append(alpha[0])
+            metas.append(meta)
+        return torch.stack(images), torch.stack(alphas), metas, posed
+
+
+def identity_deformation(B: int, means: torch.Tensor, feature_dim: int) -> dict:
+    """Decoder output that leaves the canonical Gaussians unchanged: dx, ds [B,N,3], dq [B,N,4], f_mt [B,N,F]."""
+    N = means.shape[0]
+    zeros = means.new_zeros(B, N, 3)
+    dq = means.new_zeros(B, N, 4)
+    dq[..., 0] = 1.0
+    return {"dx": zeros, "ds": zeros, "dq": dq, "f_mt": means.new_zeros(B, N, feature_dim)}
