@@ -5,13 +5,14 @@ python benchmarks/step.py [--n 10000 35000] [--size 128 256 512] [--backends tor
 Every time is printed beside its ratio to the GEMM unit (8 float32 matmuls of 1024^3) timed in the same process,
 because the project's CPU is shared and absolute seconds drift with the load. Writes benchmarks/results/step_cpu.json.
 
-The step is the module's training_step written out with detach points between the parts, so each backward is
-timed on its own (render backward = the rasterizer's; networks backward = decoder, skinning, colour, encoder):
+"step" is module.training_step itself (one backward; optimizers and logging stubbed, no Trainer). The parts are the
+same step cut at detach points, so each backward is timed on its own (render backward = the rasterizer's; networks
+backward = decoder, skinning, colour, encoder): the module's own forward path (Avatar.deform, shade, splat) and its
+configured loss terms (losses.total_loss over module.losses: every term the run trains with), then
 data -> networks fwd -> render fwd -> losses fwd -> losses bwd -> render bwd -> networks bwd -> optimizer -> density.
-"step" is module.training_step itself (one backward; optimizers and logging stubbed, no Trainer). Data is a synthetic batch
-(random pose window, one camera framing the body, random target image) built the way the DataModule collates one.
---views V adds the whole step of a data.sampler=frame_views batch: the same pose window seen by V cameras around the
-body (one network pass, V renders and losses); its parts are not split out.
+Data is a synthetic batch (random pose window, one camera framing the body, random target image) built the way the
+DataModule collates one. --views V adds the whole step of a batch of V images (data.batch_size=V): the same pose
+window seen by V cameras around the body; its parts are not split out.
 --device cuda runs the module and its batches on the GPU (backends `gsplat torch` there); every clock reading waits
 for the GPU first (torch.cuda.synchronize), and each row also records the GPU kernels' own time per step
 (`gpu_kernel_s`, from torch.profiler over 3 whole steps): a step far longer than its kernels waits on Python and
@@ -129,32 +130,31 @@ def make_batch_fn(module, size: int, window: int, views: int = 1):
 
 def step_parts(module, opt, sched, make_batch, step: int) -> dict:
     """One training step with detach points; seconds per part."""
+    from realityavatar.losses import TrainingRender, total_loss
+    from realityavatar.model.module import CLIPPED
+
     t = {}
     c = _clock
     t0 = c()
     batch = make_batch()
     t["data"] = c() - t0
     opt.zero_grad(set_to_none=True)
+    module.set_progress(step)
     t0 = c()
     posed = module.deform(batch["poses"], batch["transl"], deform=module.schedule.deform_on(step))
     rgb = module.shade(posed, batch["viewmat"], batch["frame_idx"])  # [B,N,3]
     t["networks_fwd"] = c() - t0
     net_out = [posed["means"], posed["quats"], posed["scales"], posed["opacities"], rgb]
     leaves = [x.detach().requires_grad_() for x in net_out]
-    p = {"means": leaves[0], "quats": leaves[1], "scales": leaves[2], "opacities": leaves[3]}
+    p = {**posed, "means": leaves[0], "quats": leaves[1], "scales": leaves[2], "opacities": leaves[3]}
     W, H = int(batch["width"][0]), int(batch["height"][0])
     t0 = c()
     img, alpha, meta = module.splat(p, 0, leaves[4][0], batch["viewmat"], batch["K"], W, H)
     t["render_fwd"] = c() - t0
     img_l, alpha_l = img.detach().requires_grad_(), alpha.detach().requires_grad_()
     t0 = c()
-    skin_pts, skin_w = module._skin_targets()
-    total, _ = module.loss_fn(img_l, alpha_l, batch["image"], batch["mask"], skinning=module.skinning,
-                              skin_points=skin_pts, skin_weights=skin_w, skin_decayed=module.schedule.skin_decayed(step))
-    if getattr(module, "silhouette", None) is not None:  # as training_step: a loss on the posed means and alpha
-        sil = module.silhouette(p["means"][0], batch["viewmat"][0], batch["K"][0], batch["mask"][0], alpha_l[0])
-        if sil:
-            total = total + module.silhouette.total(sil)
+    one = {k: v[:1] for k, v in batch.items()}  # the sample rendered above
+    total, _ = total_loss(module.losses, TrainingRender(img_l, alpha_l, one, p, module, step))
     t["losses_fwd"] = c() - t0
     t0 = c()
     total.backward()
@@ -167,9 +167,7 @@ def step_parts(module, opt, sched, make_batch, step: int) -> dict:
     t["networks_bwd"] = c() - t0
     t0 = c()
     if module.grad_clip:
-        from realityavatar.model.module import COMPONENTS
-
-        nets = [q for n in COMPONENTS for q in getattr(module, n).parameters() if q.grad is not None]
+        nets = [q for n in CLIPPED for q in module.components()[n].parameters() if q.grad is not None]
         torch.nn.utils.clip_grad_norm_(nets, module.grad_clip)
     opt.step()
     sched.step()
@@ -241,7 +239,7 @@ def main() -> None:
                     help="cpu: process CPU seconds, steadier than wall time on a shared CPU (only with --threads 1)")
     ap.add_argument("--override", nargs="*", default=[], help="extra hydra overrides, e.g. encoder=whole_pose")
     ap.add_argument("--views", type=int, nargs="+", default=[1],
-                    help="also time the whole step with V cameras of one frame per batch (data.sampler=frame_views)")
+                    help="also time the whole step with V cameras of one pose window per batch (data.batch_size=V)")
     ap.add_argument("--device", default="cpu", help="cpu or cuda[:i] (the module and batches there)")
     ap.add_argument("--out", default=None, help="JSON (default results/step_cpu.json, step_cuda.json with --device cuda)")
     ap.add_argument("--no-tune-malloc", action="store_true",
