@@ -176,7 +176,7 @@ def trained_run(scenes_root, tmp_path_factory):
 
 def test_density_control_fires_inside_the_training_loop(trained_run):
     """Clone/split/prune during a real fit: the Adam state, the parameters and the LR schedule stay consistent."""
-    from realityavatar.model.module import GAUSSIAN_GROUPS
+    from realityavatar.model.gaussians import PARAM_NAMES
 
     out, metrics = trained_run
     with open(out / "logs" / "csv" / "metrics.csv") as fh:
@@ -193,7 +193,7 @@ def test_density_control_fires_inside_the_training_loop(trained_run):
     assert len(sched["base_lrs"]) == len(opt["param_groups"]) and sched["last_epoch"] == 60
     cfg = compose(["iterations=60"])
     for group, base in zip(opt["param_groups"], sched["base_lrs"]):
-        if group["name"] not in GAUSSIAN_GROUPS:
+        if group["name"] not in PARAM_NAMES:
             continue
         (idx,) = group["params"]
         st = opt["state"][idx]
