@@ -205,7 +205,7 @@ def test_density_control_fires_inside_the_training_loop(trained_run):
 
 
 def test_short_training_lowers_loss_and_writes_outputs(trained_run):
-    out, metrics = trained_run
+    out, _ = trained_run
     assert (out / "last.ckpt").is_file()
     saved = json.loads((out / "metrics.json").read_text())
     for key in ("config", "seed", "commit", "train_seconds", "iterations", "num_gaussians", "num_parameters",
@@ -215,7 +215,8 @@ def test_short_training_lowers_loss_and_writes_outputs(trained_run):
     assert saved["iterations"] == 60
     assert saved["config"]["temporal"] == "lstm"
     assert saved["lpips"].startswith("not computed") and "test/novel_view/lpips" not in saved
-    rows = list(csv.DictReader(open(out / "logs" / "csv" / "metrics.csv")))
+    with open(out / "logs" / "csv" / "metrics.csv") as fh:
+        rows = list(csv.DictReader(fh))
     # The photometric term, not the total: the total also falls by itself when the skinning weight drops at
     # schedule.skin_switch, which would hide a model that learns nothing.
     l1 = [float(r["train/l1"]) for r in rows if r.get("train/l1")]
@@ -236,7 +237,8 @@ def test_resume_continues_from_checkpoint_step(trained_run, tmp_path):
     )
     metrics = run(cfg, choices)
     assert metrics["iterations"] == 70
-    rows = list(csv.DictReader(open(tmp_path / "logs" / "csv" / "metrics.csv")))
+    with open(tmp_path / "logs" / "csv" / "metrics.csv") as fh:
+        rows = list(csv.DictReader(fh))
     steps = [int(r["step"]) for r in rows if r.get("train/loss")]
     # the rows before the checkpoint are carried over; a restart from step 0 would log those steps twice
     assert steps == sorted(set(steps)) and min(steps) < 60 <= max(steps), f"resumed run restarted from step 0: {steps}"
