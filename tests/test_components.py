@@ -389,8 +389,8 @@ def test_density_gradient_of_a_multi_image_batch_is_scaled_by_its_images(body):
     """gsplat's rule: the loss is a mean over a batch's images, so a Gaussian seen by V samples (one meta each, as a
     batch of V images renders them) with 1/V of one image's gradient each accumulates what one image gives alone."""
     g = CanonicalGaussians(body, num_points=20, feature_dim=4, seed=0)
-    kw = dict(refine_start=0, refine_stop=100, refine_every=10, grad_threshold=2e-4, prune_opacity=0.05,
-              grow_scale3d=0.01, scene_scale=1.0, reset_every=0, max_points=1000)
+    kw = {"refine_start": 0, "refine_stop": 100, "refine_every": 10, "grad_threshold": 2e-4, "prune_opacity": 0.05,
+          "grow_scale3d": 0.01, "scene_scale": 1.0, "reset_every": 0, "max_points": 1000}
     one, four = DensityControl(**kw), DensityControl(**kw)
     one.step_post_backward(g, None, _meta(20, [3], 1e-2), step=1, image_size=(64, 48))
     four.step_post_backward(g, None, [_meta(20, [3], 1e-2 / 4) for _ in range(4)], step=1, image_size=(64, 48))
@@ -409,7 +409,9 @@ def test_coarse_to_fine_window_opens_the_frequency_bands_in_turn():
     x = torch.rand(5, 3) * 2 - 1
     plain = enc(x)
     F_, D = 4, 3
-    bands = lambda e: e[:, D:].reshape(5, 2, F_, D)  # noqa: E731  [sin|cos, band, xyz]
+    def bands(e):  # [sin|cos, band, xyz]
+        return e[:, D:].reshape(5, 2, F_, D)
+
     enc.set_window(0.0)
     assert torch.equal(enc(x)[:, :D], x) and float(bands(enc(x)).abs().max()) == 0.0
     enc.set_window(1.5)  # band 0 full, band 1 half, bands 2-3 shut
