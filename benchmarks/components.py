@@ -46,7 +46,7 @@ def path_step(n: int):
     def step():
         out = dec(means, tem(enc(poses, transl)))
         x_e, ls_e, q_e = apply_deformation(means, log_s, quats, out)
-        m_o, q_o, rot = lbs_gaussians(x_e, q_e, skin(x_e), A)
+        m_o, q_o, _rot = lbs_gaussians(x_e, q_e, skin(x_e), A)
         rgb = col(feats, torch.randn(1, n, 3), out["f_mt"], torch.tensor([3]))
         (m_o.sum() + q_o.sum() + ls_e.sum() + rgb.sum()).backward()
 

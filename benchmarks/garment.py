@@ -59,8 +59,8 @@ def main(argv=None) -> int:
             means = (torch.randn(n, 3) * 0.3).requires_grad_(True)
             loss = SilhouetteChamfer()
 
-            def step():
-                loss.total(loss(means, E, K, mask, alpha)).backward()
+            def step(loss=loss, means=means, mask=mask, alpha=alpha, E=E, K=K):
+                loss.total(loss.image_terms(means, E, K, mask, alpha)).backward()
 
             rows.append({"part": "silhouette chamfer", "resolution": res, "gaussians": n, "seconds": timeit(step)})
     for n in (5000, 10000):
@@ -69,7 +69,7 @@ def main(argv=None) -> int:
         dec = MotionTrendDecoder()
         dec(x, h)  # fit the box once, as training does
 
-        def step(dec=dec):
+        def step(dec=dec, x=x, h=h):
             out = dec(x, h)
             (out["dx"].sum() + out["ds"].sum() + out["dq"].sum() + out["f_mt"].sum()).backward()
 
@@ -85,7 +85,7 @@ def main(argv=None) -> int:
     for n in (5000, 10000):
         x = (verts[torch.randint(0, verts.shape[0], (n,))] + 0.05 * torch.randn(n, 3)).requires_grad_(True)
         for name, field in (("skinning MLP", mlp), ("skinning grid", grid)):
-            def step(field=field):
+            def step(field=field, x=x):
                 w = field(x)
                 (w * torch.arange(24.0)).sum().backward()
 
@@ -99,7 +99,7 @@ def main(argv=None) -> int:
         rot = torch.linalg.qr(torch.randn(1, n, 3, 3))[0]
         rgb = torch.rand(1, n, 3, requires_grad=True)
 
-        def step():
+        def step(rgb=rgb, x=x, rot=rot):
             (rgb * shading(x, rot)).sum().backward()
 
         rows.append({"part": "shading irradiance", "resolution": None, "gaussians": n, "seconds": timeit(step)})
@@ -108,7 +108,7 @@ def main(argv=None) -> int:
     print(f"GEMM unit (8 x 1024³ float32 matmuls): {unit * 1000:.1f} ms, {a.threads} thread(s)")
     print(f"{'part':<28}{'res':>6}{'N':>8}{'ms':>10}{'units':>8}")
     for r in rows:
-        print(f"{r['part']:<28}{str(r['resolution'] or '-'):>6}{r['gaussians']:>8}{r['seconds'] * 1000:10.1f}"
+        print(f"{r['part']:<28}{r['resolution'] or '-'!s:>6}{r['gaussians']:>8}{r['seconds'] * 1000:10.1f}"
               f"{r['gemm_units']:8.3f}")
     out = Path(a.out)
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -120,7 +120,7 @@ def main(argv: list[str] | None = None) -> int:
     if "run_dir" not in args:
         print(__doc__, file=sys.stderr)
         return 2
-    cfg, module, info = load_run(args["run_dir"])
+    cfg, module, _info = load_run(args["run_dir"])
     module.to(run_device(cfg, args.get("device")))
     dm = build_data(cfg, module.body)
     split = args.get("split", "novel_pose")

@@ -131,11 +131,13 @@ def run_device(cfg: DictConfig, override: str | None = None) -> torch.device:
 def git_commit() -> str:
     try:
         root = Path(__file__).resolve().parents[2]
-        out = subprocess.run(["git", "-C", str(root), "rev-parse", "--short", "HEAD"], capture_output=True, text=True, timeout=5)
-        dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"], capture_output=True, text=True, timeout=5)
+        out = subprocess.run(["git", "-C", str(root), "rev-parse", "--short", "HEAD"], capture_output=True, text=True, timeout=5,
+                             check=False)
+        dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"], capture_output=True, text=True,
+                               timeout=5, check=False)
         sha = out.stdout.strip() or "unknown"
         return sha + ("-dirty" if dirty.stdout.strip() else "")
-    except Exception:
+    except (OSError, subprocess.SubprocessError):  # no git, or not a checkout: the commit is unknown
         return "unknown"
 
 

@@ -38,7 +38,7 @@ def choices_of(cfg: DictConfig) -> dict:
         from hydra.core.hydra_config import HydraConfig
 
         ch = dict(HydraConfig.get().runtime.choices)
-    except Exception:  # composed outside @hydra.main (tests)
+    except ValueError:  # composed outside @hydra.main (tests): HydraConfig is not set
         ch = dict(cfg.get("_choices", {}) or {})
     return {k: v for k, v in ch.items() if not k.startswith("hydra") and v is not None}
 

@@ -69,7 +69,7 @@ def write_outputs(records: list[dict], out_dir: Path, save_images: int = 8, save
             try:
                 imageio.mimwrite(p, frames, fps=fps, macro_block_size=1)
                 paths[f"{split}_video"] = str(p)
-            except Exception as e:  # no ffmpeg: keep the metrics, say why the video is missing
+            except Exception as e:  # noqa: BLE001 (no ffmpeg, or a writer error: keep the metrics, say why)
                 print(f"[evaluate] video for {split} not written: {e}", file=sys.stderr)
     return paths
 
@@ -130,7 +130,9 @@ def format_table(metrics: dict) -> str:
     """A short results table for the terminal."""
     lines = [f"{'split':<12}{'PSNR':>8}{'SSIM':>8}{'IoU':>7}{'LPIPS':>9}{'PSNR(box)':>11}{'SSIM(box)':>11}{'images':>8}"]
     for split in ("novel_view", "novel_pose"):
-        g = lambda k: metrics.get(f"test/{split}/{k}")  # noqa: E731
+        def g(k, split=split):
+            return metrics.get(f"test/{split}/{k}")
+
         if g("psnr") is None:
             continue
         lp = f"{g('lpips'):9.2f}" if g("lpips") is not None else f"{'n/c':>9}"

@@ -47,7 +47,7 @@ def write_ply(path: str | Path, means, quats, scales, opacities, sh: np.ndarray 
     arr = np.empty(N, dtype=[(n, "<f4") for n, _ in fields])
     for n, v in fields:
         arr[n] = v
-    header = "ply\nformat binary_little_endian 1.0\nelement vertex %d\n" % N
+    header = f"ply\nformat binary_little_endian 1.0\nelement vertex {N}\n"
     header += "".join(f"property float {n}\n" for n, _ in fields) + "end_header\n"
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -186,7 +186,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"realityavatar-export: give frame=<id> or frames=a:b, not both\n{USAGE}", file=sys.stderr)
         return 2
     frames = parse_frames(args["frames"]) if "frames" in args else None  # checked before the run is loaded
-    cfg, module, info = load_run(args["run_dir"])
+    cfg, module, _info = load_run(args["run_dir"])
     frame = args.get("frame")
     if frames is not None:
         dm = build_data(cfg, module.body)

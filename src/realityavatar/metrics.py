@@ -88,7 +88,7 @@ def ssim(pred: torch.Tensor, gt: torch.Tensor, window: int = 11, sigma: float = 
             return torch.from_numpy(a[..., r : a.shape[-2] - r, r : a.shape[-1] - r])
     else:
         wv, wh = g1.view(1, 1, window, 1).expand(C, 1, window, 1), g1.view(1, 1, 1, window).expand(C, 1, 1, window)
-        filt = lambda t: F.conv2d(F.conv2d(t, wv, groups=C), wh, groups=C)  # noqa: E731
+        filt = lambda t: F.conv2d(F.conv2d(t, wv, groups=C), wh, groups=C)
     mx, my = filt(x), filt(y)
     sxx = filt(x * x) - mx * mx
     syy = filt(y * y) - my * my
@@ -268,7 +268,7 @@ class LPIPS(nn.Module):
         self.eval()
 
     @classmethod
-    def from_paths(cls, lin_weights: str, backbone_weights: str | None = None, net: str = "vgg") -> "LPIPS":
+    def from_paths(cls, lin_weights: str, backbone_weights: str | None = None, net: str = "vgg") -> LPIPS:
         """Build from files or a directory (see resolve_lpips_paths); raises FileNotFoundError naming what is missing."""
         backbone, lin = resolve_lpips_paths(net, lin_weights, backbone_weights)
         return cls(net, backbone or "", lin or "")

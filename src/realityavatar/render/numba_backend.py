@@ -134,7 +134,7 @@ def _exp_sigma(bdx, bdy, n, A, B, Cc, thr, ev):
             sigma = 0.5 * (A * dx * dx + Cc * dy * dy) + B * dx * dy
             ok = (sigma >= 0.0) & (sigma <= thr)
             e = _exp_core(-sigma if ok else 0.0)
-            ev[i] = e if ok else (sigma if sigma != sigma else -1.0)
+            ev[i] = e if ok else (sigma if sigma != sigma else -1.0)  # noqa: PLR0124 (NaN test)
     else:
         for i in range(n):
             dx, dy = bdx[i], bdy[i]

@@ -5,7 +5,9 @@ from dataclasses import dataclass
 
 import torch
 
-from realityavatar.geometry import quat_to_matrix as quat_to_rotmat  # one quaternion convention (wxyz) project-wide
+from realityavatar.geometry import (
+    quat_to_matrix as quat_to_rotmat,  # one quaternion convention (wxyz) project-wide
+)
 
 ALPHA_THRESHOLD = 1.0 / 255.0
 
