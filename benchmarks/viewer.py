@@ -155,7 +155,7 @@ def startup(run_dir: Path) -> dict:
 
 def screenshot(run_dir: Path, path: Path, index: int) -> None:
     """The viewer on the trained run itself (realityavatar-view's own loading) in headless chromium, timeline at
-    `index` of the training frames, written to `path` (the README's docs/images/viewer.png)."""
+    `index` of the training frames, written to `path` (docs/images/viewer.png, shown in docs/viewer.md)."""
     from io import BytesIO
 
     from PIL import Image

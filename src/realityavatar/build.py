@@ -7,6 +7,7 @@ import subprocess
 from pathlib import Path
 
 import torch
+from hydra.errors import InstantiationException
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
@@ -112,7 +113,12 @@ def load_run(run_dir: str | Path, overrides: list[str] | None = None, ckpt: str 
     if not info:
         raise KeyError(f"{ckpt}: checkpoint has no 'realityavatar' block (not written by realityavatar-train)")
     body = instantiate(cfg.body)
-    module = build_module(cfg, body, info["num_train_frames"], info["scene_extent"])
+    try:
+        module = build_module(cfg, body, info["num_train_frames"], info["scene_extent"])
+    except InstantiationException as e:  # a config.yaml of another version (an option or key since removed)
+        raise ValueError(f"{cfg_path} does not build with this version of realityavatar ({e}). Runs written at or "
+                         f"before commit c46aa26 (before the consolidation: loss.lambda_*, flow, posefit, ...) load "
+                         f"with that commit: git checkout c46aa26") from e
     module.load_state_dict(state["state_dict"])
     module.set_progress(state.get("global_step"))  # step-dependent state (the decoder's coarse-to-fine window)
     module.eval()

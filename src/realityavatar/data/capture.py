@@ -1,6 +1,6 @@
 """Bring your own capture: validate a simple folder format and convert it into the I3D-Human layout the readers use.
 
-Input folder (see README "Real data"):
+Input folder (see docs/data.md):
   cameras.json            {"<cam id, int>": {"K": [3,3], "R": [3,3], "T": [3] (world-to-camera, metres), "D": [5]?}}
   images/<cam>/<frame:06d>.png|.jpg    masks/<cam>/<frame:06d>.png (0 = background, anything else = person)
   smpl/<frame:06d>.npz|.json           {"poses": [72], "transl": [3]}  (SMPL: poses[:3] = global orientation)

@@ -24,7 +24,7 @@ def read_cam_params(subject_dir: Path) -> dict[str, dict[str, np.ndarray]]:
     """cam_params.json -> {cam_name: {"K", "viewmat" [4,4] world-to-camera, "dist" [5]}} in file order."""
     path = subject_dir / "cam_params.json"
     if not path.is_file():
-        raise FileNotFoundError(f"{path} not found (ZJU-MoCap in the ARAH layout: see README 'Real data')")
+        raise FileNotFoundError(f"{path} not found (ZJU-MoCap in the ARAH layout: see docs/data.md)")
     try:
         raw = json.loads(path.read_text())
     except json.JSONDecodeError as e:

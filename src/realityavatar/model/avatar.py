@@ -127,8 +127,7 @@ class Avatar(nn.Module):
         # Canonicalise: undo each Gaussian's blended skinning rotation.
         d_c = (posed["rot"].transpose(-1, -2) @ d[..., None]).squeeze(-1)
         rgb = self.color(self.all_features(), F.normalize(d_c, dim=-1), posed["f_mt"], frame_idx)
-        light = self.shading(posed["x_e"], posed["rot"])  # world-fixed light, or None (shading=none)
-        return rgb if light is None else rgb * light
+        return self.shading.apply(rgb, posed["x_e"], posed["rot"])  # x world-fixed light (shading=none: as it is)
 
     def splat(self, posed: dict, b: int, rgb: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor, W: int, H: int):
         """Rasterize sample b of `posed` with colours rgb [N,3] from one camera (viewmat [1,4,4], K [1,3,3]) over

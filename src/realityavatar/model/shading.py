@@ -3,7 +3,7 @@
 The paper's colour MLP sees the canonical view direction, the Gaussian's feature, f_mt and a per-frame latent Z_r.
 Studio light is fixed in the world, so when the body turns, a canonical point's shading changes with the body's
 heading; the pose features are heading-invariant, so only Z_r can carry it, and for a frame not seen in training
-(novel pose) Z_r is the mean latent. Measured on the skirt-spin scene (README, "Garment motion"): with the scene's
+(novel pose) Z_r is the mean latent. Measured on the skirt-spin scene (docs/research/2026-11-23-shading-light-fixed-in-world.md): with the scene's
 directional light removed, the held-out spin frames are 1.4 dB below the rest frames instead of 3.1 dB.
 """
 
@@ -22,7 +22,10 @@ class NoShading(nn.Module):
     """The paper's colour as it is: no shading factor (`shading=none`)."""
 
     def forward(self, x_e: torch.Tensor, rot: torch.Tensor) -> None:
-        return None
+        return None  # no light factor (export writes view-dependent SH only for an unlit model)
+
+    def apply(self, rgb: torch.Tensor, x_e: torch.Tensor, rot: torch.Tensor) -> torch.Tensor:
+        return rgb
 
     def init_from_body(self, vertices: torch.Tensor, faces: torch.Tensor, seed: int = 0) -> None:
         return None
@@ -116,6 +119,10 @@ class IrradianceShading(nn.Module):
         n_c = self.normals(x_e.detach())
         n_w = (rot.detach() @ n_c[..., None]).squeeze(-1)
         return self.irradiance(n_w)
+
+    def apply(self, rgb: torch.Tensor, x_e: torch.Tensor, rot: torch.Tensor) -> torch.Tensor:
+        """rgb [B,N,3] lit by the light at the Gaussians' places (x_e, rot as in forward)."""
+        return rgb * self(x_e, rot)
 
     def param_groups(self) -> dict[str, list[nn.Parameter]]:
         return {"shading": [self.coeffs], **({"shading_normals": [self.grid]} if self.grid.requires_grad else {})}

@@ -1,7 +1,7 @@
 """A garment sheet (`sheet=skirt`): Gaussians bound to a deformable surface of revolution around the hips and legs.
 
 The free Gaussians of the default model build a flared skirt from whatever Gaussians end up there, a few cm off the
-cloth and sliding over it (README, "Why the spin stays below rest"). The sheet gives the garment a surface instead:
+cloth and sliding over it (docs/research/2026-11-24-spin-limits.md). The sheet gives the garment a surface instead:
 a grid of (rows + 1) x cols vertices on rings about the body's vertical axis (pelvis -> neck), from a little above
 the pelvis down to the garment's hem (see GarmentSheet for the layout). The motion-trend decoder moves the vertices
 (the same decoder and h_t as the free Gaussians), the skinning field poses them, and every sheet Gaussian follows
@@ -36,7 +36,7 @@ class GarmentSheet(nn.Module):
     hull's (`"hull"`), plus `margin`. `canonicalise` then takes it to canonical space through the module's own
     skinning field (a fixed point of the inverse LBS), so at the rest frame the sheet poses back onto its layout.
     Measured: a sheet that starts around the legs, inside the garment, fits far better than one at the hull's
-    radius, which four views leave loose where no silhouette grazes it (README, "A garment sheet").
+    radius, which four views leave loose where no silhouette grazes it (docs/research/2026-11-24-garment-sheet.md).
     profile="canonical": the canonical body, from `top_offset` to the `bottom_joints` (the knees) + `bottom_offset`,
     radii from the canonical body's widest points; also what profile="rest" falls back to without views (a run
     rebuilt from its checkpoint, whose vertices then replace it).
@@ -301,7 +301,7 @@ class GarmentSheet(nn.Module):
         """Each Gaussian's cell extent along the ring and down the sheet [1,M,1] in the layout the stretch cap is
         measured against: the rest frame's layout (profile=rest), else the canonical one. Not the canonical cells
         of a rest layout: canonicalised into the star pose, the cells between the legs span up to 37 cm, and a cap
-        of 16x that bound nothing under poses that spread the legs further (README, "Stability report")."""
+        of 16x that bound nothing under poses that spread the legs further (docs/research/2026-11-23-stability-reports.md)."""
         return self._cell_frame(self._reference_layout()[None])[3:]
 
     def _column_edges(self, verts: torch.Tensor) -> torch.Tensor:
@@ -314,7 +314,7 @@ class GarmentSheet(nn.Module):
         max(0, length / reference length - 1 - strain_free)^2, the reference being the rest layout's (else the
         canonical) edge. Posed vertices [B,P,3] -> a scalar. Cloth barely stretches along its length (the simulated
         skirt's edges at most 1.08x), while without this term the trained sheet stretched its columns 2.1x (median)
-        at peak flare and hung its hem below the cloth's (README, "A garment sheet"). Around the rings the sheet is free:
+        at peak flare and hung its hem below the cloth's (docs/research/2026-11-24-garment-sheet.md). Around the rings the sheet is free:
         it starts around the legs, inside the garment, and must widen to follow a flare."""
         with torch.no_grad():
             L0 = self._column_edges(self._reference_layout()[None].to(verts)).clamp_min(1e-6)

@@ -148,8 +148,8 @@ QUERY_AT = ("deformed", "canonical")
 def check_query_at(name: str, query_at: str) -> str:
     """Where the module reads a point's skinning weights (`skinning.query_at`): "deformed", at its canonical
     position plus the decoder's offset (x_c + dx, as 3DGS-Avatar), or "canonical", at x_c itself, so a garment
-    point keeps the bones it was laid out on however far the decoder moves it (README, "What the spin's gap is
-    made of": read at x_c + dx, a hem pushed 30 cm out takes the weights of whatever part lies there)."""
+    point keeps the bones it was laid out on however far the decoder moves it (read at x_c + dx, a hem pushed 30 cm
+    out takes the weights of whatever part lies there; docs/research/2026-11-26-spin-gap-oracles.md)."""
     if query_at not in QUERY_AT:
         raise ValueError(f"{name}.query_at: expected one of {QUERY_AT}, got {query_at!r}")
     return query_at

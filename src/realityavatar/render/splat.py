@@ -156,7 +156,7 @@ def _load_gsplat() -> Any:
 
 _NO_KERNELS = ("gsplat {version} imports but its CUDA kernels are missing: no prebuilt binary for this torch "
                "({torch}, CUDA {cuda}) and the JIT build failed or found no CUDA toolkit (nvcc). Install nvcc of CUDA "
-               "{cuda} (and set CUDA_HOME) or a gsplat wheel built for this torch; see the README's GPU section")
+               "{cuda} (and set CUDA_HOME) or a gsplat wheel built for this torch; see docs/gpu.md")
 
 
 def gsplat_status() -> str:

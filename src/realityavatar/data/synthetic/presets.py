@@ -26,7 +26,7 @@ COMMON = {
     # Rays per pixel side: a camera integrates over each pixel, so its images carry no detail finer than a pixel.
     # One ray through each pixel centre (1, the scenes before this key) aliases the garment's sub-pixel stripes into
     # noise that differs per view and frame: at 256 px it alone was 29.7 / 34.4 dB PSNR from the 4x4-integrated
-    # image on the two held-out cameras, as large as a trained model's whole error (see README, "Synthetic ground truth").
+    # image on the two held-out cameras, as large as a trained model's whole error (see docs/research/2026-11-23-pixel-integrated-scenes.md).
     "supersample": 3,
 }
 
