@@ -16,7 +16,10 @@ window seen by V cameras around the body; its parts are not split out.
 --device cuda runs the module and its batches on the GPU (backends `gsplat torch` there); every clock reading waits
 for the GPU first (torch.cuda.synchronize), and each row also records the GPU kernels' own time per step
 (`gpu_kernel_s`, from torch.profiler over 3 whole steps): a step far longer than its kernels waits on Python and
-kernel launches, not on the GPU.
+kernel launches, not on the GPU, with the kernel launches and stream syncs it counts.
+On any device each row also counts the tensor operations of one whole step and the host syncs among them (scalar
+reads, data-dependent output sizes), with a TorchDispatchMode: the launches and waits a GPU step would make,
+measurable on a CPU.
 """
 from __future__ import annotations
 
@@ -193,6 +196,40 @@ def _stub_trainer_hooks(module, opt, sched, step: int) -> None:
     type(module).global_step = property(lambda self: step)  # no trainer: the step the schedule sees
 
 
+# Ops whose output size depends on the data: on a GPU each waits for the device (like a scalar read).
+DATA_DEPENDENT = ("nonzero", "masked_select", "unique", "_unique2", "unique_consecutive", "argwhere")
+
+
+def count_ops(module, opt, sched, make_batch, step: int, steps: int = 3) -> dict:
+    """Tensor operations per whole training step, counted with a TorchDispatchMode (forward, backward, optimizer;
+    views and other metadata-only ops left out), and the host syncs among them: scalar reads (`.item()`, `float()`,
+    `bool()` of a tensor: aten._local_scalar_dense) and ops whose output size depends on the data (nonzero, ...).
+    The same counts on a CPU as on a GPU, so every machine measures the launches and syncs a GPU step would make."""
+    from collections import Counter
+
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    class Count(TorchDispatchMode):
+        def __init__(self):
+            super().__init__()
+            self.ops = Counter()
+
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            if not (func.is_view or func.__name__.split(".")[0] in ("detach", "alias", "lift_fresh", "_unsafe_view")):
+                self.ops[func.__name__.split(".")[0]] += 1
+            return func(*args, **(kwargs or {}))
+
+    make_batch()  # draw outside the count; the data part of a step is the DataModule's, not the model's
+    with Count() as c:
+        for _ in range(steps):
+            module.training_step(make_batch(), 0)
+    per = {k: v / steps for k, v in c.ops.items()}
+    return {"ops_per_step": sum(per.values()),
+            "scalar_reads_per_step": per.get("_local_scalar_dense", 0.0),
+            "data_dependent_per_step": sum(per.get(k, 0.0) for k in DATA_DEPENDENT),
+            "top_ops": dict(sorted(per.items(), key=lambda kv: -kv[1])[:15])}
+
+
 def run_config(n: int, size: int, backend: str, repeats: int, overrides: list[str], views=(1,)) -> dict:
     torch.manual_seed(0)
     cfg, module, opt, sched = build(n, backend, overrides)
@@ -207,7 +244,8 @@ def run_config(n: int, size: int, backend: str, repeats: int, overrides: list[st
             parts[k].append(v)
         whole.append(step_whole(module, opt, sched, make_batch, step))
     med = {k: statistics.median(v) for k, v in parts.items()}
-    gpu_kernel_s = None
+    counts = count_ops(module, opt, sched, make_batch, step)
+    gpu_kernel_s, cuda_calls = None, {}
     if _device != "cpu":
         from torch.profiler import ProfilerActivity, profile
 
@@ -216,6 +254,10 @@ def run_config(n: int, size: int, backend: str, repeats: int, overrides: list[st
                 step_whole(module, opt, sched, make_batch, step)
         kernels = [e for e in prof.events() if str(getattr(e, "device_type", "")).endswith("CUDA")]
         gpu_kernel_s = sum(e.time_range.elapsed_us() for e in kernels) / 3e6
+        names = [e.name for e in prof.events()]
+        cuda_calls = {"kernel_launches_per_step": sum("LaunchKernel" in k for k in names) / 3,
+                      "stream_syncs_per_step": sum("Synchronize" in k for k in names) / 3,
+                      "device_to_host_copies_per_step": sum(k.startswith("Memcpy DtoH") for k in names) / 3}
     multi = {}
     for V in views:
         if V == 1:
@@ -225,7 +267,8 @@ def run_config(n: int, size: int, backend: str, repeats: int, overrides: list[st
         multi[str(V)] = statistics.median([step_whole(module, opt, sched, make_v, step) for _ in range(repeats)])
     return {"n": n, "size": size, "backend": backend, "device": _device,
             "num_gaussians": int(module.gaussians.num_points), "step_s": statistics.median(whole),
-            "sum_of_parts_s": sum(med.values()), "parts_s": med, "views_step_s": multi, "gpu_kernel_s": gpu_kernel_s}
+            "sum_of_parts_s": sum(med.values()), "parts_s": med, "views_step_s": multi, "gpu_kernel_s": gpu_kernel_s,
+            **counts, **cuda_calls}
 
 
 def main() -> None:
@@ -267,9 +310,13 @@ def main() -> None:
                 r["gemm_unit_s"] = statistics.median(units[-2:])
                 results.append(r)
                 u = r["gemm_unit_s"]
-                gk = "" if r["gpu_kernel_s"] is None else f"; GPU kernels {r['gpu_kernel_s']:.4f}s of it"
+                gk = "" if r["gpu_kernel_s"] is None else (
+                    f"; GPU kernels {r['gpu_kernel_s']:.4f}s of it, {r['kernel_launches_per_step']:.0f} launches, "
+                    f"{r['stream_syncs_per_step']:.0f} stream syncs")
                 print(f"  {backend:6s} N={n:6d} {size}^2  step {r['step_s']:.3f}s = {r['step_s'] / u:.2f} units "
-                      f"(render fwd+bwd {r['parts_s']['render_fwd'] + r['parts_s']['render_bwd']:.3f}s{gk})"
+                      f"(render fwd+bwd {r['parts_s']['render_fwd'] + r['parts_s']['render_bwd']:.3f}s{gk}); "
+                      f"{r['ops_per_step']:.0f} tensor ops, {r['scalar_reads_per_step']:.0f} scalar reads, "
+                      f"{r['data_dependent_per_step']:.0f} data-dependent shapes per step"
                       + "".join(f"; {V} views {t:.3f}s = {t / u:.2f} units ({t / r['step_s']:.2f}x)"
                                 for V, t in r["views_step_s"].items()), flush=True)
     cols = ["step", *PARTS]
