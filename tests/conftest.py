@@ -1,4 +1,5 @@
-"""Shared fixtures: composing configs as the command line does, and the tiny `ci` scene built once per session."""
+"""Shared fixtures: the tiny `ci` scene built once per session, and one run trained on it that the tests of
+train / evaluate / resume / animate / export / view / the module read."""
 
 from __future__ import annotations
 
@@ -31,3 +32,16 @@ def scenes_root(tmp_path_factory) -> Path:
     os.environ["REALITYAVATAR_SCENES"] = str(root)
     return root
 
+
+
+@pytest.fixture(scope="session")
+def trained_run(scenes_root, tmp_path_factory) -> tuple[Path, dict]:
+    """(run folder, metrics) of one short training on the ci scene (tests.helpers.TRAINED_RUN), trained once.
+    Tests may add files to the folder (evaluate, export) but must not change what the run wrote."""
+    from realityavatar.config import compose, prepare_run
+    from realityavatar.train import run
+    from tests.helpers import TRAINED_RUN
+
+    out = tmp_path_factory.mktemp("trained") / "run"
+    metrics = run(*prepare_run(compose(TRAINED_RUN), out))
+    return out, metrics

@@ -143,3 +143,8 @@ def write_zju(root, subject="CoreView_377", body=None, n_frames=6, cams=("1", "2
     with open(d / "cam_params.json", "w") as fh:
         json.dump(params, fh)
     return {"pose": pose, "trans": trans, "pelvis_world": pelvis_w}
+
+def pixel_in_mask(mask: np.ndarray, uv) -> bool:
+    """Whether pixel position uv [2] falls on a set pixel of mask [H,W]."""
+    x, y = int(np.floor(uv[0])), int(np.floor(uv[1]))
+    return 0 <= x < mask.shape[1] and 0 <= y < mask.shape[0] and bool(mask[y, x])

@@ -1,14 +1,90 @@
-"""Garment-motion mechanisms: silhouette chamfer, skinning grid, coarse-to-fine decoder, history dependence."""
+"""Loss terms (L1/mask/perceptual/skinning, VGG19 vs D-SSIM, the silhouette's chamfer terms)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 import torch
-from hydra.utils import instantiate
 
-from realityavatar.config import compose
-from realityavatar.losses import SilhouetteChamfer, mask_distance, project_points
+from realityavatar.losses import (
+    ColourL1,
+    MaskLoss,
+    PerceptualLoss,
+    SilhouetteChamfer,
+    SkinningLoss,
+    TrainingRender,
+    mask_distance,
+    project_points,
+    total_loss,
+)
+from realityavatar.metrics import (
+    vgg_features,
+)
+from realityavatar.model.skinning import SkinningField
+
+
+def _batch(seed=0):
+    g = torch.Generator().manual_seed(seed)
+    pred = torch.rand(2, 24, 24, 3, generator=g, requires_grad=True)
+    alpha = torch.rand(2, 24, 24, 1, generator=g, requires_grad=True)
+    gt = torch.rand(2, 24, 24, 3, generator=g)
+    mask = (torch.rand(2, 24, 24, 1, generator=g) > 0.5).float()
+    return pred, alpha, gt, mask
+
+
+def _render(pred, alpha, gt, mask, step=0, skinning=None):
+    from types import SimpleNamespace
+
+    from realityavatar.body import build_body
+
+    avatar = SimpleNamespace(body=build_body("mannequin"), skinning=skinning)
+    return TrainingRender(pred, alpha, {"image": gt, "mask": mask}, {}, avatar, step)
+
+
+def test_loss_terms_dssim_fallback_weights_and_schedule():
+    """The default terms sum in order with their weights: L1 + 0.1 mask + 0.2 D-SSIM (no VGG19 weights) +
+    λ_skin skinning, λ_skin 10 before the skinning term's switch step and 0.1 from it on."""
+    terms = {"rgb": ColourL1(), "mask": MaskLoss(weight=0.1), "perceptual": PerceptualLoss(weight=0.01, dssim_weight=0.2),
+             "skinning": SkinningLoss(weight=10.0, weight_after=0.1, switch=5, samples=32)}
+    assert terms["perceptual"].kind == "dssim" and terms["perceptual"].weight == 0.2
+    pred, alpha, gt, mask = _batch()
+    field = SkinningField(hidden_dim=16, num_layers=1)
+    for step, lam in ((4, 10.0), (5, 0.1)):
+        total, logs = total_loss(terms, _render(pred, alpha, gt, mask, step, field))
+        expected = logs["l1"] + 0.1 * logs["mask"] + 0.2 * logs["perceptual"] + lam * logs["skin"]
+        assert float(total.detach()) == pytest.approx(float(expected), rel=1e-6)
+    assert float(logs["l1"]) == pytest.approx(float((pred - gt).abs().mean()), rel=1e-6)
+    assert float(logs["mask"]) == pytest.approx(float(((alpha - mask) ** 2).mean()), rel=1e-6)
+    total.backward()
+    assert pred.grad.abs().sum() > 0 and alpha.grad.abs().sum() > 0
+    assert all(p.grad is not None for p in field.parameters())
+    # identical images: no photometric loss; a term that is not in the list is not computed
+    t0, logs0 = total_loss({k: terms[k] for k in ("rgb", "mask", "perceptual")}, _render(gt, mask, gt, mask))
+    assert float(t0) == pytest.approx(0.0, abs=1e-6) and "skin" not in logs0
+
+
+def test_perceptual_term_is_vgg19_when_weights_exist(tmp_path):
+    feats = vgg_features("vgg19")[:30]
+    torch.save({f"features.{k}": v for k, v in feats.state_dict().items()}, tmp_path / "vgg19.pth")
+    term = PerceptualLoss(kind="auto", vgg19_weights=str(tmp_path / "vgg19.pth"), weight=0.01)
+    assert term.kind == "vgg19" and term.weight == 0.01
+    assert not any(p.requires_grad for p in term.parameters())
+    pred, alpha, gt, mask = _batch()
+    total, logs = total_loss({"perceptual": term}, _render(pred, alpha, gt, mask))
+    assert float(logs["perceptual"]) > 0
+    total.backward()
+    assert pred.grad.abs().sum() > 0
+    _, logs_same = total_loss({"perceptual": term}, _render(gt, mask, gt, mask))
+    assert float(logs_same["perceptual"]) == pytest.approx(0.0, abs=1e-6)
+
+
+def test_loss_terms_bad_options(tmp_path):
+    with pytest.raises(ValueError, match="loss.perceptual.kind"):
+        PerceptualLoss(kind="lpips")
+    with pytest.raises(FileNotFoundError, match="vgg19_weights"):
+        PerceptualLoss(kind="vgg19", vgg19_weights=str(tmp_path / "missing.pth"))
+    with pytest.raises(ValueError, match="loss.mask.kind"):
+        MaskLoss(kind="huber")
 
 
 def _camera(H: int = 32):
@@ -61,139 +137,9 @@ def test_coverage_term_pulls_the_nearest_centre_to_uncovered_mask_pixels():
     assert float(x.grad[1].abs().sum()) == 0.0, "a farther centre is not the nearest to any uncovered pixel"
 
 
-@pytest.mark.parametrize("group,on,off", [("silhouette", "chamfer", "none"), ("skinning", "grid", "mlp")])
-def test_each_mechanism_composes_and_switches_off(group, on, off):
-    for opt in (on, off):
-        cfg = compose([f"{group}={opt}", "gaussians.num_points=200"])
-        name = type(instantiate(cfg[group])).__name__ if cfg[group] else "no term"  # silhouette=none: no loss term
-        assert (name in ("SilhouetteChamfer", "SkinningGrid")) == (opt == on), (group, opt, name)
-
-
-@pytest.mark.parametrize("temporal", ["lstm", "none"])
-def test_trained_model_depends_on_motion_history(scenes_root, tmp_path, temporal):
-    """Same current pose, different histories (standing vs spinning into it): a trained LSTM model poses the
-    Gaussians differently; the w/o-LSTM model cannot (its output is a function of the current frame only)."""
-    from realityavatar.build import load_run
-    from realityavatar.config import prepare_run
-    from realityavatar.geometry import axis_angle_to_matrix, matrix_to_axis_angle
-    from realityavatar.train import run
-
-    cfg, choices = prepare_run(compose(["data=synthetic_ci", "trainer=ci", "iterations=30", f"temporal={temporal}",
-                                        "gaussians.num_points=800", "test_after_fit=false", "logger=none"]),
-                               tmp_path / "run")
-    run(cfg, choices)
-    _, module, _ = load_run(tmp_path / "run")
-    T = module.run_info.get("window_len", 6)
-    still = torch.zeros(1, T, 24, 3)
-    transl = torch.zeros(1, T, 3)
-    yaw = torch.linspace(-3.0, 0.0, T)  # spinning about the vertical axis, arriving at the same final pose
-    spin = still.clone()
-    spin[0, :, 0] = matrix_to_axis_angle(axis_angle_to_matrix(torch.stack([torch.zeros(T), yaw, torch.zeros(T)], -1)))
-    with torch.no_grad():
-        a = module.deform(still, transl)["means"]
-        b = module.deform(spin, transl)["means"]
-    diff = (a - b).norm(dim=-1)
-    # 30 CPU steps move the zero-initialised decoder output only a little (~1e-5 m here); the sweep-scale effect is
-    # measured by ablations/probe.py. What must hold: with an LSTM the history moves every Gaussian, without it none.
-    if temporal == "none":
-        assert float(diff.max()) == 0.0
-    else:
-        assert float(diff.min()) > 1e-7 and float(diff.mean()) > 2e-6, f"history moved the Gaussians {float(diff.mean()):.2e} m"
-
-
 def test_nearest_index_matches_the_dense_argmin():
     from realityavatar.losses import nearest_index
 
     g = torch.Generator().manual_seed(0)
     pts, q = torch.rand(3000, 2, generator=g) * 128, torch.rand(500, 2, generator=g) * 128
     assert torch.equal(nearest_index(q, pts), torch.cdist(q.double(), pts.double()).argmin(1))
-
-
-def test_skinning_grid_follows_the_body_and_blends_between_the_legs():
-    """Built from the body: on the surface it reproduces the body's dominant bone about as well as the MLP's pre-fit
-    does; half-way between the two thighs a point takes both thighs' weights (the MLP's nearest-side weights tear
-    a skirt apart there); gradients reach the query positions; a checkpoint restores the grid's shape and box."""
-    from realityavatar.body import build_body
-    from realityavatar.geometry import sample_surface
-    from realityavatar.model.skinning import SkinningGrid
-
-    body = build_body("mannequin")
-    v = body.canonical_vertices().detach()
-    grid = SkinningGrid(voxel_size=0.04)
-    info = grid.init_from_body(v, body.faces, body.skin_weights)
-    p, w = sample_surface(v, body.faces, body.skin_weights, 5000, torch.Generator().manual_seed(1))
-    with torch.no_grad():
-        pred = grid(p)
-    assert torch.allclose(pred.sum(-1), torch.ones(len(p)), atol=1e-5)
-    assert (pred.argmax(-1) == w.argmax(-1)).float().mean() > 0.85
-    assert info["surface_fit"] < 0.2
-    # between the knees: left and right thigh/knee joints (SMPL 1/4 left, 2/5 right) share the weight
-    j = body.joints(body.canonical_pose()).detach()
-    mid = ((j[4] + j[5]) / 2 + (j[1] + j[2]) / 2) / 2  # between the thighs, half-way down
-    wm = grid(mid[None])[0]
-    left, right = float(wm[[1, 4]].sum()), float(wm[[2, 5]].sum())
-    assert left > 0.25 and right > 0.25, (left, right)
-    x = p[:10].clone().requires_grad_()
-    (grid(x) * torch.randn(10, 24)).sum().backward()
-    assert x.grad is not None and x.grad.abs().sum() > 0
-    fresh = SkinningGrid(voxel_size=0.04)
-    fresh.load_state_dict(grid.state_dict())
-    assert torch.equal(fresh(p[:50]), grid(p[:50]).detach())
-
-
-def test_training_opens_the_coarse_to_fine_window_and_a_checkpoint_keeps_it(scenes_root, tmp_path, monkeypatch):
-    """Every training step sets the decoder's window from schedule.deform_anneal, and load_run puts a checkpoint's
-    window back where its step had it: a run stopped mid-anneal (20 of 40 steps) renders with half its bands, as it
-    trained, not with bands it never trained."""
-    from realityavatar.build import load_run
-    from realityavatar.config import compose, prepare_run
-    from realityavatar.model.module import AvatarModule
-    from realityavatar.train import run
-
-    assert compose([]).schedule.deform_anneal == compose([]).iterations // 2
-    steps = []
-    orig = AvatarModule.set_progress
-    monkeypatch.setattr(AvatarModule, "set_progress", lambda self, step: (steps.append(step), orig(self, step))[1])
-    cfg, choices = prepare_run(compose(["data=synthetic_ci", "trainer=ci", "iterations=20", "schedule.deform_anneal=40",
-                                        "gaussians.num_points=300", "eval.max_frames_per_split=1",
-                                        "eval.save_video=false", "eval.save_images=0"]), tmp_path / "run")
-    run(cfg, choices)
-    assert [s for s in steps if s is not None][:20] == list(range(20))
-    _, module, _ = load_run(tmp_path / "run")
-    assert module.deformer.encoding.alpha == module.deformer.encoding.num_freqs * 20 / 40
-
-
-@pytest.mark.parametrize("query_at", ["deformed", "canonical"])
-def test_skinning_query_at_reads_the_weights_where_it_says(scenes_root, query_at):
-    """skinning.query_at: "deformed" reads each point's weights at x_c + dx (3DGS-Avatar), "canonical" at x_c, so
-    a point the decoder moves 40 cm keeps the bones it was laid out on; an unknown value names the field."""
-    from torch.utils.data import default_collate
-
-    from realityavatar.build import build_data, build_module
-
-    cfg = compose(["data=synthetic_ci", "trainer=ci", "gaussians.num_points=200", f"skinning.query_at={query_at}"])
-    body = instantiate(cfg.body)
-    dm = build_data(cfg, body)
-    module = build_module(cfg, body, dm.num_train_frames, dm.scene_extent, data=dm)
-    assert module.skinning.query_at == query_at
-    module.skinning.init_from_body(body.canonical_vertices().detach(), body.faces, body.skin_weights)  # as on_fit_start
-    forward = module.deformer.forward
-
-    def far(*args, **kwargs):  # the decoder moves every point 40 cm along x
-        out = forward(*args, **kwargs)
-        return {**out, "dx": out["dx"] + torch.tensor([0.4, 0.0, 0.0])}
-
-    module.deformer.forward = far
-    b = default_collate([dm.datasets["train"][0]])
-    with torch.no_grad():
-        posed = module.deform(b["poses"], b["transl"])
-        at_rest, moved = module.skinning(module.gaussians.means), module.skinning(posed["x_e"][0])
-    expected, other = (at_rest, moved) if query_at == "canonical" else (moved, at_rest)
-    assert torch.allclose(posed["weights"][0], expected, atol=1e-6)
-    assert (posed["weights"][0] - other).abs().max() > 0.1
-    from realityavatar.model.skinning import SkinningField, SkinningGrid
-
-    with pytest.raises(ValueError, match=r"skinning \(grid\)\.query_at"):
-        SkinningGrid(query_at="rest")
-    with pytest.raises(ValueError, match=r"skinning \(mlp\)\.query_at"):
-        SkinningField(query_at="rest")

@@ -97,3 +97,14 @@ def test_forward_batched_shapes(body):
     A = body(pose, torch.zeros(2, 3, 3))
     assert A.shape == (2, 3, 24, 4, 4)
     assert body.posed_vertices(pose[:, 0]).shape == (2, 24256, 3)
+
+
+def test_nan_pose_gives_clear_error(body):
+    from realityavatar.body.base import check_pose
+
+    pose = torch.zeros(24, 3)
+    pose[5, 1] = float("nan")
+    with pytest.raises(ValueError, match="non-finite"):
+        body(pose, torch.zeros(3))
+    with pytest.raises(ValueError, match=r"\[\.\.\.,24,3\]"):
+        check_pose(torch.zeros(23, 3), None)

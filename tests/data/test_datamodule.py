@@ -1,8 +1,7 @@
-"""AvatarDataModule: samples per CONTRACTS.md, splits and filters, pose windows across splits, configs, scene building."""
+"""The datamodule: the sample contract, selection, windows, caching, every data config, samplers, errors."""
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -10,15 +9,13 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
-from omegaconf import OmegaConf
-
-sys.path.insert(0, str(Path(__file__).parent))
-from fixtures_data import SIZE, RandomBody, project, write_i3d, write_zju
+from omegaconf import OmegaConf, open_dict
 
 from realityavatar.data.datamodule import AvatarDataModule
 from realityavatar.data.poses import PoseTable
+from tests.fixtures_data import SIZE, RandomBody, project, write_i3d, write_zju
+from tests.helpers import CONF
 
-CONF = Path(__file__).resolve().parents[1] / "conf"
 KEYS = {"image", "mask", "K", "viewmat", "width", "height", "poses", "transl", "index", "frame", "frame_idx", "view",
         "split"}
 
@@ -260,13 +257,14 @@ def test_paper_camera_splits():
 
 
 @pytest.mark.slow
-def test_synthetic_ci_scene_joints_inside_masks(tmp_path):
-    """The generator's real ci scene read through synthetic_ci.yaml: every sampled joint lands inside its mask."""
+def test_synthetic_ci_scene_joints_inside_masks(scenes_root):
+    """The generator's real ci scene (the session's, built once) read through synthetic_ci.yaml: every sampled joint
+    lands inside its mask."""
     from realityavatar.body.mannequin import MannequinBody
 
     body = MannequinBody()
     cfg = compose_data("synthetic_ci")
-    cfg.root = str(tmp_path)
+    cfg.root = str(scenes_root)
     dm = instantiate(cfg, body=body)
     dm.prepare_data()
     dm.setup()
@@ -278,27 +276,6 @@ def test_synthetic_ci_scene_joints_inside_masks(tmp_path):
                 u, v = project(s["K"].double().numpy(), s["viewmat"].double().numpy(), J[j])
                 assert s["mask"][int(v), int(u), 0] == 1
     assert np.isfinite(dm.scene_extent)
-
-
-@pytest.mark.slow
-def test_training_command_runs_on_fixture_dataset(tmp_path):
-    """`realityavatar-train data=capture ...` end to end (fit a few steps, then test) on a fixture I3D-layout dataset."""
-    import json
-    import subprocess
-
-    from realityavatar.body.mannequin import MannequinBody
-
-    write_i3d(tmp_path / "data", "fx", MannequinBody(), train_frames=tuple(range(4)), pose_frames=(4,),
-              train_views=(0, 1), test_views=(2,))
-    run = tmp_path / "run"
-    cmd = [sys.executable, "-m", "realityavatar.train", "data=capture", f"data.root={tmp_path / 'data'}",
-           "data.sequence=fx", "iterations=3", "trainer=ci", "gaussians.num_points=2000", "eval.save_video=false",
-           "eval.fps_frames=2", f"hydra.run.dir={run}"]
-    out = subprocess.run(cmd, capture_output=True, text=True, timeout=900, check=False, cwd=Path(__file__).resolve().parents[1])
-    assert out.returncode == 0, out.stderr[-3000:]
-    metrics = json.loads((run / "metrics.json").read_text())
-    assert metrics["config"]["data"] == "capture" and metrics["iterations"] == 3
-    assert np.isfinite(metrics["test/novel_view/psnr"]) and np.isfinite(metrics["test/novel_pose/psnr"])
 
 
 def test_hard_frame_sampler_draws_frames_in_proportion_to_their_loss():
@@ -365,3 +342,15 @@ def test_unknown_sampler_option_names_the_field(scene_root, body):
         dm.train_dataloader()
     with pytest.raises(Exception, match="sampler"):
         compose(["sampler=hardest"])
+
+
+def test_missing_scene_folder_is_named(tmp_path, body):
+    from realityavatar.config import compose
+
+    cfg = compose(["data=synthetic_ci", f"data.root={tmp_path / 'nowhere'}"])
+    with open_dict(cfg):
+        cfg.data.build_preset = None
+    dm = instantiate(cfg.data, body=body)
+    with pytest.raises(FileNotFoundError, match="nowhere"):
+        dm.prepare_data()
+        dm.setup("fit")

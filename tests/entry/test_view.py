@@ -11,24 +11,14 @@ import time
 import numpy as np
 import pytest
 
-from realityavatar.config import compose, prepare_run
-
-SMALL = ["trainer=ci", "gaussians.num_points=1500", "eval.save_video=false", "eval.save_images=0", "eval.fps_frames=2",
-         "eval.fps_warmup=1", "eval.max_frames_per_split=4"]
 CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
                  "--disable-background-networking", "--disable-component-update", "--disable-sync"]
 
 
 @pytest.fixture(scope="module")
-def view_run(scenes_root, tmp_path_factory):
-    """A tiny trained run on the ci scene (the pattern of test_system's trained_run, fewer steps): 30 steps, evaluated
-    on 4 frames per split so per_frame.csv exists."""
-    from realityavatar.train import run
-
-    out = tmp_path_factory.mktemp("view_run")
-    cfg, choices = prepare_run(compose(["data=synthetic_ci", "iterations=30", *SMALL]), out)
-    run(cfg, choices)
-    return out
+def view_run(trained_run):
+    """The suite's trained run (conftest.py): evaluated on every test frame, so per_frame.csv exists."""
+    return trained_run[0]
 
 
 def free_port() -> int:

@@ -1,9 +1,8 @@
-"""The GPU path without a GPU: dtype/device slips (float64 stands in for CUDA), gsplat fallback rules with a fake
-gsplat, the backend/device a run records, single-run multi-GPU refusal; plus `gpu` tests that run where CUDA is."""
+"""The gsplat path without a GPU (a fake gsplat: build failures fall back once, other errors surface, float64 is
+decided before the call), the host reads of the input checks; plus `gpu` tests that run where CUDA is."""
 
 from __future__ import annotations
 
-import json
 import sys
 import textwrap
 import warnings
@@ -13,66 +12,15 @@ import pytest
 import torch
 
 import realityavatar.render.splat as rast_mod
-from realityavatar.config import compose, prepare_run
 from realityavatar.render import rasterize
-
-ROOT = Path(__file__).resolve().parents[1]
-TINY = ["data=synthetic_ci", "trainer=ci", "gaussians.num_points=400", "eval.save_video=false", "eval.save_images=1",
-        "eval.fps_frames=1", "eval.fps_warmup=0", "schedule.skin_pretrain_steps=3", "data.frame_subsample=5"]
-
-
-_prepare = prepare_run  # compose() result -> (cfg, choices) for train.run
+from tests.helpers import human_scene
+from tests.render.scenes import random_scene
 
 
 def _scene(n=30, dtype=torch.float32):
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    from render import human_scene
-
     return human_scene(n, 32, dtype=dtype)
 
 
-# ---------------------------------------------------------------------- dtype/device: float64 stands in for CUDA
-def test_canonical_vertices_follow_the_buffers():
-    from realityavatar.body import build_body
-
-    body = build_body("mannequin").double()
-    # a pose built on the default device/dtype and multiplied with moved buffers: the CUDA crash of on_fit_start
-    assert body.canonical_pose().dtype == torch.float64
-    assert body.canonical_vertices().dtype == torch.float64
-
-
-def test_training_step_and_evaluation_in_float64(scenes_root, tmp_path):
-    """The whole fit (skinning pre-fit, steps with deformation and density control) and evaluation in float64: a
-    tensor made without dtype=/device= from its inputs breaks here as a CPU tensor breaks on CUDA."""
-    from hydra.utils import instantiate
-
-    from realityavatar.build import build_data, build_module
-    from realityavatar.evaluate import evaluate_module
-
-    cfg, _ = _prepare(compose([*TINY, "iterations=4", "schedule.deform_start=2", "density.refine_every=2",
-                               "density.refine_start=1", "density.refine_stop=4",
-                               "density.grad_threshold=0.0"]), tmp_path)
-    body = instantiate(cfg.body)
-    dm = build_data(cfg, body)
-    module = build_module(cfg, body, dm.num_train_frames, dm.scene_extent).double()
-    trainer = instantiate(cfg.trainer, logger=False, enable_checkpointing=False)
-    assert torch.get_default_dtype() == torch.float32
-    trainer.fit(module, datamodule=dm)
-    assert trainer.global_step == 4
-    assert all(p.dtype == torch.float64 for p in module.parameters())
-    assert module.run_info["render"]["dtype"] == "torch.float64"
-    metrics = evaluate_module(module, dm, trainer, cfg, tmp_path)
-    assert metrics["test/novel_view/psnr"] > 0 and metrics["render_fps"] > 0
-    assert metrics["render_fps_device"] == "cpu"
-    # animate: float32 poses and cameras from the data feed the float64 module
-    from realityavatar.animate import dataset_cameras, render_sequence
-
-    frames = render_sequence(module, dm.scene.poses, dataset_cameras(dm, [0]), dm.window_len, dm.window_step,
-                             dm.pose_sequence("novel_pose")[0].tolist()[:1])
-    assert len(frames) == 1 and frames[0].dtype.name == "uint8"
-
-
-# ---------------------------------------------------------------------- gsplat: build failures fall back, others surface
 def _fake_gsplat(root: Path, kernels: bool = True) -> None:
     """A package named gsplat: imports like the real one, `cuda._backend._C` is None when the 'build' failed."""
     pkg = root / "gsplat"
@@ -219,42 +167,6 @@ def test_check_finite_reads_the_device_once(monkeypatch):
     assert len(reads) <= 1
 
 
-def test_metrics_do_not_depend_on_float32_accumulation():
-    """PSNR/SSIM accumulate in float64 (no TF32 convolutions on CUDA; CPU and GPU give the same numbers)."""
-    from realityavatar.metrics import psnr, ssim
-
-    g = torch.Generator().manual_seed(0)
-    x, y = torch.rand(48, 40, 3, generator=g), torch.rand(48, 40, 3, generator=g)
-    assert float(ssim(x, y)) == pytest.approx(float(ssim(x.double(), y.double())), abs=1e-12)
-    assert float(psnr(x, y)) == pytest.approx(float(psnr(x.double(), y.double())), abs=1e-12)
-    assert ssim(x, y).dtype == torch.float64
-
-
-# ---------------------------------------------------------------------- what a run records
-def test_run_records_the_backend_it_used(scenes_root, tmp_path):
-    from realityavatar.train import run
-
-    cfg, choices = _prepare(compose([*TINY, "iterations=2", "render.backend=gsplat"]), tmp_path)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # gsplat on CPU tensors falls back with a warning
-        metrics = run(cfg, choices)
-    saved = json.loads((tmp_path / "metrics.json").read_text())
-    assert saved["backend"] == "torch" and saved["backend_configured"] == "gsplat"
-    assert saved["device"] == "cpu" and saved["render_fps_device"] == "cpu"
-    assert saved["render_fps_backend"] == "torch"
-    assert metrics["backend"] == "torch"
-
-
-def test_multi_gpu_single_run_fails_fast(scenes_root, tmp_path):
-    from realityavatar.train import run
-
-    cfg, choices = _prepare(compose([*TINY, "iterations=2", "trainer.devices=2", "+trainer.strategy=ddp"]), tmp_path)
-    with pytest.raises(ValueError, match="one run per GPU"):
-        run(cfg, choices)
-    assert not (tmp_path / "metrics.json").exists()
-
-
-# ---------------------------------------------------------------------- on a GPU
 def _gsplat_usable() -> bool:
     return torch.cuda.is_available() and rast_mod.gsplat_status() == "ok"
 
@@ -262,8 +174,6 @@ def _gsplat_usable() -> bool:
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 def test_torch_backend_forward_and_backward_on_cuda_match_cpu():
-    from test_render import random_scene
-
     a = random_scene(200, seed=1, cams=2, dtype=torch.float32)
     out = {}
     for dev in ("cpu", "cuda"):
@@ -281,9 +191,6 @@ def test_torch_backend_forward_and_backward_on_cuda_match_cpu():
 @pytest.mark.skipif(not _gsplat_usable(), reason="needs CUDA and a working gsplat")
 @pytest.mark.parametrize("mode", ["classic", "antialiased"])
 def test_gsplat_matches_torch_images_alphas_and_means2d_grads(mode):
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    from render import human_scene
-
     args = human_scene(5000, 256, device="cuda")
     gout = torch.rand(1, 256, 256, 3, device="cuda")
     res = {}
@@ -300,79 +207,3 @@ def test_gsplat_matches_torch_images_alphas_and_means2d_grads(mode):
     rel = (tg[both] - gg[both]).norm() / gg[both].norm()
     assert rel < 1e-2, f"means2d gradients differ by {float(rel):.3g} (relative)"
     assert (tm - gm).norm() / gm.norm() < 1e-2
-
-
-@pytest.mark.gpu
-@pytest.mark.parametrize("backend", [
-    pytest.param("gsplat", marks=pytest.mark.skipif(not _gsplat_usable(), reason="needs CUDA and a working gsplat")),
-    pytest.param("torch", marks=pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")),
-])
-def test_two_step_gpu_fit_on_ci_scene(scenes_root, tmp_path, backend):
-    """The LightningModule on CUDA: skinning pre-fit, steps, test loop, FPS, evaluate and animate from the folder."""
-    from realityavatar.animate import main as animate_main
-    from realityavatar.evaluate import main as evaluate_main
-    from realityavatar.train import run
-
-    cfg, choices = _prepare(compose([*TINY, "iterations=2", "trainer=gpu", f"render.backend={backend}",
-                                     "trainer.enable_progress_bar=false"]), tmp_path)
-    metrics = run(cfg, choices)
-    assert metrics["device"].startswith("cuda") and metrics["backend"] == backend
-    assert metrics["render_fps_device"].startswith("cuda") and metrics["render_fps_backend"] == backend
-    assert metrics["iterations"] == 2 and metrics["test/novel_view/psnr"] > 0
-    assert evaluate_main([f"run_dir={tmp_path}", "eval.save_video=false"]) == 0
-    again = json.loads((tmp_path / "eval" / "metrics.json").read_text())
-    assert again["render_fps_device"].startswith("cuda")
-    assert abs(again["test/novel_view/psnr"] - metrics["test/novel_view/psnr"]) < 1e-3
-    # a .gif: the GPU image this ran on has no ffmpeg, and the render (not the video encoder) is what is checked here
-    assert animate_main([f"run_dir={tmp_path}", "views=0", f"out={tmp_path / 'a.gif'}"]) == 0
-
-
-# ---------------------------------------------------------------------- the one-command GPU benchmark
-def test_gpu_benchmark_runs_and_skips_cuda_cleanly(tmp_path):
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    import gpu
-
-    out = tmp_path / "gpu.json"
-    rc = gpu.main(["--n", "300", "--size", "32", "--repeats", "1", "--out", str(out), "--step", "1000",
-                   "--tests", "tests/test_gpu_path.py::test_torch_backend_forward_and_backward_on_cuda_match_cpu"])
-    res = json.loads(out.read_text())
-    assert rc == 0 and res["environment"]["cuda_available"] == torch.cuda.is_available()
-    assert res["pytest_gpu"]["rc"] == 0 and len(res["pytest_gpu"]["tests"]) == 1
-    timed = {(r["device"], r["method"]) for r in res["render"] if "forward_backward_s" in r}
-    assert ("cpu", "torch") in timed
-    if not torch.cuda.is_available():
-        assert {(r["device"], r["method"]) for r in res["render_skipped"]} == {("cuda", "torch"), ("cuda", "gsplat")}
-        assert res["pytest_gpu"]["skipped"] == 1
-        assert res["step"] == {"skipped": "no CUDA device"}
-    else:
-        assert {("cuda", "torch"), ("cuda", "gsplat")} <= timed
-        assert {r["backend"] for r in res["step"]["results"]} == {"gsplat", "torch"}
-
-
-# ---------------------------------------------------------------------- the training step on the GPU
-def _step_bench(tmp_path, *args):
-    import subprocess
-
-    out = tmp_path / "step.json"
-    p = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "step.py"), *args, "--n", "2000", "--size", "64",
-                        "--repeats", "1", "--out", str(out)], cwd=ROOT, capture_output=True, text=True, timeout=600,
-                       check=False)
-    return p, out
-
-
-@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the refusal without CUDA")
-def test_step_benchmark_refuses_cuda_without_it(tmp_path):
-    p, out = _step_bench(tmp_path, "--device", "cuda", "--backends", "torch")
-    assert p.returncode != 0 and "--device cuda: CUDA is not available" in p.stderr and not out.exists()
-
-
-@pytest.mark.gpu
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
-def test_step_benchmark_on_cuda(tmp_path):
-    """benchmarks/step.py --device cuda: the whole step and its parts on the GPU, with the kernels' own time."""
-    p, out = _step_bench(tmp_path, "--device", "cuda", "--backends", "gsplat", "torch")
-    assert p.returncode == 0, p.stderr[-2000:]
-    rows = json.loads(out.read_text())["results"]
-    assert {r["backend"] for r in rows} == {"gsplat", "torch"}
-    for r in rows:
-        assert r["device"] == "cuda" and r["step_s"] > 0 and r["gpu_kernel_s"] > 0

@@ -6,10 +6,11 @@ import math
 import pytest
 import torch
 from omegaconf import OmegaConf
-from test_render import CONF, F64, random_scene, single_gaussian
 
 from realityavatar.render import rasterize
 from realityavatar.render.reference import rasterize_reference
+from tests.helpers import human_scene
+from tests.render.scenes import CONF, F64, look_at, random_scene, single_gaussian
 
 nb = pytest.importorskip("realityavatar.render.numba_backend")
 if nb.NUMBA_ERROR is not None:
@@ -87,7 +88,6 @@ def test_numba_gradcheck(mode):
     scales = (torch.rand(n, 3, generator=g, dtype=F64) * 0.1 + 0.1).requires_grad_()
     op = (torch.rand(n, generator=g, dtype=F64) * 0.5 + 0.45).requires_grad_()
     colors = torch.rand(n, 3, generator=g, dtype=F64).requires_grad_()
-    from test_render import look_at
 
     vms = look_at((0, -3, 0), (0, 0, 0))[None]
     Ks = torch.tensor([[18.0, 0, 3.4], [0, 18.0, 2.9], [0, 0, 1]], dtype=F64)[None]
@@ -134,12 +134,6 @@ def test_numba_depth_modes(mode):
 
 
 def test_numba_float32_human_scene_and_threads():
-    import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-    from render import human_scene
-
     args = human_scene(3000, 128)
     t = _run("torch", args, 128, 128)
     n1 = _run("numba", args, 128, 128)

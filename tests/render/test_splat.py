@@ -1,42 +1,20 @@
 """Tests of the splat renderer: dense-reference agreement, gradients, analytic footprint, culling, batching, errors."""
+
 from __future__ import annotations
 
 import math
 import warnings
-from pathlib import Path
 
-import numpy as np
 import pytest
 import torch
 from omegaconf import OmegaConf
 
 import realityavatar.render.splat as rast_mod
-from realityavatar.data.synthetic.cameras import look_at as _look_at
 from realityavatar.geometry import camera_centres
 from realityavatar.render import eval_sh, rasterize, sh_basis
 from realityavatar.render.reference import rasterize_reference
-
-F64 = torch.float64
-CONF = Path(__file__).resolve().parents[1] / "conf" / "render"
-
-
-def look_at(campos, target, dtype=F64):
-    """The scene generator's OpenCV world-to-camera matrix, here with world z up, as a tensor."""
-    return torch.from_numpy(_look_at(np.asarray(campos, float), np.asarray(target, float), up=(0.0, 0.0, 1.0))).to(dtype)
-
-
-def random_scene(n, seed, cams=1, w=40, h=32, dtype=F64, opaque_frac=0.3):
-    g = torch.Generator().manual_seed(seed)
-    means = torch.randn(n, 3, generator=g, dtype=dtype) * 0.4
-    quats = torch.randn(n, 4, generator=g, dtype=dtype)
-    scales = torch.rand(n, 3, generator=g, dtype=dtype) * 0.12 + 0.02
-    op = torch.rand(n, generator=g, dtype=dtype)
-    op[: int(n * opaque_frac)] = 1.0  # hits the alpha clamp at the centre and drives early termination
-    colors = torch.rand(n, 3, generator=g, dtype=dtype)
-    vms = torch.stack([look_at((3 * math.sin(a), -3 * math.cos(a), 0.3), (0, 0, 0)) for a in
-                       torch.linspace(0, 1.5, cams).tolist()]).to(dtype)
-    K = torch.tensor([[45.0, 0, w / 2 + 0.7], [0, 47.0, h / 2 - 0.4], [0, 0, 1]], dtype=dtype)
-    return means, quats, scales, op, colors, vms, K[None].repeat(cams, 1, 1), w, h
+from tests.helpers import human_scene
+from tests.render.scenes import CONF, F64, look_at, random_scene, single_gaussian
 
 
 def _ref_projection(means, quats, scales, op, vms, Ks, w, h, mode):
@@ -108,16 +86,6 @@ def test_gradcheck(mode, backend):
 
     Ks[:, :2, 2] = torch.tensor([3.4, 2.9], dtype=F64)
     assert torch.autograd.gradcheck(f1, inputs, eps=1e-6, atol=1e-6, rtol=1e-4)
-
-
-def single_gaussian(x, y, z=2.0, s=0.02, f=100.0, w=64, h=48):
-    means = torch.tensor([[x, y, z]], dtype=F64)
-    quats = torch.tensor([[0.3, -0.2, 0.5, 0.1]], dtype=F64)  # any rotation: the Gaussian is isotropic
-    scales = torch.full((1, 3), s, dtype=F64)
-    colors = torch.tensor([[0.2, 0.5, 0.9]], dtype=F64)
-    vms = torch.eye(4, dtype=F64)[None]
-    Ks = torch.tensor([[f, 0, w / 2], [0, f, h / 2], [0, 0, 1]], dtype=F64)[None]
-    return means, quats, scales, torch.tensor([0.8], dtype=F64), colors, vms, Ks, w, h
 
 
 @pytest.mark.parametrize("mode", ["classic", "antialiased"])
@@ -396,11 +364,6 @@ def _has_gsplat():
 @pytest.mark.skipif(not _has_gsplat(), reason="needs CUDA and gsplat")
 @pytest.mark.parametrize("mode", ["classic", "antialiased"])
 def test_torch_matches_gsplat(mode):
-    import sys
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-    from render import human_scene
-
     args = human_scene(5000, 256, device="cuda")
     t_img, t_alpha, t_meta = rasterize(*args, 256, 256, backend="torch", rasterize_mode=mode, render_mode="RGB+ED")
     g_img, g_alpha, g_meta = rasterize(*args, 256, 256, backend="gsplat", rasterize_mode=mode, render_mode="RGB+ED")

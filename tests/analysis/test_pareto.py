@@ -1,0 +1,116 @@
+"""pareto: the chart and CSV, the budget choice (fewest Gaussians within a tolerance of the best)."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import pandas as pd
+import pytest
+import yaml
+
+import realityavatar.config  # noqa: F401  registers the resolvers (int_mul, ...) the real tree's configs use
+from realityavatar.analysis.pareto import main as pareto_main
+from realityavatar.analysis.pareto import pareto, smallest_within
+
+PSNR = {
+    "full": {"sceneA": [30.0, 31.0, 32.0], "sceneB": [28.0, 29.0, 30.0]},
+    "no_zc": {"sceneA": [30.5, 30.0, 31.0], "sceneB": [29.0, 28.5, 29.5]},
+    "no_lstm": {"sceneA": [27.0, 27.2, 27.4], "sceneB": [25.0, 25.2, 25.4]},
+}
+
+
+def write_fake_sweep(root: Path, lpips_missing_for: str = "no_lstm") -> Path:
+    """A multirun folder as `realityavatar-train -m +ablation=paper data=sceneA,sceneB` leaves it."""
+    root.mkdir(parents=True)
+    (root / "multirun.yaml").write_text(yaml.safe_dump({"hydra": {"overrides": {
+        "hydra": ["hydra.mode=MULTIRUN"], "task": ["+ablation=paper", "data=sceneA,sceneB"]}}}))
+    job = 0
+    for variant, scenes in PSNR.items():
+        for scene, values in scenes.items():
+            for seed, psnr in enumerate(values):
+                d = root / str(job)
+                (d / ".hydra").mkdir(parents=True)
+                overrides = [f"+variant={variant}", f"data={scene}", f"seed={seed}", "+ablation=paper"]
+                (d / ".hydra" / "overrides.yaml").write_text(yaml.safe_dump(overrides))
+                lp = variant != lpips_missing_for
+                m = {
+                    "config": {"variant": variant, "data": scene, "ablation": "paper", "color": "mlp"},
+                    "overrides": overrides, "seed": seed, "commit": "abc1234", "scene": scene,
+                    "train_seconds": 100.0 + 10 * seed, "iterations": 2000, "num_gaussians": 5000,
+                    "num_parameters": 123456, "render_fps": 20.0 + seed, "perceptual": "dssim",
+                    "lpips": "computed" if lp else "not computed: no LPIPS weights configured",
+                    "test/novel_view/psnr": psnr, "test/novel_view/ssim": 0.9 + 0.01 * seed,
+                    # a number next to a "not computed" status must still come out as n/c
+                    "test/novel_view/lpips": 0.040 + 0.001 * seed if (lp or seed == 0) else None,
+                    "test/novel_view/psnr_masked": psnr - 5, "test/novel_view/ssim_masked": 0.8,
+                    "test/novel_pose/psnr": psnr - 2, "test/novel_pose/ssim": 0.85,
+                    "test/novel_pose/lpips": 0.050 if lp else None,
+                    "test/novel_pose/psnr_masked": psnr - 7, "test/novel_pose/ssim_masked": 0.7,
+                }
+                (d / "metrics.json").write_text(json.dumps(m))
+                job += 1
+    return root
+
+
+def test_pareto_chart_and_csv(tmp_path):
+    sweep = write_fake_sweep(tmp_path / "sweep")
+    df = pareto(sweep, tmp_path / "p")
+    assert (tmp_path / "p" / "pareto.png").stat().st_size > 10_000
+    c = pd.read_csv(tmp_path / "p" / "pareto.csv").set_index("label")
+    assert c.loc["full", "novel_view_psnr_mean"] == pytest.approx(30.0)
+    assert c.loc["full", "train_seconds_mean"] == pytest.approx(110.0)
+    assert c.loc["full", "render_fps_mean"] == pytest.approx(21.0)
+    assert c.loc["full", "render_fps_std"] == pytest.approx(1.0)
+    assert c.loc["no_lstm", "num_gaussians_mean"] == 5000
+    # every row trains equally long here, so only the most accurate one is on the time frontier
+    assert list(c.index[c["pareto_time"]]) == ["full"]
+    assert len(df) == 3 and not math.isnan(df["novel_view_psnr_std"].iloc[0])
+
+
+def write_fake_budget(root: Path) -> Path:
+    """A `+ablation=budget` multirun: num_points x density x 2 seeds, with final counts and PSNRs chosen so that the
+    answer is known: 10000/off is the best (30.3), 5000/default (final 7000) is the smallest within 0.2 dB (30.15)."""
+    root.mkdir(parents=True)
+    (root / "multirun.yaml").write_text(yaml.safe_dump({"hydra": {"overrides": {"task": ["+ablation=budget"]}}}))
+    # (num_points, density) -> (final Gaussians, NV PSNR mean, train seconds)
+    table = {(2000, "off"): (2000, 29.0, 50.0), (2000, "default"): (4000, 29.9, 60.0),
+             (5000, "off"): (5000, 29.7, 70.0), (5000, "default"): (7000, 30.15, 80.0),
+             (10000, "off"): (10000, 30.3, 100.0), (10000, "default"): (12000, 30.25, 110.0)}
+    job = 0
+    for (n, dens), (final, psnr, secs) in table.items():
+        for seed in (0, 1):
+            d = root / str(job)
+            (d / ".hydra").mkdir(parents=True)
+            overrides = [f"gaussians.num_points={n}", f"density={dens}", "data=synthetic_sweep", f"seed={seed}",
+                         "+ablation=budget"]
+            (d / ".hydra" / "overrides.yaml").write_text(yaml.safe_dump(overrides))
+            m = {"config": {"data": "synthetic_sweep", "ablation": "budget", "density": dens},
+                 "overrides": overrides, "seed": seed, "commit": "abc1234", "scene": "skirt_spin",
+                 "train_seconds": secs, "iterations": 1000, "num_gaussians": final, "num_parameters": 1,
+                 "render_fps": 30.0, "perceptual": "dssim", "lpips": "not computed",
+                 "test/novel_view/psnr": psnr + (0.05 if seed else -0.05), "test/novel_pose/psnr": psnr - 1}
+            (d / "metrics.json").write_text(json.dumps(m))
+            job += 1
+    return root
+
+
+def test_budget_choice_is_the_smallest_within_tolerance(tmp_path, capsys):
+    sweep = write_fake_budget(tmp_path / "budget")
+    df = pareto(sweep, tmp_path / "chart")
+    assert {"gaussians.num_points", "density"} <= set(df.columns)
+    choice = smallest_within(df, 0.2)
+    assert choice["best"]["label"] == df.loc[df.novel_view_psnr_mean.idxmax(), "label"]
+    assert choice["best"]["num_gaussians_mean"] == 10000
+    assert (choice["choice"]["gaussians.num_points"], choice["choice"]["density"]) == ("5000", "default")
+    assert choice["choice"]["num_gaussians_mean"] == 7000
+    # a tighter tolerance leaves only the rows at 30.25 and above: 10000/default (12000) is bigger than 10000/off
+    assert smallest_within(df, 0.06)["choice"]["num_gaussians_mean"] == 10000
+    # the size panel's frontier: no row is both smaller and more accurate than 4000/29.9
+    front = df[df.pareto_size].sort_values("num_gaussians_mean")["num_gaussians_mean"].tolist()
+    assert front == [2000, 4000, 7000, 10000]
+    assert pareto_main([str(sweep), "--out", str(tmp_path / "cli")]) == 0
+    saved = json.loads((tmp_path / "cli" / "choice.json").read_text())
+    assert saved["choice"]["num_gaussians_mean"] == 7000
+    assert "choice (fewest Gaussians within 0.2 dB of the best)" in capsys.readouterr().out

@@ -1,0 +1,37 @@
+"""stability: the extreme-pose check measured against the training frames' own scales."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from tests.model.test_sheet import _ci_sheet_module
+
+
+def test_stability_report_measures_extreme_poses_against_the_training_frames(scenes_root):
+    """The stability report's extreme-pose check reports the largest scale over the training frames' own pose
+    windows (every training frame, not only the first) as the reference its growth is measured against."""
+    from torch.utils.data import default_collate
+
+    from realityavatar.analysis.stability import extreme_poses, training_scale_max, training_scales
+
+    _, dm, module = _ci_sheet_module()
+    module.on_fit_start()
+    ds = dm.datasets["train"]
+    per_frame = {}
+    with torch.no_grad():
+        for i, rec in enumerate(ds.records):
+            if rec.frame not in per_frame:
+                b = default_collate([ds[i]])
+                per_frame[rec.frame] = float(module.deform(b["poses"], b["transl"])["scales"].max())
+    assert len(per_frame) > 1 and max(per_frame.values()) > min(per_frame.values())  # the sheet stretches per frame
+    got = training_scales(module, dm, batch=5)
+    assert got.keys() == per_frame.keys()
+    assert all(got[f] == pytest.approx(per_frame[f], rel=1e-5) for f in per_frame)
+    assert training_scale_max(module, dm) == pytest.approx(max(per_frame.values()), rel=1e-5)
+    e = extreme_poses(module, dm, n=4)
+    assert e["finite"] and e["max_training_scale_m"] == pytest.approx(max(per_frame.values()), rel=1e-5)
+    assert e["scale_growth_vs_training"] == pytest.approx(e["max_scale_m"] / e["max_training_scale_m"], rel=1e-6)
+    r = e["_renders"]  # the joint-limit poses (every second one of n), drawn for the report's extreme_poses.png
+    assert r.shape[0] == 2 and r.dtype == np.uint8 and r.shape[-1] == 3 and r.max() > 0

@@ -1,0 +1,55 @@
+"""The ZJU-MoCap (ARAH layout) reader on fixture folders, and its clear errors."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from realityavatar.data.records import SceneFormatError, load_record
+from realityavatar.data.zju import read_zju
+from tests.fixtures_data import RandomBody, camera, pixel_in_mask, project, write_zju
+
+
+@pytest.fixture(scope="module")
+def body():
+    return RandomBody()
+
+
+def test_zju_cameras_poses_splits_and_masks(tmp_path, body):
+    w = write_zju(tmp_path, "CoreView_377", body, n_frames=6, cams=("1", "2", "3"))
+    scene = read_zju(tmp_path / "CoreView_377", [1], [2, 3], [0, 4, 1], [0, 4, 2], [4, 0, 1])
+    assert scene.frames("train").tolist() == [0, 1, 2, 3] and scene.views("train") == [1]
+    assert scene.frames("novel_view").tolist() == [0, 2] and scene.views("novel_view") == [2, 3]
+    assert scene.frames("novel_pose").tolist() == [4, 5]
+    torch.testing.assert_close(scene.poses.poses, torch.as_tensor(w["pose"], dtype=torch.float32))
+    torch.testing.assert_close(scene.poses.transl, torch.as_tensor(w["trans"], dtype=torch.float32))
+    for recs in scene.splits.values():
+        for rec in recs:
+            K, E = camera(rec.view)
+            np.testing.assert_allclose(rec.viewmat, E, atol=1e-12)
+            np.testing.assert_allclose(rec.K, K)
+            _, mask, K2 = load_record(rec)
+            assert pixel_in_mask(mask, project(K2, rec.viewmat, w["pelvis_world"][rec.frame]))
+            assert 50 < mask.sum() < 120  # 0/1 label masks are read as the person, not as background
+
+
+def test_zju_missing_image_and_overlapping_split(tmp_path, body):
+    write_zju(tmp_path, "CoreView_377", body, n_frames=4, cams=("1", "2"))
+    (tmp_path / "CoreView_377" / "2" / "000001.jpg").unlink()
+    with pytest.raises(FileNotFoundError, match=r"CoreView_377/2/000001\.jpg not found"):
+        read_zju(tmp_path / "CoreView_377", [1], [2], [0, 0, 1], [0, 0, 1])
+    with pytest.raises(ValueError, match="overlaps the training frames"):
+        read_zju(tmp_path / "CoreView_377", [1], [2], [0, 3, 1], None, [2, 0, 1])
+    with pytest.raises(FileNotFoundError, match="CoreView_999 not found"):
+        read_zju(tmp_path / "CoreView_999", [1], [2], [0, 0, 1])
+
+
+def test_zju_missing_model_key_names_file(tmp_path, body):
+    write_zju(tmp_path, "CoreView_377", body, n_frames=3, cams=("1", "2"))
+    f = tmp_path / "CoreView_377" / "models" / "000001.npz"
+    d = dict(np.load(f))
+    del d["pose_hand"]
+    np.savez(f, **d)
+    with pytest.raises(SceneFormatError, match=r"models/000001\.npz: the file lacks key 'pose_hand'"):
+        read_zju(tmp_path / "CoreView_377", [1], [2], [0, 0, 1])

@@ -1,0 +1,32 @@
+"""realityavatar-evaluate from a run folder: the run's numbers again, fewer frames per split."""
+
+from __future__ import annotations
+
+import csv
+import json
+
+
+def test_evaluate_and_export_from_run_folder(trained_run):
+    from realityavatar.evaluate import main as evaluate_main
+    from realityavatar.export import main as export_main
+    from realityavatar.export import read_ply
+
+    out, metrics = trained_run
+    assert evaluate_main([f"run_dir={out}", "eval.save_video=false"]) == 0
+    again = json.loads((out / "eval" / "metrics.json").read_text())
+    assert abs(again["test/novel_view/psnr"] - metrics["test/novel_view/psnr"]) < 1e-3
+    assert export_main([f"run_dir={out}", f"out={out / 'c.ply'}"]) == 0
+    ply = read_ply(out / "c.ply")
+    assert ply["means"].shape == (metrics["num_gaussians"], 3)
+
+
+def test_max_frames_per_split(trained_run):
+    from realityavatar.evaluate import main as evaluate_main
+
+    out, full = trained_run
+    assert evaluate_main([f"run_dir={out}", "eval.max_frames_per_split=2"]) == 0
+    m = json.loads((out / "eval" / "metrics.json").read_text())
+    for split in ("novel_view", "novel_pose"):
+        with open(out / "per_frame.csv") as f:
+            views = {int(r["view"]) for r in csv.DictReader(f) if r["split"] == split}
+        assert m[f"test/{split}/num_images"] == 2 * len(views) < full[f"test/{split}/num_images"]

@@ -1,0 +1,62 @@
+"""What several test packages share: the repository's paths and the benchmarks' scripts as modules."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+CONF = ROOT / "conf"
+
+
+def benchmark(name: str):
+    """benchmarks/<name>.py as a module (the benchmarks are scripts, not a package: no sys.path edit)."""
+    key = f"_benchmarks_{name}"
+    if key not in sys.modules:
+        spec = importlib.util.spec_from_file_location(key, ROOT / "benchmarks" / f"{name}.py")
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[key] = module
+        spec.loader.exec_module(module)
+    return sys.modules[key]
+
+
+def human_scene(*args, **kwargs):
+    """The benchmarks' human-shaped test scene (benchmarks/render.py)."""
+    return benchmark("render").human_scene(*args, **kwargs)
+
+
+def random_poses(B: int = 2, T: int = 5, seed: int = 0):
+    """A batch of random pose windows: poses [B,T,24,3], translations [B,T,3]."""
+    import torch
+
+    g = torch.Generator().manual_seed(seed)
+    return torch.randn(B, T, 24, 3, generator=g) * 0.3, torch.randn(B, T, 3, generator=g) * 0.5
+
+
+def assert_all_grads(module) -> None:
+    """Every parameter of `module` received a finite, non-zero gradient."""
+    import torch
+
+    missing = [n for n, p in module.named_parameters()
+               if p.grad is None or not torch.isfinite(p.grad).all() or p.grad.abs().sum() == 0]
+    assert not missing, f"no gradient reached {missing}"
+
+
+# The suite's one trained run (the session fixture `trained_run` in conftest.py): the ci scene, 60 steps, with
+# density refinement at steps 15 and 30 (window 6..42), so the run, its checkpoint and every rebuild from it go
+# through clone/split/prune and a changed Gaussian count. Train, evaluate, resume, animate, export, the viewer, the
+# density and module checks read it instead of training their own.
+ITERATIONS = 60
+NUM_POINTS = 1500
+TRAINED_RUN = ["data=synthetic_ci", "trainer=ci", f"iterations={ITERATIONS}", "density.refine_every=15",
+               f"gaussians.num_points={NUM_POINTS}", "eval.save_video=false", "eval.save_images=2",
+               "eval.fps_frames=2", "eval.fps_warmup=1"]
+
+
+def train(out: Path, *overrides: str) -> dict:
+    """`realityavatar-train <overrides> hydra.run.dir=<out>` in this process; returns the run's metrics."""
+    from realityavatar.config import compose, prepare_run
+    from realityavatar.train import run
+
+    return run(*prepare_run(compose(list(overrides)), out))
