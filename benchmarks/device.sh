@@ -1,0 +1,38 @@
+#!/bin/bash
+# One GPU check in one call (repo root, a GPU machine with CUDA torch and nvcc, no network): install the project's
+# missing packages from wheels in .whl/, build gsplat's kernels, run the `gpu` tests, profile the training step and
+# write everything under $OUT. BASELINE=<folder with another commit's src/ conf/ benchmarks/> profiles that commit's
+# step too, in the same call (compare timings only within one call).
+#
+# Wheels (Python 3.12, x86_64; on a machine with pip and network):
+#   python3 -m pip download --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
+#     --platform manylinux_2_28_x86_64 --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64 -d .whl \
+#     hydra-core==1.3.8 omegaconf==2.3.1 mannequin-x==0.3.0 nanomanifold kornia==0.9.0 kornia_rs==0.2.0 \
+#     trimesh==5.2.0 embreex==4.4.0.post1 mujoco==4.0.0 mujoco-core==4.0.0 mujoco-studio==4.0.0 glfw pyopengl \
+#     gsplat==1.5.3
+#   python3 -m pip wheel --no-deps -w .whl antlr4-python3-runtime==4.9.3
+set -u
+OUT=${OUT:-outputs/device}; mkdir -p "$OUT"
+T0=$(date +%s); el() { echo "[$(( $(date +%s) - T0 ))s] $*"; }
+python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 3
+export PYTHONPATH=/tmp/site:$PWD/src PYTHONUNBUFFERED=1 TORCH_EXTENSIONS_DIR=/tmp/torch_ext MAX_JOBS=16 \
+  TORCH_CUDA_ARCH_LIST=${TORCH_CUDA_ARCH_LIST:-9.0}
+el installed; nvidia-smi -L; python3 -c "import torch; print('torch', torch.__version__, 'cuda', torch.version.cuda)"
+timeout 240 python3 -c "
+import time; t = time.time()
+from realityavatar.render.splat import gsplat_status
+print('gsplat_status:', gsplat_status()[-1500:], '| build_s', round(time.time() - t, 1))" 2>&1 | tail -2
+el "gpu tests"
+timeout 200 python3 -m pytest -q -m gpu -p no:cacheprovider > "$OUT/pytest_gpu.log" 2>&1; echo "pytest rc $?"
+grep -E "passed|failed|^FAILED|^E " "$OUT/pytest_gpu.log" | tail -8
+el "step profile"
+STEP="benchmarks/step.py --device cuda --backends gsplat"
+for NS in "7000 128" "35000 512"; do set -- $NS
+  timeout 120 python3 $STEP --n $1 --size $2 --out "$OUT/step_cuda_$1_$2.json" 2>&1 | grep -E "^  gsplat" | cut -c1-400
+done
+if [ -n "${BASELINE:-}" ]; then
+  el "baseline step profile ($BASELINE, 7000 / 128)"
+  (cd "$BASELINE" && PYTHONPATH=/tmp/site:$PWD/src timeout 120 python3 $STEP --n 7000 --size 128 \
+    --out "$OUT/step_cuda_baseline_7000_128.json" 2>&1 | grep -E "^  gsplat" | cut -c1-400)
+fi
+el done
