@@ -309,3 +309,21 @@ def test_sigkill_resume_matches_uninterrupted(scenes_root, tmp_path):
     for split in ("novel_view", "novel_pose"):
         assert abs(ma[f"test/{split}/psnr"] - mb[f"test/{split}/psnr"]) <= 0.05
     assert mb["iterations"] == 20 and mb["train_seconds"] > 0
+
+
+def test_a_run_folder_of_an_older_version_names_its_config_and_the_commit(trained_run, tmp_path):
+    """A config.yaml with a key that a removed option had (gaussians.deform_code_dim, before the consolidation)
+    stops with an error naming the file and the commit that reads it, not hydra's instantiation trace."""
+    import yaml
+
+    from realityavatar.build import load_run
+
+    out, _ = trained_run
+    run = tmp_path / "old"
+    run.mkdir()
+    cfg = yaml.safe_load((out / "config.yaml").read_text())
+    cfg["gaussians"]["deform_code_dim"] = 0
+    (run / "config.yaml").write_text(yaml.safe_dump(cfg))
+    shutil.copy(out / "last.ckpt", run / "last.ckpt")
+    with pytest.raises(ValueError, match=r"(?s)old/config\.yaml does not build.*deform_code_dim.*git checkout c46aa26"):
+        load_run(run)
