@@ -1,7 +1,7 @@
 #!/bin/bash
 # One GPU check in one call (repo root, a GPU machine with CUDA torch and nvcc, no network): install the project's
 # missing packages from wheels in .whl/, build gsplat's kernels, run the `gpu` tests, profile the training step and
-# write everything under $OUT. BASELINE=<folder with another commit's src/ conf/ benchmarks/> profiles that commit's
+# write everything under $OUT. STEP_SIZES="7000 128;35000 512" picks the profiled sizes; BASELINE=<folder with another commit's src/ conf/ benchmarks/> profiles that commit's
 # step too, in the same call (compare timings only within one call).
 #
 # Wheels (Python 3.12, x86_64; on a machine with pip and network):
@@ -23,11 +23,12 @@ import time; t = time.time()
 from realityavatar.render.splat import gsplat_status
 print('gsplat_status:', gsplat_status()[-1500:], '| build_s', round(time.time() - t, 1))" 2>&1 | tail -2
 el "gpu tests"
-timeout 200 python3 -m pytest -q -m gpu -p no:cacheprovider > "$OUT/pytest_gpu.log" 2>&1; echo "pytest rc $?"
+timeout ${PYTEST_TIMEOUT:-200} python3 -m pytest -q -m gpu -p no:cacheprovider > "$OUT/pytest_gpu.log" 2>&1; echo "pytest rc $?"
 grep -E "passed|failed|^FAILED|^E " "$OUT/pytest_gpu.log" | tail -8
 el "step profile"
 STEP="benchmarks/step.py --device cuda --backends gsplat"
-for NS in "7000 128" "35000 512"; do set -- $NS
+IFS=";" read -ra SIZES <<< "${STEP_SIZES:-7000 128;35000 512}"   # "N size;N size"
+for NS in "${SIZES[@]}"; do set -- $NS
   timeout 120 python3 $STEP --n $1 --size $2 --out "$OUT/step_cuda_$1_$2.json" 2>&1 | grep -E "^  gsplat" | cut -c1-400
 done
 if [ -n "${BASELINE:-}" ]; then
