@@ -24,9 +24,9 @@ def body():
 
 
 @pytest.fixture(scope="module")
-def ci_scene(tmp_path_factory):
-    root = tmp_path_factory.mktemp("scenes_a")
-    return build_scene("ci", root, seed=0, progress=False)
+def ci_scene(scenes_root):
+    """The session's ci scene (conftest.scenes_root, built once with these arguments): this call finds it cached."""
+    return build_scene("ci", scenes_root, seed=0, progress=False)
 
 
 def _tree_hashes(root: Path) -> dict[str, str]:
