@@ -257,17 +257,23 @@ def test_sigint_signal_stops_after_the_step_and_saves(scenes_root, tmp_path, mon
     assert signal.getsignal(signal.SIGINT) is before  # the run's handler is gone again
 
 
-def test_stale_scene_temp_folders_are_removed(tmp_path):
+def test_stale_scene_temp_folders_are_removed(scenes_root):
+    """A build's temporary folder left by a dead process is removed by the next build into the root (also when that
+    build finds its scene cached, as here in the session's scene root); a live process's is kept."""
     from realityavatar.data.synthetic import build_scene
 
     dead = subprocess.Popen([sys.executable, "-c", "pass"])
     dead.wait()
-    stale = tmp_path / f".tmp-skirt_spin_ci-{dead.pid}-abc"
+    stale = scenes_root / f".tmp-skirt_spin_ci-{dead.pid}-abc"
     (stale / "skirt_spin_ci-train").mkdir(parents=True)
-    live = tmp_path / f".tmp-skirt_spin_ci-{os.getpid()}-def"
+    live = scenes_root / f".tmp-skirt_spin_ci-{os.getpid()}-def"
     live.mkdir()
-    build_scene("ci", tmp_path, seed=0, progress=False)
-    assert not stale.exists() and live.exists()
+    try:
+        build_scene("ci", scenes_root, seed=0, progress=False)
+        assert not stale.exists() and live.exists()
+    finally:
+        shutil.rmtree(stale, ignore_errors=True)
+        shutil.rmtree(live, ignore_errors=True)
 
 
 KILL_AT = r"""
