@@ -127,7 +127,7 @@ def test_decoder_condition_as_first_layer_bias_equals_the_concatenated_input():
     from realityavatar.model.deform import MotionTrendDecoder
 
     torch.manual_seed(0)
-    dec = MotionTrendDecoder(cond_dim=8, encoding="frequency", hidden_dim=16, num_layers=3, feature_dim=4, num_freqs=2)
+    dec = MotionTrendDecoder(cond_dim=8, hidden_dim=16, num_layers=3, feature_dim=4, num_freqs=2)
     x = torch.rand(50, 3)
     h = torch.randn(2, 8)
     out = dec(x, h)

@@ -29,7 +29,7 @@ def test_matches_dense_reference(mode, alpha_max, tile_size, chunk):
     bg = torch.tensor([[0.1, 0.2, 0.3], [0.9, 0.5, 0.0]], dtype=F64)
     img, alpha, meta = rasterize(means, quats, scales, op, colors, vms, Ks, w, h, rasterize_mode=mode,
                                  backgrounds=bg, alpha_max=alpha_max, tile_size=tile_size, chunk_elements=chunk,
-                                 backend="torch")  # the numba backend: tests/test_render_compiled.py
+                                 backend="torch")  # the numba backend: tests/render/test_numba.py
     ref, ref_alpha, _ = rasterize_reference(means, quats, scales, op, colors, vms, Ks, w, h,
                                             rasterize_mode=mode, backgrounds=bg, alpha_max=alpha_max)
     assert img.shape == (2, h, w, 3) and alpha.shape == (2, h, w, 1)
