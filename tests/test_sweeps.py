@@ -44,6 +44,17 @@ VARIANT_CHOICES = {"full": ("latentbone", "lstm"), "no_zc": ("no_zc", "lstm"),
                    "no_lstm": ("latentbone", "none"), "no_split": ("no_split", "lstm")}
 
 
+def _assert_job_has_its_overrides(cfg, choices, ov: dict) -> None:
+    """The composed job chose what its overrides say: variant rows, group options, the render backend."""
+    if "+variant" in ov:
+        assert (choices["encoder"], choices["temporal"]) == VARIANT_CHOICES[ov["+variant"]]
+    for key in ("temporal", "color", "density", "trainer", "data"):
+        if key in ov:
+            assert choices[key] == ov[key]
+    if "render.backend" in ov:
+        assert cfg.render.backend == ov["render.backend"]
+
+
 GROUPS = {
     "data": ["synthetic_ci", "synthetic_demo", "synthetic_sweep", "synthetic_sweep_dress_spin",
              "synthetic_sweep_skirt_flap", "synthetic_sweep_dress_walk"], "sampler": ["uniform", "hard_frames"], "body": ["mannequin", "smpl"],
@@ -119,13 +130,7 @@ def test_sweep_expands_to_expected_jobs(standin_conf, name):
         cfg, choices = _job_choices(standin_conf, name, job)
         ov = dict(o.split("=", 1) for o in job)
         assert str(cfg.seed) == ov["seed"]
-        if "+variant" in ov:
-            assert (choices["encoder"], choices["temporal"]) == VARIANT_CHOICES[ov["+variant"]]
-        for key in ("temporal", "color", "density", "trainer", "data"):
-            if key in ov:
-                assert choices[key] == ov[key]
-        if "render.backend" in ov:
-            assert cfg.render.backend == ov["render.backend"]
+        _assert_job_has_its_overrides(cfg, choices, ov)
         if "gaussians.num_points" in ov:
             assert cfg.gaussians.num_points == int(ov["gaussians.num_points"])
 
@@ -176,13 +181,7 @@ def test_sweep_jobs_compose_in_the_real_tree(name):
     for job in jobs:
         cfg, choices = _job_choices(CONF, name, job)
         ov = dict(o.split("=", 1) for o in job)
-        if "+variant" in ov:
-            assert (choices["encoder"], choices["temporal"]) == VARIANT_CHOICES[ov["+variant"]]
-        for key in ("temporal", "color", "density", "trainer", "data"):
-            if key in ov:
-                assert choices[key] == ov[key]
-        if "render.backend" in ov:
-            assert cfg.render.backend == ov["render.backend"]
+        _assert_job_has_its_overrides(cfg, choices, ov)
         assert cfg.seed == int(ov["seed"])
         # the job's density strategy builds with what the preset merged into it (density=off under preset=sweep's
         # density.prune_opacity crashed every density=off job of the budget sweep)
