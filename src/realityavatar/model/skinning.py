@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+from collections import OrderedDict
 
 import torch
 import torch.nn.functional as F
@@ -155,7 +156,10 @@ def check_query_at(name: str, query_at: str) -> str:
     return query_at
 
 
-_KNN_CACHE: dict = {}  # the last grid's nearest-sample query (see diffuse_to_grid)
+# The nearest-sample queries of the last few grids (see diffuse_to_grid): a run builds the skinning grid and the
+# shading-normal grid from the same samples, and a float64 build or another grid's settings would otherwise evict it.
+_KNN_CACHE: OrderedDict = OrderedDict()
+_KNN_CACHE_SIZE = 4
 
 
 def check_grid_settings(name: str, voxel_size: float, padding: float, k: int, smooth_iters: int,
@@ -197,14 +201,18 @@ def diffuse_to_grid(vertices: torch.Tensor, faces: torch.Tensor, values: torch.T
     # weights and the shading normals) share it: the samples depend on the mesh and the seed only, not on the values.
     key = (hashlib.sha1(pts.numpy().tobytes()).hexdigest(), tuple(float(v) for v in lo), nx, ny, nz,
            float(voxel_size), k)
-    if _KNN_CACHE.get("key") != key:
+    hit = _KNN_CACHE.get(key)
+    if hit is None:
         axes = [np.linspace(float(lo[i]), float(hi[i]), n) for i, n in enumerate((nx, ny, nz))]
         zz, yy, xx = np.meshgrid(axes[2], axes[1], axes[0], indexing="ij")  # [D,H,W] each
         centres = np.stack([xx, yy, zz], -1).reshape(-1, 3)
         # as many query threads as torch uses (1 in sweeps that share the CPU; all cores on a GPU machine)
         dist, idx = cKDTree(pts.numpy()).query(centres, k=k, workers=max(1, torch.get_num_threads()))
-        _KNN_CACHE.update(key=key, dist=dist.reshape(len(centres), -1), idx=idx.reshape(len(centres), -1))
-    dist, idx = _KNN_CACHE["dist"], _KNN_CACHE["idx"]
+        hit = _KNN_CACHE[key] = (dist.reshape(len(centres), -1), idx.reshape(len(centres), -1))
+        while len(_KNN_CACHE) > _KNN_CACHE_SIZE:
+            _KNN_CACHE.popitem(last=False)
+    _KNN_CACHE.move_to_end(key)
+    dist, idx = hit
     inv = 1.0 / np.maximum(dist, 1e-4)
     near = (w.numpy()[idx] * (inv / inv.sum(1, keepdims=True))[..., None]).sum(1)  # [P,C]
     near = torch.from_numpy(near).float().T.reshape(1, w.shape[1], nz, ny, nx)
