@@ -85,23 +85,17 @@ def test_missing_scene_folder_names_it(tmp_path):
         read_i3d(tmp_path, "nothere", torch.zeros(3), build_hint="build it with realityavatar-make-scene")
 
 
-def test_missing_pickle_key_names_file_and_field(i3d, body):
+@pytest.mark.parametrize("file, key, match", [
+    ("seq-novelpose/mesh_infos.pkl", "Th", r"seq-novelpose/mesh_infos\.pkl.*lacks key 'Th'"),
+    ("seq-train/cameras.pkl", "extrinsics", r"seq-train/cameras\.pkl.*lacks key 'extrinsics'"),
+])
+def test_missing_pickle_key_names_file_and_field(i3d, body, file, key, match):
     root, _ = i3d
-    path = root / "seq-novelpose" / "mesh_infos.pkl"
-    infos = pickle.loads(path.read_bytes())
-    del infos[next(iter(infos))]["Th"]
-    path.write_bytes(pickle.dumps(infos))
-    with pytest.raises(SceneFormatError, match=r"seq-novelpose/mesh_infos\.pkl.*lacks key 'Th'"):
-        read_i3d(root, "seq", body.rest_joints[0])
-
-
-def test_missing_camera_key_names_file(i3d, body):
-    root, _ = i3d
-    path = root / "seq-train" / "cameras.pkl"
-    cams = pickle.loads(path.read_bytes())
-    del cams[next(iter(cams))]["extrinsics"]
-    path.write_bytes(pickle.dumps(cams))
-    with pytest.raises(SceneFormatError, match=r"seq-train/cameras\.pkl.*lacks key 'extrinsics'"):
+    path = root / file
+    entries = pickle.loads(path.read_bytes())
+    del entries[next(iter(entries))][key]
+    path.write_bytes(pickle.dumps(entries))
+    with pytest.raises(SceneFormatError, match=match):
         read_i3d(root, "seq", body.rest_joints[0])
 
 
