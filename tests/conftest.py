@@ -4,6 +4,7 @@ train / evaluate / resume / animate / export / view / the module read."""
 from __future__ import annotations
 
 import os
+import sys
 from pathlib import Path
 
 import pytest
@@ -20,6 +21,16 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if "gpu" in item.keywords:
             item.add_marker(skip)
+
+
+@pytest.fixture(scope="session", autouse=True)
+def no_weights_from_this_machine(tmp_path_factory):
+    """LPIPS and the VGG19 loss look for weights in the lpips package and torch's hub cache (metrics.py): the suite
+    sees neither, so its results do not depend on what this machine has installed or downloaded."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("TORCH_HOME", str(tmp_path_factory.mktemp("torch_home")))
+        mp.setitem(sys.modules, "lpips", None)  # neither imported nor found by importlib.util.find_spec
+        yield
 
 
 @pytest.fixture(scope="session")

@@ -60,3 +60,30 @@ def train(out: Path, *overrides: str) -> dict:
     from realityavatar.train import run
 
     return run(*prepare_run(compose(list(overrides)), out))
+
+
+def plant_found_weights(root: Path, monkeypatch, lin: bool = True, vgg16: bool = True, vgg19: bool = False) -> dict:
+    """What metrics.py / build.py look for, with random weights, under `root`: an installed-looking lpips package
+    (weights/v0.1/vgg.pth; importing it fails, as it does without a working torchvision) on sys.path, and
+    torchvision's vgg16 / vgg19 in a torch hub cache ($TORCH_HOME). Returns {"lin", "vgg16", "vgg19"}: the paths."""
+    import torch
+
+    from realityavatar.metrics import vgg_features
+
+    pkg, hub = root / "site" / "lpips", root / "torch_home" / "hub" / "checkpoints"
+    paths = {"lin": pkg / "weights" / "v0.1" / "vgg.pth", "vgg16": hub / "vgg16-397923af.pth",
+             "vgg19": hub / "vgg19-dcbb9e9d.pth"}
+    for p in paths.values():
+        p.parent.mkdir(parents=True, exist_ok=True)
+    (pkg / "__init__.py").write_text("raise ImportError('planted lpips: weights only')\n")
+    torch.manual_seed(0)
+    if lin:
+        torch.save({f"lin{k}.model.1.weight": torch.rand(1, c, 1, 1) for k, c in enumerate((64, 128, 256, 512, 512))},
+                   paths["lin"])
+    for arch, want in (("vgg16", vgg16), ("vgg19", vgg19)):
+        if want:
+            torch.save({f"features.{k}": v for k, v in vgg_features(arch).state_dict().items()}, paths[arch])
+    monkeypatch.setenv("TORCH_HOME", str(root / "torch_home"))
+    monkeypatch.delitem(sys.modules, "lpips", raising=False)  # tests/conftest.py hides any installed lpips
+    monkeypatch.syspath_prepend(str(root / "site"))
+    return {k: str(v) for k, v in paths.items()}

@@ -57,3 +57,42 @@ def test_step_benchmark_on_cuda(tmp_path):
     assert {r["backend"] for r in rows} == {"gsplat", "torch"}
     for r in rows:
         assert r["device"] == "cuda" and r["step_s"] > 0 and r["gpu_kernel_s"] > 0
+
+
+def test_lpips_check_needs_the_lpips_package(capsys):
+    """Without lpips (as here: tests/conftest.py hides any installed one) the cross-check says so and exits 2."""
+    assert benchmark("lpips_check").main(["--device", "cpu"]) == 2
+    assert "the lpips package does not import here" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("scale", [1.0, 1.01])
+def test_lpips_check_compares_with_the_package(tmp_path, monkeypatch, scale):
+    """A stand-in lpips package whose LPIPS is ours on the same found files, times `scale`: the check reads the
+    package's lin file and torch's hub cache and reports the difference (0, then 1%)."""
+    import types
+    from pathlib import Path
+
+    from realityavatar.metrics import LPIPS
+    from tests.helpers import plant_found_weights
+
+    found = plant_found_weights(tmp_path, monkeypatch)
+
+    class PackageLike(torch.nn.Module):  # lpips.LPIPS's interface: [B,3,H,W] in [-1,1] -> [B,1,1,1]
+        def __init__(self, net="alex", verbose=True):
+            super().__init__()
+            self.ours = LPIPS(net, found["vgg16"], found["lin"])
+
+        def forward(self, in0, in1):
+            x, y = ((t + 1) / 2 for t in (in0, in1))
+            return scale * self.ours(x.permute(0, 2, 3, 1), y.permute(0, 2, 3, 1)).view(-1, 1, 1, 1)
+
+    fake = types.ModuleType("lpips")
+    fake.LPIPS, fake.__file__ = PackageLike, str(Path(found["lin"]).parents[2] / "__init__.py")
+    monkeypatch.setitem(sys.modules, "lpips", fake)
+    out = tmp_path / "check.json"
+    assert benchmark("lpips_check").main(["--device", "cpu", "--sizes", "32", "--out", str(out)]) == 0
+    res = json.loads(out.read_text())
+    assert res["weights"] == {"lin": found["lin"], "backbone": found["vgg16"]}
+    assert [r["pair"] for r in res["pairs"]][-1] == "thin_box_12x40" and len(res["pairs"]) == 7
+    assert res["max_rel_diff"] == pytest.approx(1 - 1 / scale, abs=1e-5)  # relative to the package
+    assert all(r["lpips_package"] > 0 for r in res["pairs"] if not r["pair"].endswith("same"))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import pytest
+from hydra.errors import InstantiationException
 
 
 def test_rebuild_overrides_move_interpolated_keys(trained_run):
@@ -19,3 +20,24 @@ def test_rebuild_overrides_move_interpolated_keys(trained_run):
     assert cfg.data.build_overrides.ambient == 1.0 and "+data" not in cfg
     with pytest.raises(ValueError, match="key=value"):
         load_run(out, ["~data.root"])
+
+
+def test_perceptual_loss_finds_vgg19_in_torch_hub_cache(tmp_path, monkeypatch):
+    """loss.perceptual.vgg19_weights unset: torchvision's vgg19 in torch's hub cache makes the term VGG19, and
+    build_losses says where it came from; kind=dssim, or no file, keeps D-SSIM."""
+    from realityavatar.build import build_losses
+    from realityavatar.config import compose
+    from tests.helpers import plant_found_weights
+
+    assert build_losses(compose())[0]["perceptual"].kind == "dssim"  # nothing found (tests/conftest.py)
+    found = plant_found_weights(tmp_path, monkeypatch, lin=False, vgg16=False, vgg19=True)
+    losses, source = build_losses(compose())
+    assert losses["perceptual"].kind == "vgg19" and source == f"torch hub {found['vgg19']}"
+    assert list(losses) == ["rgb", "mask", "perceptual", "skinning", "silhouette"]
+    losses, source = build_losses(compose(["loss.perceptual.kind=dssim"]))
+    assert losses["perceptual"].kind == "dssim" and source is None
+    losses, source = build_losses(compose([f"loss.perceptual.vgg19_weights={found['vgg19']}"]))
+    assert source == f"loss.perceptual.vgg19_weights {found['vgg19']}"
+    (tmp_path / "torch_home" / "hub" / "checkpoints" / "vgg19-dcbb9e9d.pth").write_bytes(b"\0" * 64)  # truncated
+    with pytest.raises(InstantiationException, match=f"'{found['vgg19']}': not a torch state dict file"):
+        build_losses(compose())

@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import math
+import sys
+import types
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -10,6 +13,7 @@ import torch
 
 from realityavatar.metrics import (
     LPIPS,
+    PackageLPIPS,
     alexnet_features,
     build_lpips,
     lpips_status,
@@ -22,6 +26,7 @@ from realityavatar.metrics import (
     temporal_flicker,
     vgg_features,
 )
+from tests.helpers import plant_found_weights
 
 
 def _img(h=24, w=20, seed=0):
@@ -114,7 +119,7 @@ def test_lpips_loads_weights_and_behaves(tmp_path, net, size):
     bb, lin = _save_fake_lpips(tmp_path, net)
     assert lpips_status(str(bb), str(lin)) == "computed"
     m, status = build_lpips(net, str(bb), str(lin))
-    assert isinstance(m, LPIPS) and status == "computed"
+    assert isinstance(m, LPIPS) and status == f"computed (weights: metrics.lpips_weights {lin} + metrics.lpips_backbone_weights {bb})"
     m_dir = LPIPS.from_paths(str(tmp_path), net=net)  # a directory with both files
     assert torch.equal(m_dir.lins[0].weight, m.lins[0].weight)
     assert torch.equal(m.lins[2].weight, torch.load(lin)["lin2.model.1.weight"])
@@ -125,6 +130,12 @@ def test_lpips_loads_weights_and_behaves(tmp_path, net, size):
     assert float(m(torch.stack([x, x]), torch.stack([y, x]))[0]) == pytest.approx(d, rel=1e-5)
     # closer image -> smaller distance
     assert float(m(x, (0.9 * x + 0.1 * y))) < d
+    # a thin mask box is edge-padded up to the network's smallest input (vgg 16, alex 31 px)
+    thin_x, thin_y, low = x[:5, :9], y[:5, :9], {"vgg": 16, "alex": 31}[net]
+    pad = (low - 9) // 2, low - 9 - (low - 9) // 2, (low - 5) // 2, low - 5 - (low - 5) // 2
+    padded = [torch.nn.functional.pad(t.permute(2, 0, 1)[None], pad, mode="replicate")[0].permute(1, 2, 0)
+              for t in (thin_x, thin_y)]
+    assert float(m(thin_x, thin_y)) == pytest.approx(float(m(*padded)), rel=1e-6) and float(m(thin_x, thin_y)) > 0
 
 
 def test_lpips_not_computed_without_weights(tmp_path):
@@ -132,7 +143,9 @@ def test_lpips_not_computed_without_weights(tmp_path):
     assert status.startswith("not computed: no LPIPS weights")
     assert "metrics.lpips_weights" in status
     assert lpips_status(str(tmp_path / "nope.pth"), str(tmp_path / "nope2.pth")).startswith("not computed:")
-    assert build_lpips("vgg", None, None) == (None, status)
+    m, why = build_lpips("vgg", None, None)  # nothing configured, nothing found (tests/conftest.py)
+    assert m is None and why.startswith("not computed: no LPIPS weights") and "metrics.lpips_weights" in why
+    assert "lpips package weights/v0.1/vgg.pth" in why and "hub/checkpoints/vgg16-397923af.pth" in why
     m, why = build_lpips("vgg", None, str(tmp_path))  # empty directory: the missing file is named
     assert m is None and why.startswith("not computed: LPIPS weight file") and "vgg" in why
     with pytest.raises(FileNotFoundError, match="not computed"):
@@ -142,6 +155,98 @@ def test_lpips_not_computed_without_weights(tmp_path):
     torch.save({f"lin{k}.model.1.weight": torch.rand(1, c, 1, 1) for k, c in enumerate((64, 128, 256, 512, 512))}, wrong)
     with pytest.raises(ValueError, match="lin"):
         LPIPS("alex", str(bb), str(wrong))  # vgg lin weights for an alex net
+
+
+def test_lpips_found_in_lpips_package_and_torch_hub(tmp_path, monkeypatch):
+    """metrics.lpips_weights unset: the installed lpips package's lin file and torchvision's vgg16 in torch's hub
+    cache give the pure-torch LPIPS (lpips itself does not import here), and the status says where they came from."""
+    found = plant_found_weights(tmp_path, monkeypatch)
+    m, status = build_lpips("vgg")
+    assert isinstance(m, LPIPS)
+    assert status == f"computed (weights: lpips package {found['lin']} + torch hub {found['vgg16']})"
+    ref = LPIPS("vgg", found["vgg16"], found["lin"])
+    x, y = _img(32, 32, 0), _img(32, 32, 1)
+    assert float(m(x, y)) == float(ref(x, y)) > 0
+    other = tmp_path / "other_vgg16.pth"  # a configured backbone with the package's lin file
+    torch.save({f"features.{k}": v for k, v in vgg_features("vgg16").state_dict().items()}, other)
+    assert build_lpips("vgg", str(other))[1] == (f"computed (weights: lpips package {found['lin']} + "
+                                                  f"metrics.lpips_backbone_weights {other})")
+
+
+@pytest.mark.parametrize("lin,vgg16", [(True, False), (False, True)])
+def test_lpips_half_found_is_not_computed_and_says_what_is_missing(tmp_path, monkeypatch, lin, vgg16):
+    plant_found_weights(tmp_path, monkeypatch, lin=lin, vgg16=vgg16)
+    m, why = build_lpips("vgg")
+    missing = "lpips package weights/v0.1/vgg.pth" if vgg16 else f"{tmp_path}/torch_home/hub/checkpoints/vgg16-397923af.pth"
+    assert m is None and why.startswith("not computed: no LPIPS weights") and f"not found: {missing};" in why
+    assert "lpips package not used: ImportError: planted lpips" in why  # why the package itself was not used
+
+
+def test_found_weight_file_that_is_not_a_state_dict_is_named(tmp_path, monkeypatch):
+    found = plant_found_weights(tmp_path, monkeypatch)
+    good = Path(found["vgg16"]).read_bytes()
+    Path(found["vgg16"]).write_bytes(b"<html>captive portal</html>")
+    with pytest.raises(ValueError, match=f"backbone weights '{found['vgg16']}': not a torch state dict file"):
+        build_lpips("vgg")
+    Path(found["vgg16"]).write_bytes(good)
+    torch.save(torch.zeros(3), found["lin"])  # a tensor, not a state dict
+    with pytest.raises(ValueError, match=f"LPIPS lin weights '{found['lin']}': expected a state dict"):
+        build_lpips("vgg")
+
+
+def _fake_lpips_package(monkeypatch, fail: Exception | None = None, location: str | None = None) -> list:
+    """A stand-in for the lpips package (it cannot be installed here): its LPIPS is the mean squared difference of
+    its [-1,1] inputs, [B,1,1,1] like the package's; it records what it was given. `location`: its directory."""
+    import importlib.machinery
+
+    calls = []
+
+    class FakeLPIPS(torch.nn.Module):
+        def __init__(self, net="alex", verbose=True):
+            super().__init__()
+            if fail is not None:
+                raise fail
+            self.w = torch.nn.Parameter(torch.ones(()))
+            self.drop = torch.nn.Dropout()
+            calls.append({"net": net})
+
+        def forward(self, in0, in1):
+            calls.append({"shape": tuple(in0.shape), "range": (float(in0.min()), float(in0.max())),
+                          "training": self.training, "grad": self.w.requires_grad})
+            return (self.w * (in0 - in1) ** 2).mean((1, 2, 3), keepdim=True)
+
+    fake = types.ModuleType("lpips")
+    fake.LPIPS, fake.__version__ = FakeLPIPS, "0.1.4"
+    if location:
+        fake.__spec__ = importlib.machinery.ModuleSpec("lpips", None, is_package=True)
+        fake.__spec__.submodule_search_locations = [location]
+    monkeypatch.setitem(sys.modules, "lpips", fake)
+    return calls
+
+
+def test_lpips_package_is_used_directly_when_it_imports(monkeypatch):
+    calls = _fake_lpips_package(monkeypatch)
+    m, status = build_lpips("vgg")
+    assert isinstance(m, PackageLPIPS) and status == "computed (lpips package 0.1.4 vgg)"
+    assert calls == [{"net": "vgg"}]
+    m.train()  # as inside a LightningModule's fit: the package's dropout stays off
+    black, white = torch.zeros(8, 6, 3), torch.ones(8, 6, 3)
+    assert float(m(black, white)) == pytest.approx(4.0)  # [0,1] -> [-1,1]: (-1 - 1)^2
+    # an 8x6 mask box is edge-padded to vgg's smallest input, 16x16 (the package fails on it)
+    assert calls[-1] == {"shape": (1, 3, 16, 16), "range": (-1.0, -1.0), "training": False, "grad": False}
+    assert m(torch.stack([black, white]), torch.stack([white, white])).tolist() == pytest.approx([4.0, 0.0])
+
+
+def test_lpips_package_that_fails_falls_back_to_found_files(tmp_path, monkeypatch):
+    """Offline, lpips.LPIPS cannot download torchvision's vgg16: the files found are used, else the reason is kept."""
+    offline = OSError("download of vgg16-397923af.pth failed: offline")
+    _fake_lpips_package(monkeypatch, fail=offline)
+    m, why = build_lpips("vgg")
+    assert m is None and "lpips package not used: OSError: download of vgg16-397923af.pth failed: offline" in why
+    found = plant_found_weights(tmp_path, monkeypatch)
+    _fake_lpips_package(monkeypatch, fail=offline, location=str(Path(found["lin"]).parents[2]))
+    m, status = build_lpips("vgg")
+    assert isinstance(m, LPIPS) and status == f"computed (weights: lpips package {found['lin']} + torch hub {found['vgg16']})"
 
 
 def test_metrics_do_not_depend_on_float32_accumulation():

@@ -12,7 +12,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from realityavatar.config import RAW_CONFIG_NAME  # importing config also registers the resolvers
-from realityavatar.metrics import build_lpips
+from realityavatar.metrics import build_lpips, hub_checkpoint
 from realityavatar.model.module import AvatarModule, Schedule
 from realityavatar.runs import CKPT_NAME, read_checkpoint
 
@@ -31,9 +31,7 @@ def build_module(cfg: DictConfig, body, num_train_frames: int, scene_extent: flo
     skinning = instantiate(cfg.skinning)
     color = instantiate(cfg.color, num_frames=max(int(num_train_frames), 1))  # the per-frame latent table Z_r
     density = instantiate(cfg.density)
-    # The loss terms, summed in this order: conf/loss's, then the silhouette group's (silhouette=none: no term).
-    losses = {name: instantiate(term) for name, term in cfg.loss.items()}
-    losses.update({"silhouette": instantiate(cfg.silhouette)} if cfg.silhouette else {})
+    losses, vgg19_from = build_losses(cfg)
     shading = instantiate(cfg.shading)
     views = {}
     if data is not None and cfg.sheet.get("profile") == "rest":  # laid out in a rest frame (its masks)
@@ -65,8 +63,28 @@ def build_module(cfg: DictConfig, body, num_train_frames: int, scene_extent: flo
         scene_extent=scene_extent,
         lpips=lpips,
     )
-    module.lpips_status = lpips_status  # "computed" or why not, recorded in metrics.json
+    module.lpips_status = lpips_status  # "computed (<weights' source>)" or why not, recorded in metrics.json
+    module.perceptual_weights = vgg19_from  # where the perceptual loss's VGG19 came from (None: not used)
     return module
+
+
+VGG19_HUB_NAME = "vgg19-dcbb9e9d.pth"  # torchvision's vgg19 in torch's hub cache
+
+
+def build_losses(cfg: DictConfig) -> tuple[dict, str | None]:
+    """The loss terms, summed in this order: conf/loss's, then the silhouette group's (silhouette=none: no term);
+    and where a term's VGG19 weights came from ("<key> <path>", "torch hub <path>", or None: not used). A term with
+    `vgg19_weights: null` gets torchvision's vgg19 from torch's hub cache when it is there (kind=dssim ignores it)."""
+    losses, vgg19_from = {}, None
+    for name, term in cfg.loss.items():
+        extra, source = {}, f"loss.{name}.vgg19_weights {term.get('vgg19_weights')}"
+        if "vgg19_weights" in term and not term.vgg19_weights and (found := hub_checkpoint(VGG19_HUB_NAME)):
+            extra, source = {"vgg19_weights": found}, f"torch hub {found}"
+        losses[name] = instantiate(term, **extra)
+        if getattr(losses[name], "kind", None) == "vgg19":
+            vgg19_from = source
+    losses.update({"silhouette": instantiate(cfg.silhouette)} if cfg.silhouette else {})
+    return losses, vgg19_from
 
 
 def build_data(cfg: DictConfig, body):

@@ -144,7 +144,7 @@ def format_table(metrics: dict) -> str:
         f"train {metrics.get('train_seconds', float('nan')):.0f} s / {metrics.get('iterations')} it  "
         f"render {metrics.get('render_fps', float('nan')):.1f} FPS"
     )
-    if metrics.get("lpips") != "computed":
+    if metrics.get("lpips"):  # "computed (<where the weights came from>)" or "not computed: <why>"
         lines.append(f"LPIPS {metrics.get('lpips')}")
     return "\n".join(lines)
 

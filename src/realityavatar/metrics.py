@@ -1,4 +1,4 @@
-"""Image metrics: PSNR, SSIM, LPIPS (pure torch, only with user-provided weights), mask-box crops, temporal flicker.
+"""Image metrics: PSNR, SSIM, LPIPS (pure torch from weight files, or the lpips package), mask-box crops, flicker.
 
 Images are float [H,W,3] or [B,H,W,3] in [0,1]; batched inputs give one value per image.
 """
@@ -6,6 +6,8 @@ Images are float [H,W,3] or [B,H,W,3] in [0,1]; batched inputs give one value pe
 from __future__ import annotations
 
 import contextlib
+import importlib.metadata
+import importlib.util
 import math
 import os
 from typing import Literal
@@ -182,14 +184,26 @@ def alexnet_features() -> nn.Sequential:
     )  # fmt: skip
 
 
+def load_state_file(path: str, what: str) -> dict[str, torch.Tensor]:
+    """A weights file that must hold a state dict (a torchvision checkpoint, an lpips lin file); errors name the file."""
+    try:
+        sd = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:  # torch.load raises several types on a truncated or foreign file
+        first = (str(e).strip().splitlines() or [""])[0].split(". ")[0][:160]  # torch's advice is for trusted files
+        raise ValueError(f"{what} {path!r}: not a torch state dict file ({type(e).__name__}: {first})") from e
+    if isinstance(sd, dict) and "state_dict" in sd:
+        sd = sd["state_dict"]
+    if not isinstance(sd, dict) or not all(torch.is_tensor(v) for v in sd.values()):
+        raise ValueError(f"{what} {path!r}: expected a state dict (name -> tensor), got {type(sd).__name__}")
+    return sd
+
+
 def load_features_state(features: nn.Sequential, path: str) -> None:
     """Load the `features.*` entries of a torchvision checkpoint (e.g. vgg19-dcbb9e9d.pth) into `features`
     (which may be a prefix of torchvision's `.features`; extra checkpoint layers are ignored)."""
     if not os.path.isfile(path):
         raise FileNotFoundError(f"backbone weights: file {path!r} does not exist")
-    sd = torch.load(path, map_location="cpu", weights_only=True)
-    if isinstance(sd, dict) and "state_dict" in sd:
-        sd = sd["state_dict"]
+    sd = load_state_file(path, "backbone weights")
     own = features.state_dict()
     sub = {k[len("features."):]: v for k, v in sd.items() if k.startswith("features.") and k[len("features."):] in own}
     missing = sorted(set(own) - set(sub))
@@ -202,9 +216,22 @@ def load_features_state(features: nn.Sequential, path: str) -> None:
 # ---------------------------------------------------------------------- LPIPS
 _LPIPS_TAPS = {"vgg": (3, 8, 15, 22, 29), "alex": (1, 4, 7, 9, 11)}  # relu outputs used by lpips
 _LPIPS_CHANNELS = {"vgg": (64, 128, 256, 512, 512), "alex": (64, 192, 384, 256, 256)}
+_LPIPS_MIN_SIZE = {"vgg": 16, "alex": 31}  # smaller images leave a pooling layer no output
 
 
-_TORCHVISION_NAMES = {"vgg": "vgg16-397923af.pth", "alex": "alexnet-owt-7be5be79.pth"}
+def _lpips_input(x: torch.Tensor, name: str, net: str, like: torch.Tensor) -> tuple[torch.Tensor, bool]:
+    """[H,W,3] or [B,H,W,3] in [0,1] -> [B,3,H',W'] in [-1,1] in `like`'s device and dtype, edge-padded up to the
+    network's smallest input (a thin mask box; the lpips package fails on those)."""
+    b, single = _batched(x, name)
+    b = b.to(like).permute(0, 3, 1, 2) * 2 - 1
+    m = _LPIPS_MIN_SIZE.get(net, 0)
+    ph, pw = max(m - b.shape[-2], 0), max(m - b.shape[-1], 0)
+    if ph or pw:
+        b = F.pad(b, (pw // 2, pw - pw // 2, ph // 2, ph - ph // 2), mode="replicate")
+    return b, single
+
+
+TORCHVISION_NAMES = {"vgg": "vgg16-397923af.pth", "alex": "alexnet-owt-7be5be79.pth"}
 
 
 def resolve_lpips_paths(
@@ -215,10 +242,10 @@ def resolve_lpips_paths(
     lin, backbone = lin_weights, backbone_weights
     if lin and os.path.isdir(lin):
         if not backbone:
-            backbone = os.path.join(lin, _TORCHVISION_NAMES.get(net, ""))
+            backbone = os.path.join(lin, TORCHVISION_NAMES.get(net, ""))
         lin = os.path.join(lin, f"{net}.pth")
     if backbone and os.path.isdir(backbone):
-        backbone = os.path.join(backbone, _TORCHVISION_NAMES.get(net, ""))
+        backbone = os.path.join(backbone, TORCHVISION_NAMES.get(net, ""))
     return backbone, lin
 
 
@@ -239,7 +266,8 @@ class LPIPS(nn.Module):
     Inputs [H,W,3] or [B,H,W,3] in [0,1] are mapped to [-1,1], shifted/scaled by lpips' ScalingLayer, passed
     through the backbone (vgg16 or alexnet, torchvision weights), unit-normalised per channel; squared
     differences are weighted by the learned 1x1 convs (lin weights file of the lpips package, keys
-    `lin{k}.model.1.weight`) and spatially averaged. Tables report the value x1000.
+    `lin{k}.model.1.weight`) and spatially averaged. Tables report the value x1000. Images smaller than the
+    network's smallest input (16 px for vgg, 31 for alex) are edge-padded up to it.
     """
 
     def __init__(self, net: Literal["vgg", "alex"] = "vgg", backbone_weights: str = "", lin_weights: str = "") -> None:
@@ -256,7 +284,7 @@ class LPIPS(nn.Module):
         load_features_state(self.features, backbone_weights)
         chans = _LPIPS_CHANNELS[net]
         self.lins = nn.ModuleList([nn.Conv2d(c, 1, 1, bias=False) for c in chans])
-        sd = torch.load(lin_weights, map_location="cpu", weights_only=True)
+        sd = load_state_file(lin_weights, "LPIPS lin weights")
         for k, lin in enumerate(self.lins):
             key = f"lin{k}.model.1.weight"
             if key not in sd or sd[key].shape != lin.weight.shape:
@@ -282,10 +310,9 @@ class LPIPS(nn.Module):
         return out
 
     def forward(self, pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
-        p, single = _batched(pred, "pred")
-        g, _ = _batched(gt, "gt")
-        x = (p.to(self.shift).permute(0, 3, 1, 2) * 2 - 1 - self.shift) / self.scale  # the network's dtype
-        y = (g.to(self.shift).permute(0, 3, 1, 2) * 2 - 1 - self.shift) / self.scale
+        p, single = _lpips_input(pred, "pred", self.net, self.shift)  # the network's device and dtype
+        g, _ = _lpips_input(gt, "gt", self.net, self.shift)
+        x, y = (p - self.shift) / self.scale, (g - self.shift) / self.scale
         total = 0.0
         with no_tf32():
             for lin, fx, fy in zip(self.lins, self._taps(x), self._taps(y)):
@@ -295,12 +322,94 @@ class LPIPS(nn.Module):
         return total[0] if single else total
 
 
+# ---------------------------------------------------------------------- weights found in the environment
+def hub_checkpoint(name: str) -> str | None:
+    """torchvision's download cache entry `name` (<torch.hub.get_dir()>/checkpoints, i.e. $TORCH_HOME/hub/checkpoints,
+    TORCH_HOME defaulting to ~/.cache/torch), or None when it is not there."""
+    path = os.path.join(torch.hub.get_dir(), "checkpoints", name)
+    return path if os.path.isfile(path) else None
+
+
+def lpips_package_file(net: str) -> str | None:
+    """The installed lpips package's v0.1 linear layers, <package>/weights/v0.1/<net>.pth, or None. Found without
+    importing lpips (that imports torchvision, which need not work with this torch)."""
+    try:
+        spec = importlib.util.find_spec("lpips")
+    except (ImportError, ValueError):  # ValueError: a module in sys.modules without a spec
+        return None
+    for root in (spec.submodule_search_locations or []) if spec else []:
+        path = os.path.join(root, "weights", "v0.1", f"{net}.pth")
+        if os.path.isfile(path):
+            return path
+    return None
+
+
+class PackageLPIPS(nn.Module):
+    """The lpips package's `lpips.LPIPS(net=...)` behind LPIPS's interface: [H,W,3] or [B,H,W,3] in [0,1] -> one
+    value per image (the package takes [B,3,H,W] in [-1,1] and returns [B,1,1,1])."""
+
+    def __init__(self, model: nn.Module, net: str = "vgg") -> None:
+        super().__init__()
+        self.model, self.net = model.requires_grad_(False).eval(), net
+
+    def train(self, mode: bool = True):  # the package's lin layers hold dropout: always in eval mode
+        return super().train(False)
+
+    def forward(self, pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
+        ref = next(self.model.parameters())  # the network's device and dtype
+        x, single = _lpips_input(pred, "pred", self.net, ref)
+        y, _ = _lpips_input(gt, "gt", self.net, ref)
+        with no_tf32():
+            d = self.model(x, y).flatten()  # [B]
+        return d[0] if single else d
+
+
+def package_lpips(net: str) -> tuple[PackageLPIPS | None, str]:
+    """(lpips.LPIPS(net) wrapped, "computed (lpips package <version> <net>)") when lpips and torchvision import and
+    torchvision has (or, connected, downloads) its backbone; else (None, why not)."""
+    try:
+        import lpips  # imports torchvision
+
+        model = lpips.LPIPS(net=net, verbose=False)
+    except Exception as e:  # noqa: BLE001 (not installed, a torchvision built for another torch, offline download)
+        return None, f"lpips package not used: {type(e).__name__}: {e}"
+    try:
+        version = importlib.metadata.version("lpips")
+    except importlib.metadata.PackageNotFoundError:
+        version = getattr(lpips, "__version__", "unknown version")
+    return PackageLPIPS(model, net), f"computed (lpips package {version} {net})"
+
+
 def build_lpips(net: str = "vgg", backbone_weights: str | None = None,
-                lin_weights: str | None = None) -> tuple[LPIPS | None, str]:
-    """(LPIPS module, "computed") when both weight files exist, else (None, "not computed: <why>") — the status that
-    metrics.json records. Paths may be directories (see resolve_lpips_paths)."""
-    backbone_weights, lin_weights = resolve_lpips_paths(net, lin_weights, backbone_weights)
-    status = lpips_status(backbone_weights, lin_weights)
+                lin_weights: str | None = None) -> tuple[LPIPS | PackageLPIPS | None, str]:
+    """(LPIPS module, "computed (<where the weights came from>)") or (None, "not computed: <why>"): the status that
+    metrics.json records. In order: configured weights (`lin_weights` a file or a directory, see
+    resolve_lpips_paths); without them the lpips package itself when it and torchvision import; then the pure-torch
+    LPIPS on the installed lpips package's lin file and torchvision's backbone in torch's hub cache (or
+    `backbone_weights`)."""
+    if lin_weights:
+        backbone, lin = resolve_lpips_paths(net, lin_weights, backbone_weights)
+        lin_from = "metrics.lpips_weights"
+        backbone_from = "metrics.lpips_backbone_weights" if backbone_weights else lin_from
+    else:
+        reasons = []
+        if not backbone_weights:
+            model, why = package_lpips(net)
+            if model is not None:
+                return model, why
+            reasons.append(why)
+        name = TORCHVISION_NAMES.get(net, "")
+        backbone, _ = resolve_lpips_paths(net, None, backbone_weights)
+        backbone_from = "metrics.lpips_backbone_weights" if backbone_weights else "torch hub"
+        backbone = backbone or hub_checkpoint(name)
+        lin, lin_from = lpips_package_file(net), "lpips package"
+        if not lin or not backbone:
+            missing = ([] if lin else [f"lpips package weights/v0.1/{net}.pth"]) + (
+                [] if backbone else [os.path.join(torch.hub.get_dir(), "checkpoints", name)])
+            reasons.append(f"not found: {', '.join(missing)}")
+            return None, (f"not computed: no LPIPS weights ({'; '.join(reasons)}; set metrics.lpips_weights=<dir "
+                          f"with the lpips {net}.pth and torchvision {name}>)")
+    status = lpips_status(backbone, lin)
     if status != "computed":
         return None, status
-    return LPIPS(net, backbone_weights, lin_weights), status
+    return LPIPS(net, backbone, lin), f"computed (weights: {lin_from} {lin} + {backbone_from} {backbone})"

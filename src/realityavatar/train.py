@@ -116,6 +116,7 @@ def _run(cfg: DictConfig, choices: dict | None, out_dir: Path, resume_from: Path
         "sheet": module.run_info.get("sheet", {}),
         "num_parameters": module.num_parameters(),
         "perceptual": module.losses["perceptual"].kind if "perceptual" in module.losses else "none",
+        "perceptual_weights": getattr(module, "perceptual_weights", None),  # where its VGG19 came from
         "lpips": module.lpips_status,
         # From a real training render: Lightning's teardown has moved the module back to the CPU by now, and gsplat
         # may have fallen back to torch.

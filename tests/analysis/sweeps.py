@@ -33,7 +33,7 @@ def write_fake_sweep(root: Path, lpips_missing_for: str = "no_lstm") -> Path:
                     "overrides": overrides, "seed": seed, "commit": "abc1234", "scene": scene,
                     "train_seconds": 100.0 + 10 * seed, "iterations": 2000, "num_gaussians": 5000,
                     "num_parameters": 123456, "render_fps": 20.0 + seed, "perceptual": "dssim",
-                    "lpips": "computed" if lp else "not computed: no LPIPS weights configured",
+                    "lpips": "computed (lpips package 0.1.4 vgg)" if lp else "not computed: no LPIPS weights configured",
                     "test/novel_view/psnr": psnr, "test/novel_view/ssim": 0.9 + 0.01 * seed,
                     # a number next to a "not computed" status must still come out as n/c
                     "test/novel_view/lpips": 0.040 + 0.001 * seed if (lp or seed == 0) else None,

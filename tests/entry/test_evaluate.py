@@ -30,3 +30,20 @@ def test_max_frames_per_split(trained_run):
         with open(out / "per_frame.csv") as f:
             views = {int(r["view"]) for r in csv.DictReader(f) if r["split"] == split}
         assert m[f"test/{split}/num_images"] == 2 * len(views) < full[f"test/{split}/num_images"]
+
+
+def test_evaluate_records_where_lpips_weights_came_from(trained_run, tmp_path, monkeypatch):
+    """metrics.lpips_weights unset and LPIPS weights found (the lpips package's lin file, torch's hub cache): the
+    pure-torch LPIPS computes, and metrics.json says where its weights came from."""
+    from realityavatar.evaluate import format_table
+    from realityavatar.evaluate import main as evaluate_main
+    from tests.helpers import plant_found_weights
+
+    out, _ = trained_run
+    found = plant_found_weights(tmp_path, monkeypatch)
+    assert evaluate_main([f"run_dir={out}", "eval.max_frames_per_split=1", "eval.save_video=false",
+                          "eval.save_images=0"]) == 0
+    m = json.loads((out / "eval" / "metrics.json").read_text())
+    assert m["lpips"] == f"computed (weights: lpips package {found['lin']} + torch hub {found['vgg16']})"
+    assert m["test/novel_view/lpips"] > 0 and m["test/novel_pose/lpips_masked"] > 0
+    assert f"LPIPS {m['lpips']}" in format_table(m)

@@ -194,7 +194,7 @@ def read_run(path: Path) -> dict:
     }
     for k in RUN_NUMBERS:
         row[k] = _float(m.get(k), str(path), k)
-    lpips_ok = row["lpips_status"] == "computed"
+    lpips_ok = row["lpips_status"].startswith("computed")  # "computed (<where the weights came from>)"
     for split in SPLITS:
         for name in METRICS:
             key = metric_key(split, name)
@@ -349,7 +349,7 @@ def provenance(runs: Runs) -> dict:
             if args is None:
                 args = runs.frame[runs.frame["job_dir"] == job].iloc[0]["overrides"]
             commands.append("realityavatar-train " + " ".join(shlex.quote(a) for a in args))
-    lpips = sorted({s for s in runs.frame["lpips_status"] if s != "computed"})
+    lpips = sorted({s for s in runs.frame["lpips_status"] if not s.startswith("computed")})
     return {"commits": commits, "commands": list(dict.fromkeys(commands)),
             "sweep_dirs": list(dict.fromkeys(runs.frame["sweep_dir"])), "lpips_not_computed": lpips}
 
