@@ -91,6 +91,8 @@ def build(n: int, backend: str, overrides: list[str]):
 def make_batch_fn(module, size: int, window: int, views: int = 1):
     """A DataModule-shaped batch: one pose window seen by `views` cameras framing the body (turned about the up axis),
     target images and masks."""
+    from realityavatar.data.records import mask_distance
+
     verts = module.body.canonical_vertices().detach().float().cpu()
     lo, hi = verts.min(0).values, verts.max(0).values
     centre, ext = 0.5 * (lo + hi), hi - lo
@@ -121,12 +123,12 @@ def make_batch_fn(module, size: int, window: int, views: int = 1):
             "frame_idx": torch.full((V,), 3),
             "viewmat": vm.clone(),
             "K": K[None].repeat(V, 1, 1),
-            "width": torch.full((V,), size),
-            "height": torch.full((V,), size),
             "image": torch.rand(V, size, size, 3, generator=g),
             "mask": (torch.rand(V, size, size, 1, generator=g) > 0.5).float(),
         }
-        return {k: v.to(_device) for k, v in batch.items()}
+        batch["mask_dist"] = torch.stack([mask_distance(m[..., 0]) for m in batch["mask"]])  # the dataset's
+        batch = {k: v.to(_device) for k, v in batch.items()}
+        return {**batch, "width": [size] * V, "height": [size] * V}  # host ints (AvatarDataModule.on_before_batch_transfer)
 
     return make
 
@@ -152,11 +154,11 @@ def step_parts(module, opt, sched, make_batch, step: int) -> dict:
     p = {**posed, "means": leaves[0], "quats": leaves[1], "scales": leaves[2], "opacities": leaves[3]}
     W, H = int(batch["width"][0]), int(batch["height"][0])
     t0 = c()
-    img, alpha, meta = module.splat(p, 0, leaves[4][0], batch["viewmat"], batch["K"], W, H)
+    img, alpha, meta = module.splat(p, 0, leaves[4][0], batch["viewmat"], batch["K"], W, H, check_finite=False)
     t["render_fwd"] = c() - t0
     img_l, alpha_l = img.detach().requires_grad_(), alpha.detach().requires_grad_()
     t0 = c()
-    one = {k: v[:1] for k, v in batch.items()}  # the sample rendered above
+    one = {k: v[:1] for k, v in batch.items()}  # the sample rendered above (as training_step: no device reads)
     total, _ = total_loss(module.losses, TrainingRender(img_l, alpha_l, one, p, module, step))
     t["losses_fwd"] = c() - t0
     t0 = c()
@@ -193,38 +195,23 @@ def _stub_trainer_hooks(module, opt, sched, step: int) -> None:
     module.lr_schedulers = lambda: sched
     module.manual_backward = lambda loss: loss.backward()
     module.log = lambda *args, **kwargs: None
+    module.log_every = LOG_EVERY
     type(module).global_step = property(lambda self: step)  # no trainer: the step the schedule sees
 
 
-# Ops whose output size depends on the data: on a GPU each waits for the device (like a scalar read).
-DATA_DEPENDENT = ("nonzero", "masked_select", "unique", "_unique2", "unique_consecutive", "argwhere")
+LOG_EVERY = 25  # conf/trainer: log_every_n_steps; the timed and counted step is not a log step
 
 
 def count_ops(module, opt, sched, make_batch, step: int, steps: int = 3) -> dict:
-    """Tensor operations per whole training step, counted with a TorchDispatchMode (forward, backward, optimizer;
-    views and other metadata-only ops left out), and the host syncs among them: scalar reads (`.item()`, `float()`,
-    `bool()` of a tensor: aten._local_scalar_dense) and ops whose output size depends on the data (nonzero, ...).
-    The same counts on a CPU as on a GPU, so every machine measures the launches and syncs a GPU step would make."""
-    from collections import Counter
+    """Tensor operations per whole training step and the host syncs among them (realityavatar.runtime.OpCount)."""
+    from realityavatar.runtime import DATA_DEPENDENT, OpCount
 
-    from torch.utils._python_dispatch import TorchDispatchMode
-
-    class Count(TorchDispatchMode):
-        def __init__(self):
-            super().__init__()
-            self.ops = Counter()
-
-        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
-            if not (func.is_view or func.__name__.split(".")[0] in ("detach", "alias", "lift_fresh", "_unsafe_view")):
-                self.ops[func.__name__.split(".")[0]] += 1
-            return func(*args, **(kwargs or {}))
-
-    make_batch()  # draw outside the count; the data part of a step is the DataModule's, not the model's
-    with Count() as c:
-        for _ in range(steps):
-            module.training_step(make_batch(), 0)
+    batches = [make_batch() for _ in range(steps)]  # drawn outside the count: the DataModule's part, not the model's
+    with OpCount() as c:
+        for batch in batches:
+            module.training_step(batch, 0)
     per = {k: v / steps for k, v in c.ops.items()}
-    return {"ops_per_step": sum(per.values()),
+    return {"ops_per_step": c.total / steps,
             "scalar_reads_per_step": per.get("_local_scalar_dense", 0.0),
             "data_dependent_per_step": sum(per.get(k, 0.0) for k in DATA_DEPENDENT),
             "top_ops": dict(sorted(per.items(), key=lambda kv: -kv[1])[:15])}
@@ -235,6 +222,7 @@ def run_config(n: int, size: int, backend: str, repeats: int, overrides: list[st
     cfg, module, opt, sched = build(n, backend, overrides)
     make_batch = make_batch_fn(module, size, int(cfg.data.window_len))
     step = max(int(cfg.schedule.deform_start), 1) + 1  # motion-trend decoder on; not a densification step
+    step += step % LOG_EVERY == 0  # nor a log step (module.training_step reads the device on those only)
     _stub_trainer_hooks(module, opt, sched, step)
     step_parts(module, opt, sched, make_batch, step)  # warm-up (and numba's cache load)
     parts = {k: [] for k in PARTS}

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+from realityavatar.data.records import mask_distance
 from realityavatar.losses import (
     ColourL1,
     MaskLoss,
@@ -13,7 +14,6 @@ from realityavatar.losses import (
     SilhouetteChamfer,
     SkinningLoss,
     TrainingRender,
-    mask_distance,
     project_points,
     total_loss,
 )
@@ -112,7 +112,7 @@ def test_outside_term_pulls_a_gaussian_whose_footprint_misses_the_mask():
     uv, _ = project_points(x, E, K)
     assert torch.allclose(uv, torch.tensor([[10.0, 16.0]]), atol=1e-4)
     loss_fn = SilhouetteChamfer(weight=1.0)
-    terms = loss_fn.image_terms(x, E, K, mask, alpha)
+    terms = loss_fn.image_terms(x, E, K, mask, mask_distance(mask[..., 0]), alpha)
     assert float(terms["sil_outside"]) == pytest.approx((10 / H) ** 2, rel=0.05)
     assert float(terms["sil_coverage"]) == 0.0
     loss_fn.total(terms).backward()
@@ -130,7 +130,8 @@ def test_coverage_term_pulls_the_nearest_centre_to_uncovered_mask_pixels():
     mask_in = mask.clone()
     mask_in[16, 16] = 1  # keep both centres' outside term small: only coverage should move them
     mask_in[16, 8] = 1
-    terms = SilhouetteChamfer(weight=1.0, outside_weight=0.0).image_terms(x, E, K, mask_in, alpha)
+    terms = SilhouetteChamfer(weight=1.0, outside_weight=0.0).image_terms(x, E, K, mask_in,
+                                                                     mask_distance(mask_in[..., 0]), alpha)
     assert float(terms["sil_coverage"]) > 0
     SilhouetteChamfer(weight=1.0, outside_weight=0.0).total(terms).backward()
     assert x.grad[0, 0] < 0, "the nearest centre must be pulled towards the uncovered pixels (+x)"

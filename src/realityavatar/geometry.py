@@ -17,11 +17,29 @@ def axis_angle_to_matrix(aa: torch.Tensor) -> torch.Tensor:
     # Taylor series near zero keeps gradients finite.
     a = torch.where(small, 1 - theta2 / 6, torch.sin(theta) / theta)
     b = torch.where(small, 0.5 - theta2 / 24, (1 - torch.cos(theta)) / theta2.clamp_min(1e-24))
-    x, y, z = aa.unbind(-1)
-    zero = torch.zeros_like(x)
-    k = torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], -1).reshape(aa.shape[:-1] + (3, 3))
+    k = (aa @ _SKEW.to(aa)).unflatten(-1, (3, 3))  # [...,3,3] cross-product matrix [aa]x
     eye = torch.eye(3, dtype=aa.dtype, device=aa.device).expand_as(k)
     return eye + a[..., None] * k + b[..., None] * (k @ k)
+
+
+# Constant maps that turn the component formulas below into one or two tensor operations each: every operation is a
+# kernel launch on a GPU (and a node of the backward), so a formula written per component costs tens of launches.
+_SKEW = torch.zeros(3, 9)  # aa [3] -> [aa]x flattened: [[0,-z,y],[z,0,-x],[-y,x,0]]
+for _i, _r, _c, _s in ((0, 2, 1, 1), (0, 1, 2, -1), (1, 0, 2, 1), (1, 2, 0, -1), (2, 1, 0, 1), (2, 0, 1, -1)):
+    _SKEW[_i, 3 * _r + _c] = _s
+_HAMILTON = torch.zeros(4, 4, 4)  # (a*b)_k = sum_ij a_i b_j H[i,j,k], wxyz
+for _i, _j, _k, _s in ((0, 0, 0, 1), (1, 1, 0, -1), (2, 2, 0, -1), (3, 3, 0, -1),
+                       (0, 1, 1, 1), (1, 0, 1, 1), (2, 3, 1, 1), (3, 2, 1, -1),
+                       (0, 2, 2, 1), (1, 3, 2, -1), (2, 0, 2, 1), (3, 1, 2, 1),
+                       (0, 3, 3, 1), (1, 2, 3, 1), (2, 1, 3, -1), (3, 0, 3, 1)):
+    _HAMILTON[_i, _j, _k] = _s
+_QUAT_TO_MATRIX = torch.zeros(16, 9)  # q q^T flattened (q_i q_j at 4i+j) -> R - I flattened, for unit wxyz q
+for _row, _terms in enumerate((
+        ((2, 2, -2), (3, 3, -2)), ((1, 2, 2), (0, 3, -2)), ((1, 3, 2), (0, 2, 2)),
+        ((1, 2, 2), (0, 3, 2)), ((1, 1, -2), (3, 3, -2)), ((2, 3, 2), (0, 1, -2)),
+        ((1, 3, 2), (0, 2, -2)), ((2, 3, 2), (0, 1, 2)), ((1, 1, -2), (2, 2, -2)))):
+    for _i, _j, _s in _terms:
+        _QUAT_TO_MATRIX[4 * _i + _j, _row] = _s
 
 
 def matrix_to_quat(R: torch.Tensor) -> torch.Tensor:
@@ -52,40 +70,43 @@ def matrix_to_quat(R: torch.Tensor) -> torch.Tensor:
 def quat_to_matrix(q: torch.Tensor) -> torch.Tensor:
     """q: [...,4] wxyz (normalised here) -> [...,3,3]."""
     q = F.normalize(q, dim=-1)
-    w, x, y, z = q.unbind(-1)
-    return torch.stack(
-        [
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-        ],
-        -1,
-    ).reshape(q.shape[:-1] + (3, 3))
+    outer = (q[..., :, None] * q[..., None, :]).flatten(-2)  # [...,16]
+    eye = torch.eye(3, dtype=q.dtype, device=q.device).flatten()
+    return torch.addmm(eye, outer.reshape(-1, 16), _QUAT_TO_MATRIX.to(q)).reshape(q.shape[:-1] + (3, 3))
 
 
 def quat_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """Hamilton product a*b of wxyz quaternions [...,4] (rotation b first, then a)."""
-    aw, ax, ay, az = a.unbind(-1)
-    bw, bx, by, bz = b.unbind(-1)
-    return torch.stack(
-        [
-            aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-        ],
-        -1,
-    )
+    left = (a @ _HAMILTON.to(a).flatten(1)).unflatten(-1, (4, 4))  # [...,4,4]: (a*b)_k = sum_j left[j,k] b_j
+    return (left * b[..., :, None]).sum(-2)
 
 
-def matrix_to_axis_angle(R: torch.Tensor) -> torch.Tensor:
-    """R: [...,3,3] -> axis-angle [...,3] (angle in [0, pi])."""
-    q = matrix_to_quat(R)
+def quat_slerp(a: torch.Tensor, b: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """Spherical interpolation of unit wxyz quaternions a, b [...,4] at w [...] (0: a, 1: b), along the shorter arc."""
+    dot = (a * b).sum(-1, keepdim=True)
+    b = torch.where(dot < 0, -b, b)
+    theta = torch.acos(dot.abs().clamp(max=1.0))  # [...,1]
+    w = w[..., None]
+    sin = torch.sin(theta)
+    near = sin < 1e-6  # (almost) the same rotation: linear weights
+    wa = torch.where(near, 1 - w, torch.sin((1 - w) * theta) / sin.clamp_min(1e-6))
+    wb = torch.where(near, w, torch.sin(w * theta) / sin.clamp_min(1e-6))
+    return F.normalize(wa * a + wb * b, dim=-1)
+
+
+def quat_to_axis_angle(q: torch.Tensor) -> torch.Tensor:
+    """Unit wxyz quaternion [...,4] -> axis-angle [...,3] (angle in [0, pi])."""
+    q = torch.where(q[..., :1] < 0, -q, q)
     xyz = q[..., 1:]
     s = xyz.norm(dim=-1, keepdim=True)
     angle = 2 * torch.atan2(s, q[..., :1])
     scale = torch.where(s > 1e-8, angle / s.clamp_min(1e-12), 2.0 / q[..., :1].clamp_min(1e-12))
     return xyz * scale
+
+
+def matrix_to_axis_angle(R: torch.Tensor) -> torch.Tensor:
+    """R: [...,3,3] -> axis-angle [...,3] (angle in [0, pi])."""
+    return quat_to_axis_angle(matrix_to_quat(R))
 
 
 def rigid(R: torch.Tensor, t: torch.Tensor) -> torch.Tensor:

@@ -184,16 +184,6 @@ def project_points(points: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor)
     return uv, z
 
 
-def mask_distance(mask: torch.Tensor) -> torch.Tensor:
-    """mask [H,W] (1 inside) -> Euclidean distance in pixels of every pixel to the nearest mask pixel [H,W]."""
-    from scipy.ndimage import distance_transform_edt
-
-    m = (mask.detach() > 0.5).cpu().numpy()
-    if not m.any():
-        return torch.zeros_like(mask)
-    return torch.from_numpy(distance_transform_edt(~m)).to(mask)
-
-
 def outside_distance(uv: torch.Tensor, dist: torch.Tensor) -> torch.Tensor:
     """Pixel coords uv [N,2], a mask's distance field dist [H,W] (pixels) -> each point's distance to the mask [N]:
     the field sampled bilinearly inside the image, plus the distance to the image beyond it."""
@@ -242,29 +232,31 @@ class SilhouetteChamfer(nn.Module):
         sil: dict[str, torch.Tensor] = {}
         for b in range(B):
             for k, v in self.image_terms(out.posed["means"][b], out.batch["viewmat"][b], out.batch["K"][b],
-                                         out.batch["mask"][b], out.alpha[b]).items():
+                                         out.batch["mask"][b], out.batch["mask_dist"][b], out.alpha[b]).items():
                 sil[k] = sil.get(k, 0.0) + v / B
         return self.total(sil), {k: v.detach() for k, v in sil.items()}
 
     def image_terms(self, means: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor, mask: torch.Tensor,
-                    alpha: torch.Tensor) -> dict[str, torch.Tensor]:
-        """means [N,3] posed, viewmat [4,4], K [3,3], mask / alpha [H,W,1] -> {"sil_outside", "sil_coverage"}."""
-        H = mask.shape[0]
+                    dist: torch.Tensor, alpha: torch.Tensor) -> dict[str, torch.Tensor]:
+        """means [N,3] posed, viewmat [4,4], K [3,3], mask / alpha [H,W,1], dist [H,W] (`mask_distance(mask)`) ->
+        {"sil_outside", "sil_coverage"}. Fixed shapes throughout (no read of the device): centres behind the camera
+        and pixel slots beyond the uncovered ones carry weight 0."""
+        H, W = mask.shape[:2]
         uv, z = project_points(means, viewmat, K)
-        front = z > self.near
-        uv, scale = uv[front], float(H)
-        d = outside_distance(uv, mask_distance(mask[..., 0]))  # [N] pixels
-        out = {"sil_outside": ((d / scale) ** 2).mean() if d.numel() else means.new_zeros(())}
-        # Coverage: uncovered mask pixels -> their nearest projected centre.
-        need = ((mask[..., 0] > 0.5) & (alpha[..., 0].detach() < self.covered_alpha)).nonzero()  # [P,2] (y,x)
-        if need.shape[0] and uv.shape[0]:
-            if need.shape[0] > self.max_pixels:
-                need = need[torch.randperm(need.shape[0], device=need.device)[: self.max_pixels]]
-            pix = need.flip(-1).to(uv.dtype)  # [P,2] (x,y)
-            nearest = nearest_index(pix, uv.detach())  # [P]
-            out["sil_coverage"] = (((uv[nearest] - pix) / scale) ** 2).sum(-1).mean()
-        else:
-            out["sil_coverage"] = means.new_zeros(())
+        front = (z > self.near).to(uv.dtype)  # [N]
+        d = outside_distance(uv, dist.to(uv))  # [N] pixels
+        out = {"sil_outside": (((d / H) ** 2) * front).sum() / front.sum().clamp_min(1.0)}
+        # Coverage: up to max_pixels uncovered mask pixels, drawn uniformly (random scores, the top ones), each pulls
+        # its nearest projected centre in front of the camera.
+        need = ((mask[..., 0] > 0.5) & (alpha[..., 0].detach() < self.covered_alpha)).flatten()  # [H*W]
+        score = torch.where(need, torch.rand(need.shape, device=need.device), -1.0)
+        top, idx = score.topk(min(self.max_pixels, need.numel()))
+        pix = torch.stack([idx % W, torch.div(idx, W, rounding_mode="floor")], -1).to(uv.dtype)  # [P,2] (x,y)
+        behind = uv.new_tensor(1e9) * (1 - front)[:, None]  # never the nearest while a centre in front exists
+        nearest = nearest_index(pix, uv.detach() + behind)  # [P]
+        weight = (top >= 0).to(uv.dtype) * front[nearest]
+        err = (((uv[nearest] - pix) / H) ** 2).sum(-1)
+        out["sil_coverage"] = (err * weight).sum() / weight.sum().clamp_min(1.0)
         return out
 
     def total(self, terms: dict[str, torch.Tensor]) -> torch.Tensor:

@@ -1,4 +1,5 @@
-"""Process-level settings for CPU training: the C allocator.
+"""Process-level settings for CPU training (the C allocator), and `OpCount`: the tensor operations and device reads
+of a piece of code, counted on any device.
 
 Each training step allocates and frees dozens of 1-5 MB tensors (per-Gaussian activations, images). glibc serves
 blocks over its mmap threshold (128 KiB, rising only as far as 32 MiB on its own) with fresh mmap calls and returns
@@ -11,6 +12,10 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import os
+from collections import Counter
+
+import torch
+from torch.utils._python_dispatch import TorchDispatchMode
 
 _M_TRIM_THRESHOLD = -1
 _M_TOP_PAD = -2
@@ -38,3 +43,42 @@ def tune_malloc(mmap_threshold: int = 32 << 20, trim_threshold: int = 1 << 30, t
                       f"{trim_threshold >> 20} MiB" if ok else "glibc mallopt refused a setting; allocator partly tuned")
     _state["result"] = result
     return result
+
+
+# Ops whose output size depends on the data: on a GPU each waits for the device, like a scalar read.
+DATA_DEPENDENT = ("nonzero", "masked_select", "unique", "_unique2", "unique_consecutive", "argwhere",
+                  "boolean_mask_index")
+_METADATA = ("detach", "alias", "lift_fresh", "_unsafe_view")
+
+
+class OpCount(TorchDispatchMode):
+    """Counts the tensor operations run inside it (forward, backward, optimizer; views and other metadata-only ops
+    left out) by name in `ops`, and the host syncs among them: `reads` = scalar reads (`.item()`, `float()`, `bool()`
+    of a tensor: aten._local_scalar_dense) plus ops whose output size depends on the data (nonzero, indexing with a
+    boolean mask, ...). The same counts on a CPU as on a GPU: the kernel launches and waits a GPU step would make.
+
+        with OpCount() as c:
+            module.training_step(batch, 0)
+        c.total, c.reads
+    """
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.ops: Counter = Counter()
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        name = func.__name__.split(".")[0]
+        if not (func.is_view or name in _METADATA):
+            self.ops[name] += 1
+            if name in ("index", "index_put", "index_put_") and any(
+                    torch.is_tensor(i) and i.dtype == torch.bool for i in args[1] if i is not None):
+                self.ops["boolean_mask_index"] += 1  # output size = the mask's count (not an op of its own)
+        return func(*args, **(kwargs or {}))
+
+    @property
+    def total(self) -> int:
+        return sum(v for k, v in self.ops.items() if k != "boolean_mask_index")
+
+    @property
+    def reads(self) -> int:
+        return self.ops["_local_scalar_dense"] + sum(self.ops[k] for k in DATA_DEPENDENT)

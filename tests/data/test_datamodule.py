@@ -16,7 +16,7 @@ from realityavatar.data.poses import PoseTable
 from tests.fixtures_data import SIZE, RandomBody, project, write_i3d, write_zju
 from tests.helpers import CONF
 
-KEYS = {"image", "mask", "K", "viewmat", "width", "height", "poses", "transl", "index", "frame", "frame_idx", "view",
+KEYS = {"image", "mask", "mask_dist", "K", "viewmat", "width", "height", "poses", "transl", "index", "frame", "frame_idx", "view",
         "split"}
 
 

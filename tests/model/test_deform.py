@@ -17,6 +17,7 @@ def test_motion_trend_decoder_identity_start_and_grads():
     x = torch.randn(100, 3) * 0.4
     log_s = torch.randn(100, 3) - 4
     q = torch.nn.functional.normalize(torch.randn(100, 4), dim=-1)
+    dec.fit_bounds(x)
     out = dec(x, torch.randn(2, 16))
     assert out["dx"].shape == (2, 100, 3) and out["ds"].shape == (2, 100, 3)
     assert out["dq"].shape == (2, 100, 4) and out["f_mt"].shape == (2, 100, 16)

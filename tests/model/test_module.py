@@ -146,3 +146,78 @@ def test_checkpoint_with_refined_gaussians_restores_model_and_optimizer(trained_
     g = module.gaussians
     assert all(opt.state[getattr(g, n)]["exp_avg"].shape == getattr(g, n).shape for n in ("means", "features"))
     assert module.density.grad2d is None or module.density.grad2d.shape[0] == g.num_points
+
+
+def _stepping_module(body, monkeypatch, device: str = "cpu", log_every: int = 5):
+    """The default model (silhouette term included) with the trainer's hooks stubbed, a step counter and a batch."""
+    from realityavatar.build import build_module
+    from tests.helpers import benchmark
+
+    cfg = compose(["gaussians.num_points=400"])
+    module = build_module(cfg, body, num_train_frames=4, scene_extent=1.0).to(device)
+    opt_cfg = module.configure_optimizers()
+    opt, sched = opt_cfg["optimizer"], opt_cfg["lr_scheduler"]["scheduler"]
+    monkeypatch.setattr(type(module), "global_step", property(lambda self: self._test_step))
+    module.optimizers, module.lr_schedulers = (lambda: opt), (lambda: sched)
+    module.manual_backward = lambda loss: loss.backward()
+    module.log = lambda *args, **kwargs: None
+    module.log_every = log_every
+    step = benchmark("step")
+    monkeypatch.setattr(step, "_device", device)
+    return module, step.make_batch_fn(module, 32, int(cfg.data.window_len))
+
+
+def test_a_training_step_reads_the_device_only_on_log_steps(body, monkeypatch):
+    """No scalar read (.item(), float(), bool() of a tensor) and no data-dependent shape (nonzero, boolean-mask
+    indexing) in a training step but every `log_every` steps: on a GPU each would wait for the device. Counted on the
+    CPU with OpCount. A non-finite loss between log steps stops the run at the next log step, naming the steps."""
+    from realityavatar.runtime import OpCount
+
+    module, make_batch = _stepping_module(body, monkeypatch)
+    module._test_step = 1
+    module.training_step(make_batch(), 0)  # one-time set-up reads (e.g. the skinning loss's surface sample pool)
+    for s in range(2, 5):
+        module._test_step = s
+        batch = make_batch()
+        with OpCount() as c:
+            module.training_step(batch, 0)
+        assert c.reads == 0, {k: v for k, v in c.ops.items() if k in ("_local_scalar_dense", "nonzero",
+                                                                        "boolean_mask_index")}
+    module._test_step = 5  # a log step: logging and the input checks read the device
+    batch = make_batch()
+    with OpCount() as c:
+        module.training_step(batch, 0)
+    assert c.reads > 0
+    with torch.no_grad():
+        module.gaussians.features[0, 0] = float("nan")
+    module._test_step = 6
+    module.training_step(make_batch(), 0)  # not a log step: nothing read, the flag is kept on the device
+    module._test_step = 10
+    with pytest.raises(FloatingPointError, match="non-finite between steps 6 and 10"):
+        module.training_step(make_batch(), 0)
+
+
+@pytest.mark.gpu
+def test_a_training_step_on_a_gpu_does_not_synchronise(body, monkeypatch):
+    """The same on CUDA under torch.cuda.set_sync_debug_mode("error"): every synchronising call in a non-log step
+    raises, except those inside gsplat's rasterizer (its tile intersection sizes its buffers from the data)."""
+    import warnings
+
+    if not torch.cuda.is_available():
+        pytest.skip("needs CUDA")
+    module, make_batch = _stepping_module(body, monkeypatch, "cuda")
+    module._test_step = 1
+    module.training_step(make_batch(), 0)  # warm-up: one-time set-up (caches, kernels) may read the device
+    module._test_step = 2
+    batch = make_batch()
+    torch.cuda.synchronize()
+    torch.cuda.set_sync_debug_mode("warn")
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            module.training_step(batch, 0)
+            torch.cuda.synchronize()
+    finally:
+        torch.cuda.set_sync_debug_mode("default")
+    ours = [str(w.message) for w in caught if "synchroniz" in str(w.message).lower() and "gsplat" not in w.filename]
+    assert not ours, ours

@@ -10,6 +10,7 @@ Conventions (shared with the data readers and the avatar model):
 
 from __future__ import annotations
 
+import functools
 import math
 
 import torch
@@ -27,18 +28,24 @@ SMPL_JOINT_NAMES = (
 SMPL_PARENTS = (-1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19, 20, 21)
 
 
-def check_pose(pose: torch.Tensor, transl: torch.Tensor | None, where: str = "pose") -> None:
-    """Raise a ValueError naming the field when a pose or translation has a wrong shape or is not finite."""
+def check_pose_shape(pose: torch.Tensor, transl: torch.Tensor | None, where: str = "pose") -> None:
+    """Raise a ValueError naming the field when a pose or translation has a wrong shape (no read of the values:
+    the model's forward path calls this, and on a GPU a read of a device tensor waits for the device)."""
     if pose.shape[-2:] != (NUM_JOINTS, 3):
         raise ValueError(f"{where}: expected axis-angle pose of shape [...,24,3], got {tuple(pose.shape)}")
+    if transl is not None and transl.shape[-1] != 3:
+        raise ValueError(f"{where}: expected translation of shape [...,3], got {tuple(transl.shape)}")
+
+
+def check_pose(pose: torch.Tensor, transl: torch.Tensor | None, where: str = "pose") -> None:
+    """check_pose_shape, and a ValueError naming the field when a pose or translation is not finite. Called where
+    poses enter on the host: pose tables and files, and each training / test batch before it moves to the device."""
+    check_pose_shape(pose, transl, where)
     if not torch.isfinite(pose).all():
         bad = (~torch.isfinite(pose)).nonzero()[:5].tolist()
         raise ValueError(f"{where}: pose has non-finite values (NaN/inf) at indices {bad}")
-    if transl is not None:
-        if transl.shape[-1] != 3:
-            raise ValueError(f"{where}: expected translation of shape [...,3], got {tuple(transl.shape)}")
-        if not torch.isfinite(transl).all():
-            raise ValueError(f"{where}: translation has non-finite values (NaN/inf)")
+    if transl is not None and not torch.isfinite(transl).all():
+        raise ValueError(f"{where}: translation has non-finite values (NaN/inf)")
 
 
 def canonical_pose(dtype=torch.float32, leg_angle_deg: float = 30.0, arm_angle_deg: float = 0.0,
@@ -70,6 +77,16 @@ def rh_th_to_smpl(pose: torch.Tensor, Rh: torch.Tensor, Th: torch.Tensor, pelvis
     return out, transl
 
 
+@functools.cache
+def _depth_levels(parents: tuple[int, ...]) -> list[tuple[list[int], list[int]]]:
+    """The joints of a kinematic tree grouped by depth (root excluded), each with its parents: [(joints, parents)]."""
+    depth = [0] * len(parents)
+    for j in range(1, len(parents)):
+        depth[j] = depth[parents[j]] + 1
+    return [([j for j in range(len(parents)) if depth[j] == d], [parents[j] for j in range(len(parents)) if depth[j] == d])
+            for d in range(1, max(depth) + 1)]
+
+
 class BodyModel(nn.Module):
     """A skinned body with 24 SMPL-order joints. Subclasses fill the buffers in __init__ via `_set_buffers`.
 
@@ -81,6 +98,7 @@ class BodyModel(nn.Module):
     name: str = "body"
 
     def _set_buffers(self, rest_vertices, faces, skin_weights, rest_joints) -> None:
+        self._canonical_inverse: dict[tuple, torch.Tensor] = {}  # canonical_transforms' constant, per device/dtype
         self.register_buffer("rest_vertices", torch.as_tensor(rest_vertices, dtype=torch.float32), persistent=False)
         self.register_buffer("faces", torch.as_tensor(faces, dtype=torch.long), persistent=False)
         w = torch.as_tensor(skin_weights, dtype=torch.float32)
@@ -93,17 +111,16 @@ class BodyModel(nn.Module):
 
     def forward(self, pose: torch.Tensor, transl: torch.Tensor | None = None) -> torch.Tensor:
         """pose [...,24,3], transl [...,3] -> bone transforms [...,24,4,4] (rest pose -> posed)."""
-        check_pose(pose, transl)
+        check_pose_shape(pose, transl)
         J = self.rest_joints.to(pose.dtype)  # [24,3]
         R = axis_angle_to_matrix(pose)  # [...,24,3,3]
         batch = pose.shape[:-2]
         rel_t = J.clone()
         rel_t[1:] = J[1:] - J[list(self.parents[1:])]
         local = rigid(R, rel_t.expand(batch + (NUM_JOINTS, 3)))  # [...,24,4,4]
-        chain = [local[..., 0, :, :]]
-        for j in range(1, NUM_JOINTS):
-            chain.append(chain[self.parents[j]] @ local[..., j, :, :])
-        G = torch.stack(chain, dim=-3)  # [...,24,4,4] joint frames
+        G = local.clone()  # [...,24,4,4] joint frames, one batched product per depth of the tree (8 for SMPL's)
+        for joints, parents in _depth_levels(self.parents):
+            G[..., joints, :, :] = G[..., parents, :, :] @ local[..., joints, :, :]
         # Remove the rest joint location so G maps rest-pose points, not joint-local points.
         offset = (G[..., :3, :3] @ J[..., None]).squeeze(-1)
         A = G.clone()
@@ -136,6 +153,7 @@ class BodyModel(nn.Module):
 
     def canonical_transforms(self, pose: torch.Tensor, transl: torch.Tensor | None = None) -> torch.Tensor:
         """Bone transforms [...,24,4,4] mapping canonical-pose points to the posed frame."""
-        A_pose = self.forward(pose, transl)
-        A_can = self.forward(self.canonical_pose().to(pose))
-        return A_pose @ torch.linalg.inv(A_can)
+        key = (pose.device, pose.dtype)
+        if key not in self._canonical_inverse:  # a constant: computed once per device and dtype
+            self._canonical_inverse[key] = torch.linalg.inv(self.forward(self.canonical_pose().to(pose)))
+        return self.forward(pose, transl) @ self._canonical_inverse[key]

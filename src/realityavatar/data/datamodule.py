@@ -15,6 +15,7 @@ import pytorch_lightning as pl
 import torch
 from torch.utils.data import DataLoader, Dataset
 
+from realityavatar.body.base import check_pose
 from realityavatar.data.poses import PoseTable
 from realityavatar.data.records import (
     SPLITS,
@@ -23,6 +24,7 @@ from realityavatar.data.records import (
     SceneFormatError,
     image_size,
     load_record,
+    mask_distance,
 )
 from realityavatar.geometry import camera_centres
 
@@ -78,6 +80,7 @@ class AvatarDataset(Dataset):
         out = {
             "image": image,
             "mask": mask,
+            "mask_dist": mask_distance(mask_b),  # [H,W] pixels to the mask (losses.SilhouetteChamfer), on the host
             "K": torch.as_tensor(K, dtype=torch.float32),
             "viewmat": torch.as_tensor(rec.viewmat, dtype=torch.float32),
             "width": int(image.shape[1]),
@@ -212,7 +215,11 @@ class HardFrameSampler(EpochShuffle):
 
 
 class SamplerFeedback(pl.Callback):
-    """Passes each training step's per-image losses to the training sampler (`observe`)."""
+    """Passes each training step's per-image losses to the training sampler (`observe`). Losses on a GPU are kept
+    there and passed every `log_every_n_steps` steps (with the logging): each read of the device waits for it."""
+
+    def __init__(self) -> None:
+        self._pending: list[tuple[torch.Tensor, torch.Tensor]] = []
 
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
         sampler = getattr(trainer.datamodule, "train_sampler", None) if trainer.datamodule is not None else None
@@ -220,7 +227,12 @@ class SamplerFeedback(pl.Callback):
             return
         if not isinstance(outputs, dict) or "image_loss" not in outputs or "index" not in batch:
             return
-        sampler.observe(batch["index"].detach().cpu(), outputs["image_loss"].detach().cpu())
+        loss = outputs["image_loss"].detach()
+        self._pending.append((batch["index"].detach(), loss))
+        if loss.device.type == "cpu" or trainer.global_step % max(int(trainer.log_every_n_steps), 1) == 0:
+            for index, value in self._pending:
+                sampler.observe(index.cpu(), value.cpu())
+            self._pending.clear()
 
 
 class ResumableLoader(DataLoader):
@@ -488,6 +500,12 @@ class AvatarDataModule(pl.LightningDataModule):
         if split not in self.datasets:
             raise KeyError(f"{self.scene.source}: split {split!r} has no images (have {sorted(self.datasets)})")
         return self.datasets[split]
+
+    def on_before_batch_transfer(self, batch: dict, dataloader_idx: int) -> dict:
+        """Before a batch moves to the device: its poses are checked on the host (NaN/inf names the field), and image
+        sizes become host ints (read from a GPU tensor, each would make the training step wait for the device)."""
+        check_pose(batch["poses"], batch["transl"], f"{batch['split'][0]} batch (frames {batch['frame'].tolist()})")
+        return {**batch, "width": batch["width"].tolist(), "height": batch["height"].tolist()}
 
     def train_dataloader(self) -> DataLoader:
         return self._loader(self._require("train"), shuffle=True)

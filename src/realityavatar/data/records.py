@@ -198,3 +198,14 @@ def load_record(rec: ImageRecord, scale: float = 1.0, undistort: bool = True):
     img_u8 = t_img[0].permute(1, 2, 0).round().clamp(0, 255).to(torch.uint8).numpy()
     mask_b = (t_mask[0, 0] > 0.5).numpy()
     return img_u8, mask_b, K
+
+
+def mask_distance(mask: torch.Tensor | np.ndarray) -> torch.Tensor:
+    """mask [H,W] (1 inside) -> Euclidean distance in pixels of every pixel to the nearest mask pixel [H,W] float32
+    (zeros for an empty mask). On the host, once per image: the dataset puts it in each sample as `mask_dist`."""
+    from scipy.ndimage import distance_transform_edt
+
+    m = np.asarray(mask) > 0.5
+    if not m.any():
+        return torch.zeros(m.shape, dtype=torch.float32)
+    return torch.from_numpy(distance_transform_edt(~m)).float()

@@ -129,22 +129,24 @@ class Avatar(nn.Module):
         rgb = self.color(self.all_features(), F.normalize(d_c, dim=-1), posed["f_mt"], frame_idx)
         return self.shading.apply(rgb, posed["x_e"], posed["rot"])  # x world-fixed light (shading=none: as it is)
 
-    def splat(self, posed: dict, b: int, rgb: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor, W: int, H: int):
+    def splat(self, posed: dict, b: int, rgb: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor, W: int, H: int,
+              check_finite: bool = True):
         """Rasterize sample b of `posed` with colours rgb [N,3] from one camera (viewmat [1,4,4], K [1,3,3]) over
-        the run's background."""
+        the run's background. check_finite: name a non-finite input (reads the device)."""
         bg = torch.tensor(self.background, dtype=rgb.dtype, device=rgb.device)[None]
         return rasterize(posed["means"][b], posed["quats"][b], posed["scales"][b], posed["opacities"], rgb,
-                         viewmat, K, W, H, backgrounds=bg, **self.render_cfg)
+                         viewmat, K, W, H, backgrounds=bg, check_finite=check_finite, **self.render_cfg)
 
-    def render_batch(self, batch: dict, deform: bool = True):
-        """Render every sample of a batch from its own camera. Returns rgb [B,H,W,3], alpha [B,H,W,1], metas, posed."""
+    def render_batch(self, batch: dict, deform: bool = True, check_finite: bool = True):
+        """Render every sample of a batch from its own camera. Returns rgb [B,H,W,3], alpha [B,H,W,1], metas, posed.
+        check_finite: the rasterizer's input checks (they read the device)."""
         viewmats, Ks = batch["viewmat"], batch["K"]
-        W, H = int(batch["width"][0]), int(batch["height"][0])
+        W, H = int(batch["width"][0]), int(batch["height"][0])  # host ints in training (on_before_batch_transfer)
         posed = self.deform(batch["poses"], batch["transl"], deform=deform)
         rgb = self.shade(posed, viewmats, batch["frame_idx"])  # [B,N,3]
         images, alphas, metas = [], [], []
         for b in range(posed["B"]):
-            img, alpha, meta = self.splat(posed, b, rgb[b], viewmats[b : b + 1], Ks[b : b + 1], W, H)
+            img, alpha, meta = self.splat(posed, b, rgb[b], viewmats[b : b + 1], Ks[b : b + 1], W, H, check_finite)
             images.append(img[0])
             alphas.append(alpha[0])
             metas.append(meta)

@@ -49,8 +49,6 @@ class MLPColor(nn.Module):
 
     def latent(self, frame_idx: torch.Tensor) -> torch.Tensor:
         """frame_idx [B] (long, -1 = not a training frame) -> Z_r [B,frame_latent_dim]."""
-        if frame_idx.numel() and int(frame_idx.max()) >= self.num_frames:
-            raise IndexError(f"color: frame_idx {int(frame_idx.max())} out of range for {self.num_frames} training frames")
         table = self.frame_latents.weight  # [num_frames,D]
         z = table[frame_idx.clamp_min(0)]
         return torch.where((frame_idx < 0)[:, None], table.mean(0, keepdim=True).expand_as(z), z)

@@ -19,8 +19,8 @@ class MotionTrendDecoder(nn.Module):
 
     x_c is normalised to [-1,1]^3 with the box (bbox_min, bbox_max) (persistent buffers) and encoded with NeRF's
     frequency encoding. With auto_bounds the box is fitted (10% padding) by `fit_bounds`: AvatarModule calls it with
-    the initial canonical Gaussians when it is built; a decoder used on its own fits it to the x_c of its first forward
-    call. The encoding sees x_c detached: the canonical means get their gradient from x_e = x_c + Δx. num_layers hidden
+    the initial canonical Gaussians when it is built (a decoder used on its own: call it before the first forward).
+    The encoding sees x_c detached: the canonical means get their gradient from x_e = x_c + Δx. num_layers hidden
     layers of hidden_dim (`activation`: SiLU, or ReLU as in 3DGS-Avatar's non-rigid MLP: the config's default, +0.17 /
     +0.30 dB NV / NP over 3 seeds at the same cost per step, docs/configs.md), then one output layer whose Δx/Δs/Δq
     rows start at zero so the deformation starts at the identity.
@@ -79,8 +79,6 @@ class MotionTrendDecoder(nn.Module):
 
     def forward(self, x_c: torch.Tensor, h_t: torch.Tensor) -> dict[str, torch.Tensor]:
         """x_c [N,3], h_t [B,H] -> dict(dx [B,N,3], ds [B,N,3], dq [B,N,4] unit wxyz, f_mt [B,N,F])."""
-        if not bool(self.bounds_fitted):
-            self.fit_bounds(x_c.detach())  # auto_bounds: the first x_c seen (the initial canonical Gaussians)
         u = (x_c - self.bbox_min) / (self.bbox_max - self.bbox_min)
         enc = self.encoding((u * 2 - 1).detach())  # [N,E]
         eh = self.in_h(h_t)  # [B,H]

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from realityavatar.body.base import check_pose
+from realityavatar.body.base import check_pose_shape
 from realityavatar.geometry import axis_angle_to_matrix
 
 # SMPL joint indices of the paper's four parts.
@@ -31,7 +31,7 @@ def pose_features(poses: torch.Tensor, transl: torch.Tensor) -> dict[str, torch.
     frame (R_root(t)^T R_root(t_k), R_root(t)^T (transl_k - transl_t)): invariant to absolute heading and
     position, but carrying spin and velocity history (a spin that stops abruptly changes only these).
     """
-    check_pose(poses, transl, "pose_features")
+    check_pose_shape(poses, transl, "pose_features")
     if poses.ndim != 4 or transl.shape != poses.shape[:2] + (3,):
         raise ValueError(
             f"pose_features: expected poses [B,T,24,3] and transl [B,T,3], got {tuple(poses.shape)}, {tuple(transl.shape)}"

@@ -85,6 +85,8 @@ class AvatarModule(Avatar, pl.LightningModule):
         self.lpips = lpips
         self.lpips_status = "computed" if lpips is not None else "not computed"  # build_module sets the reason
         self.test_records: list[dict] = []
+        self.log_every = 1  # the trainer's log_every_n_steps (on_fit_start)
+        self._finite: torch.Tensor | None = None  # every loss since the last log step was finite (on the device)
         # Facts needed to rebuild the run from its checkpoint (num_train_frames, scene_extent, ...).
         self.run_info: dict = {"scene_extent": self.scene_extent}
         # Frozen networks from weight files (LPIPS, the perceptual loss's VGG19) stay out of the checkpoint, so a run
@@ -101,6 +103,7 @@ class AvatarModule(Avatar, pl.LightningModule):
     # ------------------------------------------------------------------ training
     def setup(self, stage: str) -> None:
         check_single_process(self.trainer)
+        self.log_every = max(int(self.trainer.log_every_n_steps), 1)
 
     def on_after_batch_transfer(self, batch: Any, dataloader_idx: int) -> Any:
         """Floating-point batch tensors take the module's dtype (float32 images feed a float64 module)."""
@@ -127,21 +130,28 @@ class AvatarModule(Avatar, pl.LightningModule):
         record = self.sheet.canonicalise(self.body, self.skinning)  # sheet.profile=rest, once per run
         self.run_info["sheet"] = {**self.sheet.layout, **({"canonicalise": record} if record else {})}
 
-    def training_loss(self, batch: dict, step: int) -> tuple[torch.Tensor, dict, TrainingRender, list[dict]]:
-        """Render the batch and sum the loss terms: (total, {term: detached value}, the render, rasterizer metas)."""
+    def training_loss(self, batch: dict, step: int, check: bool = True
+                      ) -> tuple[torch.Tensor, dict, TrainingRender, list[dict]]:
+        """Render the batch and sum the loss terms: (total, {term: detached value}, the render, rasterizer metas).
+        check: the rasterizer's input checks, which read the device (training runs them on log steps only)."""
         self.set_progress(step)
-        rgb, alpha, metas, posed = self.render_batch(batch, deform=self.schedule.deform_on(step))
+        rgb, alpha, metas, posed = self.render_batch(batch, deform=self.schedule.deform_on(step), check_finite=check)
         out = TrainingRender(rgb, alpha, batch, posed, self, step)
         total, terms = total_loss(self.losses, out)
-        if not torch.isfinite(total):
-            raise FloatingPointError(f"training loss became non-finite at step {step}: {terms}")
         return total, terms, out, metas
 
     def training_step(self, batch, batch_idx):
+        """One step without a read of the device, except every `log_every` steps (logging, the finiteness checks):
+        on a GPU each read waits for every kernel queued before it."""
         step = self.global_step
+        log_now = step % self.log_every == 0
         opt = self.optimizers()
         opt.zero_grad(set_to_none=True)
-        total, terms, out, metas = self.training_loss(batch, step)
+        total, terms, out, metas = self.training_loss(batch, step, check=log_now)
+        # A non-finite loss is remembered on the device and raised at the next log step (the run's last checkpoint
+        # is older than that step: ModelCheckpoint saves after this hook of a log step).
+        finite = torch.isfinite(total.detach())
+        self._finite = finite if self._finite is None else self._finite & finite
         self.manual_backward(total)
         if self.grad_clip:
             nets = [p for n in CLIPPED for p in self.components()[n].parameters() if p.grad is not None]
@@ -154,14 +164,19 @@ class AvatarModule(Avatar, pl.LightningModule):
         self.run_info["render"] = {"backend": metas[0]["backend"], "device": str(rgb.device), "dtype": str(rgb.dtype)}
         raw = getattr(opt, "optimizer", opt)  # the torch optimizer under Lightning's wrapper
         stats = self.density.step_post_backward(self.gaussians, raw, metas, step, (W, H))
-        bs = rgb.shape[0]
-        self.log("train/loss", total.detach(), prog_bar=True, batch_size=bs)
-        for k, v in terms.items():
-            self.log(f"train/{k}", float(v), batch_size=bs)
-        self.log("train/num_gaussians", float(self.gaussians.num_points), prog_bar=True, batch_size=bs)
-        for k, v in stats.items():
-            if isinstance(v, (int, float)):
-                self.log(f"train/density_{k}", float(v), batch_size=bs)
+        if log_now:
+            if not bool(self._finite):
+                raise FloatingPointError(f"training loss became non-finite between steps {step - self.log_every + 1} "
+                                         f"and {step}: {terms}")
+            self._finite = None
+            bs = rgb.shape[0]
+            self.log("train/loss", total.detach(), prog_bar=True, batch_size=bs)
+            for k, v in terms.items():
+                self.log(f"train/{k}", v, batch_size=bs)
+            self.log("train/num_gaussians", float(self.gaussians.num_points), prog_bar=True, batch_size=bs)
+            for k, v in stats.items():
+                if isinstance(v, (int, float)):
+                    self.log(f"train/density_{k}", float(v), batch_size=bs)
         # Per-image error for samplers that draw hard frames more often (data.sampler=hard_frames, SamplerFeedback):
         # colour L1 plus the mask disagreement, both means over the image.
         with torch.no_grad():

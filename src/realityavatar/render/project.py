@@ -88,7 +88,9 @@ def project_gaussians(
         visible = visible & (~((rx <= radius_clip) & (ry <= radius_clip)))
         mx, my = mean2d.detach().unbind(-1)
         visible = visible & (~((mx + rx <= 0) | (mx - rx >= width) | (my + ry <= 0) | (my - ry >= height)))
-        visible = visible & (torch.isfinite(rx) & torch.isfinite(ry))
+        # A non-finite Gaussian is culled here, so the rasterizer never sees one (training checks its inputs only on
+        # log steps; a non-finite loss stops the run there).
+        visible = visible & torch.isfinite(rx) & torch.isfinite(ry) & torch.isfinite(mx) & torch.isfinite(my)
         radii_xy = torch.stack([rx, ry], dim=-1).nan_to_num(0.0).to(torch.int32) * visible[..., None]
 
     vis_f = visible[..., None]
