@@ -33,6 +33,19 @@ for _i, _j, _k, _s in ((0, 0, 0, 1), (1, 1, 0, -1), (2, 2, 0, -1), (3, 3, 0, -1)
                        (0, 2, 2, 1), (1, 3, 2, -1), (2, 0, 2, 1), (3, 1, 2, 1),
                        (0, 3, 3, 1), (1, 2, 3, 1), (2, 1, 3, -1), (3, 0, 3, 1)):
     _HAMILTON[_i, _j, _k] = _s
+# matrix_to_quat's candidates: row i of [4,4] is 4 q_i q (wxyz), linear in R's entries m_rc (at 3r+c) plus a constant.
+_CANDIDATES_0 = torch.zeros(16)
+_CANDIDATES = torch.zeros(9, 16)
+_DIAG = ((1, 1, 1), (1, -1, -1), (-1, 1, -1), (-1, -1, 1))  # 4 q_i^2 = 1 + s0 m00 + s1 m11 + s2 m22
+_OFF = {(0, 1): ((2, 1, 1), (1, 2, -1)), (0, 2): ((0, 2, 1), (2, 0, -1)), (0, 3): ((1, 0, 1), (0, 1, -1)),
+        (1, 2): ((1, 0, 1), (0, 1, 1)), (1, 3): ((0, 2, 1), (2, 0, 1)), (2, 3): ((2, 1, 1), (1, 2, 1))}
+for _i, _signs in enumerate(_DIAG):
+    _CANDIDATES_0[5 * _i] = 1.0
+    for _d, _s in enumerate(_signs):
+        _CANDIDATES[4 * _d, 5 * _i] = _s
+for (_i, _j), _terms in _OFF.items():
+    for _r, _c, _s in _terms:
+        _CANDIDATES[3 * _r + _c, 4 * _i + _j] = _CANDIDATES[3 * _r + _c, 4 * _j + _i] = _s
 _QUAT_TO_MATRIX = torch.zeros(16, 9)  # q q^T flattened (q_i q_j at 4i+j) -> R - I flattened, for unit wxyz q
 for _row, _terms in enumerate((
         ((2, 2, -2), (3, 3, -2)), ((1, 2, 2), (0, 3, -2)), ((1, 3, 2), (0, 2, 2)),
@@ -44,27 +57,17 @@ for _row, _terms in enumerate((
 
 def matrix_to_quat(R: torch.Tensor) -> torch.Tensor:
     """R: [...,3,3] -> unit quaternion [...,4] (wxyz, w >= 0)."""
-    # One unbind instead of 30 element selects: each select's backward wrote a full-size zero tensor and added it.
-    m00, m01, m02, m10, m11, m12, m20, m21, m22 = R.reshape(R.shape[:-2] + (9,)).unbind(-1)
-    t = torch.stack([1 + m00 + m11 + m22, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22], -1)
-    q_abs = torch.sqrt(t.clamp_min(1e-12))  # [...,4], 2*|component|
-    qa0, qa1, qa2, qa3 = q_abs.unbind(-1)
-    a, b, c = m21 - m12, m02 - m20, m10 - m01
-    d, e, f = m10 + m01, m02 + m20, m21 + m12
-    cands = torch.stack(
-        [
-            torch.stack([qa0 * qa0, a, b, c], -1),
-            torch.stack([a, qa1 * qa1, d, e], -1),
-            torch.stack([b, d, qa2 * qa2, f], -1),
-            torch.stack([c, e, f, qa3 * qa3], -1),
-        ],
-        -2,
-    )  # [...,4,4]
+    # pytorch3d's four candidates (each quaternion scaled by 4|q_i|, computed from R as one linear map: _CANDIDATES),
+    # the best-conditioned one (largest |q_i|) kept.
+    flat = R.reshape(-1, 9)
+    cands = torch.addmm(_CANDIDATES_0.to(R), flat, _CANDIDATES.to(R)).reshape(R.shape[:-2] + (4, 4))  # [...,4,4]
+    t = torch.diagonal(cands, dim1=-2, dim2=-1)  # [...,4] = 4 q_i^2
+    q_abs = torch.sqrt(t.clamp_min(1e-12))  # 2|q_i|
     cands = cands / (2 * q_abs[..., None].clamp_min(0.1))
     idx = q_abs.argmax(-1)
     q = torch.gather(cands, -2, idx[..., None, None].expand(idx.shape + (1, 4))).squeeze(-2)
     q = F.normalize(q, dim=-1)
-    return torch.where(q[..., :1] < 0, -q, q)
+    return q * torch.where(q[..., :1] < 0, -1.0, 1.0)
 
 
 def quat_to_matrix(q: torch.Tensor) -> torch.Tensor:

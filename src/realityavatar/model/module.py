@@ -87,6 +87,7 @@ class AvatarModule(Avatar, pl.LightningModule):
         self.test_records: list[dict] = []
         self.log_every = 1  # the trainer's log_every_n_steps (on_fit_start)
         self._finite: torch.Tensor | None = None  # every loss since the last log step was finite (on the device)
+        self._finite_since = 0  # the first step of that flag
         # Facts needed to rebuild the run from its checkpoint (num_train_frames, scene_extent, ...).
         self.run_info: dict = {"scene_extent": self.scene_extent}
         # Frozen networks from weight files (LPIPS, the perceptual loss's VGG19) stay out of the checkpoint, so a run
@@ -145,13 +146,20 @@ class AvatarModule(Avatar, pl.LightningModule):
         on a GPU each read waits for every kernel queued before it."""
         step = self.global_step
         log_now = step % self.log_every == 0
+        if log_now:
+            self._check_finite(step - 1, "")  # the steps since the last log step, before this one renders
         opt = self.optimizers()
         opt.zero_grad(set_to_none=True)
         total, terms, out, metas = self.training_loss(batch, step, check=log_now)
-        # A non-finite loss is remembered on the device and raised at the next log step (the run's last checkpoint
-        # is older than that step: ModelCheckpoint saves after this hook of a log step).
+        # A non-finite loss is remembered on the device and raised on the next log step (ModelCheckpoint saves
+        # after this hook: no checkpoint is written between a non-finite step and the error).
         finite = torch.isfinite(total.detach())
-        self._finite = finite if self._finite is None else self._finite & finite
+        if self._finite is None:
+            self._finite, self._finite_since = finite, step
+        else:
+            self._finite = self._finite & finite
+        if log_now:
+            self._check_finite(step, f": {terms}")  # before this step's update
         self.manual_backward(total)
         if self.grad_clip:
             nets = [p for n in CLIPPED for p in self.components()[n].parameters() if p.grad is not None]
@@ -165,10 +173,6 @@ class AvatarModule(Avatar, pl.LightningModule):
         raw = getattr(opt, "optimizer", opt)  # the torch optimizer under Lightning's wrapper
         stats = self.density.step_post_backward(self.gaussians, raw, metas, step, (W, H))
         if log_now:
-            if not bool(self._finite):
-                raise FloatingPointError(f"training loss became non-finite between steps {step - self.log_every + 1} "
-                                         f"and {step}: {terms}")
-            self._finite = None
             bs = rgb.shape[0]
             self.log("train/loss", total.detach(), prog_bar=True, batch_size=bs)
             for k, v in terms.items():
@@ -182,6 +186,13 @@ class AvatarModule(Avatar, pl.LightningModule):
         with torch.no_grad():
             image_loss = (rgb - batch["image"]).abs().mean((1, 2, 3)) + (alpha - batch["mask"]).abs().mean((1, 2, 3))
         return {"loss": total.detach(), "image_loss": image_loss}
+
+    def _check_finite(self, last_step: int, detail: str) -> None:
+        """Raise if a loss since the flag was last cleared was non-finite (one read of the device), then clear it."""
+        if self._finite is not None and not bool(self._finite):
+            raise FloatingPointError(f"training loss became non-finite between steps {self._finite_since} and "
+                                     f"{last_step}{detail}")
+        self._finite = None
 
     def components(self) -> dict[str, nn.Module]:
         """The trained components, in optimizer-group order."""

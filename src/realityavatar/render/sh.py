@@ -17,37 +17,49 @@ _C3 = (
 )
 
 
+def _monomial(*axes: int) -> int:
+    """Column of the monomial prod(d[axes]) in sh_basis's features [1, d (3), d⊗d (9), d⊗d⊗d (27)]."""
+    return (0, 1, 4, 13)[len(axes)] + sum(a * 3 ** (len(axes) - 1 - i) for i, a in enumerate(axes))
+
+
+_X, _Y, _Z = 0, 1, 2
+# Each basis function as a polynomial in (x, y, z): {band: [(coefficient, axes of the monomial)]}, gsplat's signs.
+_POLYNOMIALS = {
+    0: [(_C0, ())],
+    1: [(-_C1, (_Y,))], 2: [(_C1, (_Z,))], 3: [(-_C1, (_X,))],
+    4: [(_C2[0], (_X, _Y))], 5: [(_C2[1], (_Y, _Z))],
+    6: [(2 * _C2[2], (_Z, _Z)), (-_C2[2], (_X, _X)), (-_C2[2], (_Y, _Y))],
+    7: [(_C2[3], (_X, _Z))], 8: [(_C2[4], (_X, _X)), (-_C2[4], (_Y, _Y))],
+    9: [(3 * _C3[0], (_X, _X, _Y)), (-_C3[0], (_Y, _Y, _Y))],
+    10: [(_C3[1], (_X, _Y, _Z))],
+    11: [(4 * _C3[2], (_Y, _Z, _Z)), (-_C3[2], (_X, _X, _Y)), (-_C3[2], (_Y, _Y, _Y))],
+    12: [(2 * _C3[3], (_Z, _Z, _Z)), (-3 * _C3[3], (_X, _X, _Z)), (-3 * _C3[3], (_Y, _Y, _Z))],
+    13: [(4 * _C3[4], (_X, _Z, _Z)), (-_C3[4], (_X, _X, _X)), (-_C3[4], (_X, _Y, _Y))],
+    14: [(_C3[5], (_X, _X, _Z)), (-_C3[5], (_Y, _Y, _Z))],
+    15: [(_C3[6], (_X, _X, _X)), (-3 * _C3[6], (_X, _Y, _Y))],
+}
+_BASIS = torch.zeros(40, 16, dtype=torch.float64)  # monomial features -> basis: one matmul instead of ~40 ops
+for _band, _terms in _POLYNOMIALS.items():
+    for _c, _axes in _terms:
+        _BASIS[_monomial(*_axes), _band] += _c
+
+
 def sh_basis(degree: int, dirs: torch.Tensor) -> torch.Tensor:
-    """dirs: [...,3] (normalised here) -> basis [...,(degree+1)^2], gsplat's ordering and signs."""
+    """dirs: [...,3] (normalised here) -> basis [...,(degree+1)^2], gsplat's ordering and signs.
+
+    The monomials of the normalised direction up to `degree` times one constant matrix (_POLYNOMIALS): a handful of
+    tensor operations (each a kernel launch on a GPU, and a node of the backward) for any degree."""
     if not 0 <= int(degree) <= 3:
         raise ValueError(f"realityavatar/render/sh.py: `degree` must be in 0..3, got {degree}")
     if dirs.shape[-1] != 3:
         raise ValueError(f"realityavatar/render/sh.py: `dirs` expected [...,3], got {tuple(dirs.shape)}")
     d = torch.nn.functional.normalize(dirs, dim=-1)
-    x, y, z = d.unbind(-1)
-    out = [torch.full_like(x, _C0)]
-    if degree >= 1:
-        out += [-_C1 * y, _C1 * z, -_C1 * x]
-    if degree >= 2:
-        xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
-        out += [
-            _C2[0] * xy,
-            _C2[1] * yz,
-            _C2[2] * (2.0 * zz - xx - yy),
-            _C2[3] * xz,
-            _C2[4] * (xx - yy),
-        ]
-    if degree >= 3:
-        out += [
-            _C3[0] * y * (3.0 * xx - yy),
-            _C3[1] * xy * z,
-            _C3[2] * y * (4.0 * zz - xx - yy),
-            _C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy),
-            _C3[4] * x * (4.0 * zz - xx - yy),
-            _C3[5] * z * (xx - yy),
-            _C3[6] * x * (xx - 3.0 * yy),
-        ]
-    return torch.stack(out, dim=-1)
+    feats = [d.new_ones(d.shape[:-1] + (1,)), d]
+    for _ in range(2, int(degree) + 1):  # d⊗d, d⊗d⊗d
+        feats.append((feats[-1][..., :, None] * d[..., None, :]).flatten(-2))
+    m = torch.cat(feats[: int(degree) + 1], -1)
+    k = (int(degree) + 1) ** 2
+    return m @ _BASIS[: m.shape[-1], :k].to(m)
 
 
 def eval_sh(degree: int, coeffs: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
