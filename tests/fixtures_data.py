@@ -148,3 +148,43 @@ def pixel_in_mask(mask: np.ndarray, uv) -> bool:
     """Whether pixel position uv [2] falls on a set pixel of mask [H,W]."""
     x, y = int(np.floor(uv[0])), int(np.floor(uv[1]))
     return 0 <= x < mask.shape[1] and 0 <= y < mask.shape[0] and bool(mask[y, x])
+
+
+# Pose-file layouts of data/motion.py: how many joints `poses` holds, and the frame-rate field's name.
+MOTION_LAYOUTS = ("amass_smplh", "amass_smplx", "amass_smplx_split", "smplx_split", "smpl", "smpl_24x3")
+
+
+def write_motion(path: Path, layout: str = "amass_smplh", fps: float = 120.0, seconds: float = 1.0,
+                 omega: float = 3.0, offset=(4.0, -3.0, 0.95)) -> dict:
+    """A known motion in a Z-up world, written in one of MOTION_LAYOUTS: the root turns about +z at `omega` rad/s
+    (upright: the body's y axis along world z), the left knee bends and straightens once, hand/face joints are set
+    (they must not reach SMPL's joints 22-23), and the translation is `offset` plus a slow walk along x.
+    Returns the body pose [F,24,3] (SMPL order, hands 22-23 zero) and trans [F,3] the file holds, float64."""
+    from realityavatar.geometry import axis_angle_to_matrix, matrix_to_axis_angle
+
+    F = round(seconds * fps) + 1
+    t = np.arange(F) / fps
+    spin = torch.zeros(F, 3, dtype=torch.float64)
+    spin[:, 2] = torch.as_tensor(omega * t)
+    stand = axis_angle_to_matrix(torch.tensor([math.pi / 2, 0.0, 0.0], dtype=torch.float64))  # body y -> world z
+    body = np.zeros((F, 24, 3))
+    body[:, 0] = matrix_to_axis_angle(axis_angle_to_matrix(spin) @ stand).numpy()
+    body[:, 4, 0] = 0.5 * (1 - np.cos(2 * np.pi * t))  # left knee
+    trans = np.asarray(offset, float) + np.outer(t, [0.2, 0.0, 0.0])
+    full = np.full((F, 55, 3), 0.3)  # SMPL-X: 22 body, jaw, 2 eyes, 2 x 15 finger joints
+    full[:, :22] = body[:, :22]
+    smplh = np.concatenate([full[:, :22], full[:, 25:]], 1)  # SMPL-H: 22 body, 2 x 15 finger joints
+    beta = {"betas": np.zeros(16), "gender": np.array("female")}
+    fields = {
+        "amass_smplh": {"poses": smplh.reshape(F, 156), "trans": trans, "mocap_framerate": np.array(fps), **beta},
+        "amass_smplx": {"poses": full.reshape(F, 165), "trans": trans, "mocap_frame_rate": np.array(fps), **beta},
+        "amass_smplx_split": {"root_orient": full[:, 0], "pose_body": full[:, 1:22].reshape(F, 63),
+                              "pose_hand": full[:, 25:].reshape(F, 90), "trans": trans, "mocap_frame_rate": fps, **beta},
+        "smplx_split": {"global_orient": full[:, 0], "body_pose": full[:, 1:22].reshape(F, 63),
+                        "jaw_pose": full[:, 22], "left_hand_pose": full[:, 25:40].reshape(F, 45), "transl": trans,
+                        "fps": fps},
+        "smpl": {"poses": body.reshape(F, 72), "transl": trans, "fps": fps},
+        "smpl_24x3": {"poses": body, "transl": trans, "fps": fps},
+    }[layout]
+    np.savez(path, **fields)
+    return {"pose": body, "trans": trans, "fps": fps, "omega": omega}

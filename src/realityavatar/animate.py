@@ -1,9 +1,11 @@
-"""Animate a trained avatar: a pose sequence (a dataset split or an .npz file) rendered from chosen cameras to MP4.
+"""Animate a trained avatar: a pose sequence (a dataset split or a motion file) rendered to a video that plays in real
+time, from dataset cameras and/or a camera orbiting the moving avatar.
 
-Command: `realityavatar-animate run_dir=<run> [poses=<file.npz> | split=novel_pose] [views=0,2] [out=<file.mp4>] [fps=25]
-[device=cuda|cpu]` (default: the GPU when the run trained on one and CUDA is present)
-The .npz holds `poses` [F,24,3] or [F,72] (SMPL axis-angle, pose[0] = global orientation) and `transl` [F,3];
-optionally `Rh`, `Th` [F,3] in the EasyMocap convention (converted with the body model's pelvis).
+Command: `realityavatar-animate run_dir=<run> [poses=<file.npz> [fps=<the file's frame rate>] [up=auto|z|y]
+[place=subject|keep] | split=novel_pose] [cameras=dataset|orbit|orbit,dataset] [views=0,2] [orbit.turns=1]
+[orbit.height=<m>] [orbit.radius=<m>] [out=<file.mp4|.gif>] [device=cuda|cpu] [data.<key>=<value>]`
+Pose files (AMASS/SMPL-H, SMPL-X, SMPL) are read by data/motion.py: resampled to the frame rate the run was trained
+at (data.fps), turned upright and placed in the dataset's world; the video plays at that rate. See docs/animate.md.
 """
 
 from __future__ import annotations
@@ -14,47 +16,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from realityavatar.body.base import rh_th_to_smpl
+from realityavatar.data.motion import Stage, load_motion, posed_joints
 from realityavatar.data.poses import PoseTable
-
-
-def load_pose_file(path: str | Path, body) -> PoseTable:
-    """Read an animation .npz into a PoseTable; errors name the file and the field."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"pose file {path} not found")
-    with np.load(path) as z:
-        if "poses" not in z:
-            raise KeyError(f"{path}: missing field 'poses' ([F,24,3] or [F,72] axis-angle); fields present: {list(z.keys())}")
-        poses = np.asarray(z["poses"], np.float32)
-        if poses.ndim == 0 or poses.shape[0] == 0:
-            raise ValueError(f"{path}: field 'poses' has no frames (shape {poses.shape}); expected [F,24,3] or [F,72] "
-                             "with F >= 1")
-        F = poses.shape[0]
-        if poses[0].size != 72:
-            raise ValueError(f"{path}: field 'poses' must be [F,24,3] or [F,72], got {poses.shape}")
-        poses = poses.reshape(F, 24, 3)
-        if not np.isfinite(poses).all():
-            raise ValueError(f"{path}: field 'poses' has non-finite values (NaN/inf)")
-
-        def per_frame(key: str) -> np.ndarray:
-            a = np.asarray(z[key], np.float32)
-            if a.shape != (F, 3):
-                raise ValueError(f"{path}: field {key!r} must be [{F},3] (one 3-vector per frame of 'poses'), got "
-                                 f"{a.shape}")
-            if not np.isfinite(a).all():
-                raise ValueError(f"{path}: field {key!r} has non-finite values (NaN/inf)")
-            return a
-
-        transl = per_frame("transl") if "transl" in z else np.zeros((F, 3), np.float32)
-        p, t = torch.from_numpy(poses), torch.from_numpy(transl)
-        if ("Rh" in z) != ("Th" in z):
-            raise ValueError(f"{path}: fields 'Rh' and 'Th' come together (EasyMocap placement); only "
-                             f"{'Rh' if 'Rh' in z else 'Th'} is present")
-        if "Rh" in z:
-            rh, th = per_frame("Rh"), per_frame("Th")
-            p, t = rh_th_to_smpl(p, torch.from_numpy(rh), torch.from_numpy(th) + t, body.rest_joints[0])
-    return PoseTable.from_sequence(p, t)
+from realityavatar.geometry import camera_centres
 
 
 def dataset_cameras(dm, views: list[int] | None = None, split: str | None = None) -> list[dict]:
@@ -75,20 +39,50 @@ def dataset_cameras(dm, views: list[int] | None = None, split: str | None = None
     return cams
 
 
+def orbit_camera(stage: Stage, pelvis: np.ndarray, cameras: list[dict], turns: float = 1.0,
+                 height: float | None = None, radius: float | None = None) -> dict:
+    """A turntable camera around the moving avatar, one viewmat per frame [N,4,4]: `turns` turns over the N frames
+    of pelvis [N,3], from the first camera's side, at `radius` m from the pelvis and `height` m above the ground,
+    looking at the pelvis (at the training subject's mean pelvis height). Radius and height default to the mean of
+    the dataset `cameras` (about the training subject); K and image size are the first camera's."""
+    from realityavatar.data.synthetic.cameras import look_at
+
+    up = stage.up
+    rel = camera_centres(torch.stack([c["viewmat"] for c in cameras]).double()).numpy() - stage.centre  # [C,3]
+    flat = rel - (rel @ up)[:, None] * up
+    height = float(np.mean(rel @ up) + stage.centre @ up - stage.ground) if height is None else height
+    radius = float(np.linalg.norm(flat, axis=1).mean()) if radius is None else radius
+    if not (np.isfinite([turns, height, radius]).all() and radius > 0):
+        raise ValueError(f"orbit: expected finite turns and height and radius > 0, got turns={turns}, "
+                         f"height={height}, radius={radius}")
+    a = flat[0] / np.linalg.norm(flat[0])
+    b = np.cross(up, a)
+    look = stage.centre @ up - stage.ground  # the training subject's mean pelvis height above the ground
+    viewmats = []
+    for k, p in enumerate(pelvis):
+        ground = p - (p @ up - stage.ground) * up
+        angle = 2 * np.pi * turns * k / len(pelvis)
+        eye = ground + radius * (np.cos(angle) * a + np.sin(angle) * b) + height * up
+        viewmats.append(look_at(eye, ground + look * up, up))
+    cam = cameras[0]
+    return {"K": cam["K"], "viewmat": torch.as_tensor(np.stack(viewmats), dtype=torch.float32),
+            "width": cam["width"], "height": cam["height"], "view": "orbit"}
+
+
 @torch.no_grad()
 def render_sequence(module, table: PoseTable, cameras: list[dict], window_len: int, window_step: int,
                     frames_to_render=None) -> list[np.ndarray]:
     """Render frames of `table` (all, or `frames_to_render`; windows look back into the whole table) from each
-    camera; returns uint8 frames [H, W*len(cameras), 3]."""
+    camera (a fixed viewmat [4,4], or one per rendered frame [N,4,4]); returns uint8 frames [H, W*len(cameras), 3]."""
     dev, dt = module.device, module.dtype  # poses and cameras come as float32 CPU tensors
     frames = []
-    for f in (table.frames if frames_to_render is None else frames_to_render):
+    for i, f in enumerate(table.frames if frames_to_render is None else frames_to_render):
         poses, transl = table.window(int(f), window_len, window_step)
         idx = torch.full((1,), -1, dtype=torch.long, device=dev)
         posed = module.deform(poses[None].to(dev, dt), transl[None].to(dev, dt))
         tiles = []
         for cam in cameras:
-            vm = cam["viewmat"][None].to(dev, dt)
+            vm = (cam["viewmat"] if cam["viewmat"].ndim == 2 else cam["viewmat"][i])[None].to(dev, dt)
             rgb = module.shade(posed, vm, idx)[0]
             img, _, _ = module.splat(posed, 0, rgb, vm, cam["K"][None].to(dev, dt), cam["width"], cam["height"])
             tiles.append((img[0].clamp(0, 1).cpu().numpy() * 255).round().astype(np.uint8))
@@ -111,6 +105,16 @@ def check_video_writer(path: str | Path) -> None:
                            "to an ffmpeg binary, or write a .gif (out=...gif)") from None
 
 
+def number(args: dict, key: str, default: float | None = None) -> float | None:
+    """args[key] as a float (default when absent); a non-number names the key."""
+    if key not in args:
+        return default
+    try:
+        return float(args[key])
+    except ValueError:
+        raise ValueError(f"{key}={args[key]!r}: expected a number") from None
+
+
 def main(argv: list[str] | None = None) -> int:
     import imageio.v2 as imageio
 
@@ -120,28 +124,46 @@ def main(argv: list[str] | None = None) -> int:
     if "run_dir" not in args:
         print(__doc__, file=sys.stderr)
         return 2
-    cfg, module, _info = load_run(args["run_dir"])
-    module.to(run_device(cfg, args.get("device")))
-    dm = build_data(cfg, module.body)
+    if "fps" in args and "poses" not in args:
+        raise ValueError(f"fps={args['fps']}: the frame rate of a pose file (poses=...); videos play at the rate the "
+                         "run was trained at")
+    kinds = args.get("cameras", "dataset").split(",")
+    if not kinds or set(kinds) - {"dataset", "orbit"}:
+        raise ValueError(f"cameras={args['cameras']}: expected dataset, orbit, or both (cameras=orbit,dataset)")
     split = args.get("split", "novel_pose")
-    if "poses" in args:
-        table, frame_ids = load_pose_file(args["poses"], module.body), None
-        name = Path(args["poses"]).stem
-    else:
-        table, frame_ids = dm.scene.poses, dm.pose_sequence(split)[0].tolist()
-        name = split
-    views = [int(v) for v in args["views"].split(",")] if "views" in args else None
-    cameras = dataset_cameras(dm, views, split if split in dm.datasets else None)
+    name = Path(args["poses"]).stem if "poses" in args else split
     out = Path(args.get("out", Path(args["run_dir"]) / "animations" / f"{name}.mp4"))
     check_video_writer(out)
+    overrides = [f"{k}={v}" for k, v in args.items() if "." in k and not k.startswith("orbit.")]
+    cfg, module, _info = load_run(args["run_dir"], overrides)
+    dm = build_data(cfg, module.body)
+    stage = Stage.of(dm, module.body)
+    if "poses" in args:
+        table = load_motion(args["poses"], module.body, stage, number(args, "fps"), args.get("up", "auto"),
+                            args.get("place", "subject"))
+        frame_ids = [int(f) for f in table.frames]
+    else:
+        table, frame_ids = dm.scene.poses, dm.pose_sequence(split)[0].tolist()
+    views = [int(v) for v in args["views"].split(",")] if "views" in args else None
+    dataset = dataset_cameras(dm, views, split if split in dm.datasets else None)
+    cameras = []
+    for kind in kinds:
+        if kind == "dataset":
+            cameras += dataset
+            continue
+        rows = torch.as_tensor(np.searchsorted(table.frames, frame_ids))
+        pelvis = posed_joints(module.body, table.poses[rows], table.transl[rows])[:, 0]
+        cameras.append(orbit_camera(stage, pelvis, dataset, number(args, "orbit.turns", 1.0),
+                                    number(args, "orbit.height"), number(args, "orbit.radius")))
+    module.to(run_device(cfg, args.get("device")))
     frames = render_sequence(module, table, cameras, dm.window_len, dm.window_step, frame_ids)
     out.parent.mkdir(parents=True, exist_ok=True)
-    fps = float(args.get("fps", 25))
     if out.suffix.lower() == ".gif":
-        imageio.mimwrite(out, frames, duration=1000.0 / fps, loop=0)
+        imageio.mimwrite(out, frames, duration=1000.0 / stage.fps, loop=0)
     else:
-        imageio.mimwrite(out, frames, fps=fps, macro_block_size=1)
-    print(f"wrote {out} ({len(frames)} frames, {len(cameras)} cameras)")
+        imageio.mimwrite(out, frames, fps=stage.fps, macro_block_size=1)
+    print(f"wrote {out} ({len(frames)} frames at {stage.fps:g} fps = {len(frames) / stage.fps:.2f} s, "
+          f"{len(cameras)} cameras)")
     return 0
 
 

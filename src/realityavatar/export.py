@@ -1,8 +1,9 @@
 """Export canonical or posed Gaussians to PLY in the standard 3DGS layout that common splat viewers read.
 
 Commands: `realityavatar-export run_dir=<run> [frame=<global frame id>] [out=<file.ply>]` (no frame: canonical space);
-`realityavatar-export run_dir=<run> frames=a:b[:step] [poses=<file.npz>] [out=<folder>]`: one PLY per frame a <= f < b
-(global frame ids of the run's sequence, or rows of the pose file), the same posed Gaussians `realityavatar-view` shows.
+`realityavatar-export run_dir=<run> frames=a:b[:step] [poses=<file.npz> [fps=] [up=] [place=]] [out=<folder>]`: one
+PLY per frame a <= f < b (global frame ids of the run's sequence, or frames of the pose file resampled to the run's
+frame rate, as realityavatar-animate reads it), the same posed Gaussians `realityavatar-view` shows.
 """
 
 from __future__ import annotations
@@ -135,8 +136,8 @@ def export_gaussians(module, out: Path, poses: torch.Tensor | None = None, trans
     return write_ply(out, **gaussians_for_export(module, poses, transl))
 
 
-USAGE = ("usage: realityavatar-export run_dir=<run> [frame=<global frame id> | frames=a:b[:step] [poses=<file.npz>]] "
-         "[out=<file.ply or folder>]")
+USAGE = ("usage: realityavatar-export run_dir=<run> [frame=<global frame id> | frames=a:b[:step] [poses=<file.npz> "
+         "[fps=<its frame rate>] [up=auto|z|y] [place=subject|keep]]] [out=<file.ply or folder>]")
 
 
 def parse_frames(text: str) -> slice:
@@ -175,8 +176,9 @@ def export_frames(module, table, frame_ids: list[int], window_len: int, window_s
 
 
 def main(argv: list[str] | None = None) -> int:
-    from realityavatar.animate import load_pose_file
+    from realityavatar.animate import number
     from realityavatar.build import build_data, load_run
+    from realityavatar.data.motion import Stage, load_motion
 
     args = dict(a.split("=", 1) for a in (sys.argv[1:] if argv is None else argv) if "=" in a)
     if "run_dir" not in args:
@@ -186,12 +188,14 @@ def main(argv: list[str] | None = None) -> int:
         print(f"realityavatar-export: give frame=<id> or frames=a:b, not both\n{USAGE}", file=sys.stderr)
         return 2
     frames = parse_frames(args["frames"]) if "frames" in args else None  # checked before the run is loaded
-    cfg, module, _info = load_run(args["run_dir"])
+    cfg, module, _info = load_run(args["run_dir"], [f"{k}={v}" for k, v in args.items() if "." in k])
     frame = args.get("frame")
     if frames is not None:
         dm = build_data(cfg, module.body)
         if "poses" in args:
-            table, source = load_pose_file(args["poses"], module.body), f"pose file {args['poses']}"
+            table = load_motion(args["poses"], module.body, Stage.of(dm, module.body), number(args, "fps"),
+                                args.get("up", "auto"), args.get("place", "subject"))
+            source = f"pose file {args['poses']}"
             default = Path(args["run_dir"]) / "export" / Path(args["poses"]).stem
         else:
             table, source, default = dm.scene.poses, f"run {args['run_dir']}", Path(args["run_dir"]) / "export" / "frames"

@@ -1,7 +1,8 @@
 """Interactive browser viewer of a trained run: viser draws the Gaussians in the browser; the server poses them per frame
 (module.deform + the baked colour of `export.gaussians_for_export`) and streams means, covariances, colours, opacities.
 
-Command: `realityavatar-view run_dir=<run> [port=8080] [host=127.0.0.1] [split=train] [poses=<file.npz>] [fps=10]`
+Command: `realityavatar-view run_dir=<run> [port=8080] [host=127.0.0.1] [split=train] [poses=<file.npz>] [fps=10]
+[poses_fps=<the file's frame rate>] [up=auto|z|y] [place=subject|keep]`
 (viewer settings: conf/view.yaml; any other key=value overrides the run's config, as for realityavatar-evaluate).
 """
 
@@ -113,7 +114,8 @@ class AvatarViewer:
     """
 
     def __init__(self, module, dm, run_dir: str | Path, host: str = "127.0.0.1", port: int = 8080, split: str = "train",
-                 poses: str | None = None, fps: float = 10.0, frustum_scale: float = 0.1):
+                 poses: str | None = None, fps: float = 10.0, frustum_scale: float = 0.1,
+                 poses_fps: float | None = None, up: str = "auto", place: str = "subject"):
         import viser
 
         from realityavatar.animate import dataset_cameras
@@ -121,6 +123,7 @@ class AvatarViewer:
 
         self._gaussians_for = gaussians_for_export
         self.module, self.dm, self.run_dir = module, dm, Path(run_dir)
+        self.motion = {"fps": poses_fps, "up": up, "place": place}  # how pose files are read (data/motion.py)
         if fps <= 0:
             raise ViewerError(f"fps={fps}: expected a playback rate > 0 frames per second")
         self.sequences: dict[str, Timeline] = {}
@@ -166,10 +169,10 @@ class AvatarViewer:
 
     # ------------------------------------------------------------------ data
     def _read_pose_file(self, path: str | Path) -> Timeline:
-        from realityavatar.animate import load_pose_file
+        from realityavatar.data.motion import Stage, load_motion
 
         try:
-            table = load_pose_file(path, self.module.body)
+            table = load_motion(path, self.module.body, Stage.of(self.dm, self.module.body), **self.motion)
         except (OSError, KeyError, ValueError) as e:
             raise ViewerError(str(e).strip("'\"")) from None
         name = f"file: {Path(path).name}"
@@ -267,7 +270,7 @@ class AvatarViewer:
             self.pose_path = gui.add_text("path (.npz)", initial_value="")
             self.pose_load = gui.add_button("Load pose file")
             self.pose_upload = gui.add_upload_button("Upload .npz", mime_type="*/*")
-            self.pose_status = gui.add_markdown("poses [F,24,3] or [F,72], transl [F,3] (or Rh/Th)")
+            self.pose_status = gui.add_markdown("AMASS/SMPL-H, SMPL-X or SMPL .npz with a frame rate")
         with gui.add_folder("Cameras"):
             self.show_frusta = gui.add_checkbox("show frusta", initial_value=True)
             self.camera_choice = gui.add_dropdown("camera", tuple(f"view {c['view']} ({c['split']})" for c in self.cameras))
@@ -395,7 +398,8 @@ def load_viewer(vcfg, overrides: list[str] | None = None) -> AvatarViewer:
     module.to(run_device(cfg, vcfg.get("device")))
     dm = build_data(cfg, module.body)
     return AvatarViewer(module, dm, run_dir, host=str(vcfg.host), port=int(vcfg.port), split=str(vcfg.split),
-                        poses=vcfg.get("poses"), fps=float(vcfg.fps), frustum_scale=float(vcfg.frustum_scale))
+                        poses=vcfg.get("poses"), fps=float(vcfg.fps), frustum_scale=float(vcfg.frustum_scale),
+                        poses_fps=vcfg.get("poses_fps"), up=str(vcfg.up), place=str(vcfg.place))
 
 
 def compose_view(args: list[str]) -> tuple[object, list[str]]:

@@ -167,7 +167,7 @@ def test_browser_draws_the_avatar_and_the_timeline_moves_it(browser_exe, view_ru
             # a pose file uploaded from the page becomes the timeline
             poses = np.zeros((4, 24, 3), np.float32)
             poses[:, 16, 2] = np.linspace(0, 1.2, 4)
-            np.savez(tmp_path / "wave.npz", poses=poses, transl=np.zeros((4, 3), np.float32))
+            np.savez(tmp_path / "wave.npz", poses=poses, transl=np.zeros((4, 3), np.float32), fps=10.0)
             page.locator("input[type=file]").first.set_input_files(str(tmp_path / "wave.npz"))
             wait_for(lambda: viewer.current.name == "file: wave.npz" and viewer.timings[-1]["frame"] == 0, 20,
                      "the uploaded pose file to become the timeline")
@@ -191,7 +191,7 @@ def test_controls_pose_file_cameras_canonical_and_metrics(view_run, tmp_path):
         # a pose file becomes a timeline; a wrong one is reported in the panel and changes nothing
         poses = np.zeros((6, 24, 3), np.float32)
         poses[:, 16, 2] = np.linspace(0, 1.2, 6)
-        np.savez(tmp_path / "wave.npz", poses=poses, transl=np.zeros((6, 3), np.float32))
+        np.savez(tmp_path / "wave.npz", poses=poses, transl=np.zeros((6, 3), np.float32), fps=10.0)
         assert viewer.load_pose_file(tmp_path / "wave.npz")
         assert viewer.current.name == "file: wave.npz" and viewer.frame_slider.max == 5
         viewer.frame_slider.value = 5
@@ -268,3 +268,24 @@ def test_export_frames_writes_what_the_viewer_streams(view_run, tmp_path):
         parse_frames("2-5")
     with pytest.raises(ValueError, match=r"frames=5000:5010 selects no frame of run"):
         export_main([f"run_dir={view_run}", "frames=5000:5010", f"out={tmp_path / 'none'}"])
+
+
+def test_export_and_viewer_read_a_motion_file_alike(view_run, tmp_path):
+    """An AMASS file (120 fps, Z-up) through export's and the viewer's pose loader (the one reader, data/motion.py,
+    with the same up= and place=): the same resampled frames, the same posed Gaussians."""
+    from realityavatar.export import main as export_main
+    from realityavatar.export import read_ply
+    from tests.fixtures_data import write_motion
+
+    write_motion(tmp_path / "walk.npz", "amass_smplh", fps=120.0, seconds=1.0)
+    assert export_main([f"run_dir={view_run}", "frames=8:12", f"poses={tmp_path / 'walk.npz'}", "up=z",
+                        f"out={tmp_path / 'seq'}"]) == 0
+    assert [f.name for f in sorted((tmp_path / "seq").glob("*.ply"))] == [f"posed_{f:06d}.ply" for f in (8, 9, 10)]
+    viewer = start(view_run, "up=z")
+    try:
+        assert viewer.load_pose_file(tmp_path / "walk.npz")
+        assert viewer.current.frames == list(range(11))  # 1 s at the run's 10 fps
+        np.testing.assert_allclose(read_ply(tmp_path / "seq" / "posed_000009.ply")["means"],
+                                   viewer.posed(viewer.current, 9)["means"], atol=1e-6)
+    finally:
+        viewer.close()

@@ -251,6 +251,7 @@ class AvatarDataModule(pl.LightningDataModule):
 
     reader "i3d": <root>/<sequence>-train|-novelview|-novelpose (I3D-Human, synthetic scenes, converted captures);
     train_views / test_views filter the cameras of the -train and of the -novelview/-novelpose folders.
+    fps: the capture's frame rate, the time base of the pose window (window_step frames) and of animations.
     reader "zju": <root>/<sequence> in the ARAH layout; splits come from train_views/test_views and the frame ranges
     zju_train_frames / zju_novel_view_frames / zju_novel_pose_frames ([start, end, step], end 0 = to the last frame).
     body: the BodyModel in use; its rest pelvis converts Rh/Th placement to the SMPL convention (`pelvis` overrides;
@@ -270,6 +271,7 @@ class AvatarDataModule(pl.LightningDataModule):
         test_views: Sequence[int] | None = None,
         window_len: int = 6,
         window_step: int = 1,
+        fps: float | None = None,
         batch_size: int = 1,
         num_workers: int = 0,
         background: Sequence[float] = (0.0, 0.0, 0.0),
@@ -308,6 +310,9 @@ class AvatarDataModule(pl.LightningDataModule):
         self.train_views = None if train_views is None else [int(v) for v in train_views]
         self.test_views = None if test_views is None else [int(v) for v in test_views]
         self.window_len, self.window_step = int(window_len), int(window_step)
+        if fps is not None and not float(fps) > 0:
+            raise ValueError(f"data.fps: expected the capture's frame rate > 0 (frames per second), got {fps!r}")
+        self.fps = None if fps is None else float(fps)  # None: a config from before data.fps (data/motion.py)
         self.batch_size, self.num_workers = int(batch_size), int(num_workers)
         self.background = [float(c) for c in background]
         if len(self.background) != 3:
