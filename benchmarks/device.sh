@@ -1,8 +1,10 @@
 #!/bin/bash
 # One GPU check in one call (repo root, a GPU machine with CUDA torch and nvcc, no network): install the project's
 # missing packages from wheels in .whl/, build gsplat's kernels, run the `gpu` tests, profile the training step and
-# write everything under $OUT. STEP_SIZES="7000 128;35000 512" picks the profiled sizes; BASELINE=<folder with another commit's src/ conf/ benchmarks/> profiles that commit's
-# step too, in the same call (compare timings only within one call).
+# write everything under $OUT. STEP_SIZES="7000 128;35000 512" picks the profiled sizes; BASELINE=<folder with another
+# commit's src/ conf/ benchmarks/> profiles that commit's step too, in the same call (compare timings only within one
+# call). SWEEP=1 trains the sweep preset (1,000 steps at 128 px; the baseline's too with BASELINE) and reports its
+# seconds per step; PAPER_SCALE=<seconds> trains `+experiment=paper_scale` for at most that long and evaluates it.
 #
 # Wheels (Python 3.12, x86_64; on a machine with pip and network):
 #   python3 -m pip download --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
@@ -12,7 +14,8 @@
 #     gsplat==1.5.3
 #   python3 -m pip wheel --no-deps -w .whl antlr4-python3-runtime==4.9.3
 set -u
-OUT=${OUT:-outputs/device}; mkdir -p "$OUT"
+OUT=$(realpath -m "${OUT:-outputs/device}"); mkdir -p "$OUT"
+export REALITYAVATAR_SCENES=${REALITYAVATAR_SCENES:-/tmp/scenes}  # one scene build for this commit and the baseline
 T0=$(date +%s); el() { echo "[$(( $(date +%s) - T0 ))s] $*"; }
 python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 3
 export PYTHONPATH=/tmp/site:$PWD/src PYTHONUNBUFFERED=1 TORCH_EXTENSIONS_DIR=/tmp/torch_ext MAX_JOBS=16 \
@@ -35,5 +38,33 @@ if [ -n "${BASELINE:-}" ]; then
   el "baseline step profile ($BASELINE, 7000 / 128)"
   (cd "$BASELINE" && PYTHONPATH=/tmp/site:$PWD/src timeout 120 python3 $STEP --n 7000 --size 128 \
     --out "$OUT/step_cuda_baseline_7000_128.json" 2>&1 | grep -E "^  gsplat" | cut -c1-400)
+fi
+run_train() {  # <tree> <run dir> <timeout s> <overrides...>: train (+ evaluate) and print the step rate and metrics
+  local tree=$1 dir=$2 limit=$3; shift 3
+  (cd "$tree" && PYTHONPATH=/tmp/site:$PWD/src timeout "$limit" python3 -m realityavatar.train "$@" \
+    hydra.run.dir="$dir" > "$dir.log" 2>&1); echo "train rc $? ($dir)"
+  python3 - "$dir" <<'PY'
+import json, sys
+from pathlib import Path
+m = Path(sys.argv[1]) / "metrics.json"
+if not m.is_file():
+    sys.exit(f"no metrics.json in {sys.argv[1]}")
+r = json.loads(m.read_text())
+keys = ("train_seconds", "iterations", "num_gaussians", "peak_gpu_memory_gb", "render_fps", "backend")
+print(json.dumps({k: r.get(k) for k in keys}))
+print(json.dumps({f"{s}/{k}": r.get(f"test/{s}/{k}") for s in ("novel_view", "novel_pose") for k in ("psnr", "ssim", "iou")}))
+PY
+}
+if [ -n "${SWEEP:-}" ]; then
+  el "sweep preset, 1000 steps (this commit)"
+  run_train "$PWD" "$OUT/sweep" 300 preset=sweep trainer=gpu render.backend=gsplat
+  if [ -n "${BASELINE:-}" ]; then
+    el "sweep preset, 1000 steps ($BASELINE)"
+    run_train "$BASELINE" "$OUT/sweep_baseline" 300 preset=sweep trainer=gpu render.backend=gsplat
+  fi
+fi
+if [ -n "${PAPER_SCALE:-}" ]; then
+  el "+experiment=paper_scale (at most ${PAPER_SCALE}s)"
+  run_train "$PWD" "$OUT/paper_scale" "$PAPER_SCALE" +experiment=paper_scale
 fi
 el done

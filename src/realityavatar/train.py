@@ -111,6 +111,8 @@ def _run(cfg: DictConfig, choices: dict | None, out_dir: Path, resume_from: Path
         "scene": getattr(dm, "sequence", None),
         "train_seconds": state.train_seconds(),
         "iterations": int(trainer.global_step),
+        # training's peak of allocated GPU memory (null on a CPU)
+        "peak_gpu_memory_gb": torch.cuda.max_memory_allocated() / 2**30 if torch.cuda.is_initialized() else None,
         "num_gaussians": int(module.gaussians.num_points),  # the free Gaussians (density control's)
         "num_sheet_gaussians": int(module.sheet.num_points),  # sheet=skirt's (none: 0)
         "sheet": module.run_info.get("sheet", {}),
