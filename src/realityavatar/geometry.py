@@ -9,6 +9,29 @@ import torch
 import torch.nn.functional as F
 
 
+class _Unit(torch.autograd.Function):
+    """x / max(|x|, eps) along the last axis, with its backward written out: (g - y (g.y)) / |x|, five tensor
+    operations where autograd's chain through F.normalize (norm, clamp, division) takes about ten."""
+
+    @staticmethod
+    def forward(ctx, x: torch.Tensor, eps: float) -> torch.Tensor:
+        n = torch.linalg.vector_norm(x, dim=-1, keepdim=True).clamp_min(eps)
+        y = x / n
+        ctx.save_for_backward(y, n)
+        return y
+
+    @staticmethod
+    def backward(ctx, g: torch.Tensor):
+        y, n = ctx.saved_tensors
+        return (g - y * (g * y).sum(-1, keepdim=True)) / n, None
+
+
+def unit(x: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
+    """F.normalize(x, dim=-1) (the same values) with a shorter backward: for the per-Gaussian directions and
+    quaternions of the training step."""
+    return _Unit.apply(x, eps)
+
+
 def axis_angle_to_matrix(aa: torch.Tensor) -> torch.Tensor:
     """aa: [...,3] -> [...,3,3] (Rodrigues, stable and differentiable near zero)."""
     theta2 = (aa * aa).sum(-1, keepdim=True)  # [...,1]
@@ -66,13 +89,13 @@ def matrix_to_quat(R: torch.Tensor) -> torch.Tensor:
     cands = cands / (2 * q_abs[..., None].clamp_min(0.1))
     idx = q_abs.argmax(-1)
     q = torch.gather(cands, -2, idx[..., None, None].expand(idx.shape + (1, 4))).squeeze(-2)
-    q = F.normalize(q, dim=-1)
+    q = unit(q)
     return q * torch.where(q[..., :1] < 0, -1.0, 1.0)
 
 
 def quat_to_matrix(q: torch.Tensor) -> torch.Tensor:
     """q: [...,4] wxyz (normalised here) -> [...,3,3]."""
-    q = F.normalize(q, dim=-1)
+    q = unit(q)
     outer = (q[..., :, None] * q[..., None, :]).flatten(-2)  # [...,16]
     eye = torch.eye(3, dtype=q.dtype, device=q.device).flatten()
     return torch.addmm(eye, outer.reshape(-1, 16), _QUAT_TO_MATRIX.to(q)).reshape(q.shape[:-1] + (3, 3))

@@ -18,11 +18,10 @@ garment surface's vertices and its Gaussians follow their cells; NoSheet: no poi
 from __future__ import annotations
 
 import torch
-import torch.nn.functional as F
 from torch import nn
 
 from realityavatar.body.base import BodyModel
-from realityavatar.geometry import camera_centres
+from realityavatar.geometry import camera_centres, unit
 from realityavatar.model.deform import apply_deformation
 from realityavatar.model.skinning import lbs_gaussians
 from realityavatar.render import rasterize
@@ -123,10 +122,10 @@ class Avatar(nn.Module):
     def shade(self, posed: dict, viewmats: torch.Tensor, frame_idx: torch.Tensor) -> torch.Tensor:
         """View-dependent colour of every Gaussian for each sample's camera: [B,N,3]."""
         cam_centre = camera_centres(viewmats)  # [B,3]
-        d = F.normalize(posed["means"] - cam_centre[:, None, :], dim=-1)  # [B,N,3] posed view dir
+        d = unit(posed["means"] - cam_centre[:, None, :])  # [B,N,3] posed view dir
         # Canonicalise: undo each Gaussian's blended skinning rotation.
         d_c = (posed["rot"].transpose(-1, -2) @ d[..., None]).squeeze(-1)
-        rgb = self.color(self.all_features(), F.normalize(d_c, dim=-1), posed["f_mt"], frame_idx)
+        rgb = self.color(self.all_features(), unit(d_c), posed["f_mt"], frame_idx)
         return self.shading.apply(rgb, posed["x_e"], posed["rot"])  # x world-fixed light (shading=none: as it is)
 
     def splat(self, posed: dict, b: int, rgb: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor, W: int, H: int,

@@ -8,7 +8,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from realityavatar.geometry import quat_multiply
+from realityavatar.geometry import quat_multiply, unit
 from realityavatar.model.encodings import FrequencyEncoding
 
 _ACTIVATIONS = {"silu": nn.SiLU, "relu": nn.ReLU}
@@ -86,7 +86,7 @@ class MotionTrendDecoder(nn.Module):
         # The MLP runs on [B*N,H] rows (2-D matmuls: no copies in the backward of 3-D inputs).
         z = torch.cat([F.linear(enc, self.in_x.weight, self.in_x.bias + e) for e in eh])  # [B*N,H]
         o = self.out(self.hidden(self.in_act(z))).reshape(eh.shape[0], enc.shape[0], -1)  # [B,N,10+F]
-        dq = F.normalize(o[..., 6:10] + o.new_tensor([1.0, 0.0, 0.0, 0.0]), dim=-1)
+        dq = unit(o[..., 6:10] + o.new_tensor([1.0, 0.0, 0.0, 0.0]))
         return {"dx": o[..., :3], "ds": o[..., 3:6], "dq": dq, "f_mt": o[..., 10:]}
 
     def param_groups(self) -> dict[str, list[nn.Parameter]]:
@@ -102,5 +102,5 @@ def apply_deformation(
     """
     x_e = means + out["dx"]
     log_s_e = log_scales + out["ds"]
-    q_e = F.normalize(quat_multiply(out["dq"], F.normalize(quats, dim=-1).expand_as(out["dq"])), dim=-1)
+    q_e = unit(quat_multiply(out["dq"], unit(quats).expand_as(out["dq"])))
     return x_e, log_s_e, q_e

@@ -9,7 +9,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from realityavatar.geometry import matrix_to_quat, quat_multiply, sample_surface
+from realityavatar.geometry import matrix_to_quat, quat_multiply, sample_surface, unit
 from realityavatar.kernels import polar_rotation
 from realityavatar.model.encodings import FrequencyEncoding
 
@@ -290,5 +290,5 @@ def lbs_gaussians(
     tT = torch.bmm(weights, t)  # [B,N,3]
     means_o = (RT @ means[..., None]).squeeze(-1) + tT
     rot = polar_rotation(RT)  # closed-form gradient (realityavatar.kernels), no graph through the iterations
-    quats_o = quat_multiply(matrix_to_quat(rot), F.normalize(quats, dim=-1))
+    quats_o = quat_multiply(matrix_to_quat(rot), unit(quats))
     return means_o, quats_o, rot

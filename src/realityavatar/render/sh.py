@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import torch
 
+from realityavatar.geometry import unit
+
 _C0 = 0.28209479177387814
 _C1 = 0.4886025119029199
 _C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
@@ -53,7 +55,7 @@ def sh_basis(degree: int, dirs: torch.Tensor) -> torch.Tensor:
         raise ValueError(f"realityavatar/render/sh.py: `degree` must be in 0..3, got {degree}")
     if dirs.shape[-1] != 3:
         raise ValueError(f"realityavatar/render/sh.py: `dirs` expected [...,3], got {tuple(dirs.shape)}")
-    d = torch.nn.functional.normalize(dirs, dim=-1)
+    d = unit(dirs)
     feats = [d.new_ones(d.shape[:-1] + (1,)), d]
     for _ in range(2, int(degree) + 1):  # d⊗d, d⊗d⊗d
         feats.append((feats[-1][..., :, None] * d[..., None, :]).flatten(-2))
