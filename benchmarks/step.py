@@ -222,7 +222,7 @@ def run_config(n: int, size: int, backend: str, repeats: int, overrides: list[st
     cfg, module, opt, sched = build(n, backend, overrides)
     make_batch = make_batch_fn(module, size, int(cfg.data.window_len))
     step = max(int(cfg.schedule.deform_start), 1) + 1  # motion-trend decoder on; not a densification step
-    step += step % LOG_EVERY == 0  # nor a log step (module.training_step reads the device on those only)
+    step += (step + 1) % LOG_EVERY == 0  # nor a log step (module.training_step reads the device on those only)
     _stub_trainer_hooks(module, opt, sched, step)
     step_parts(module, opt, sched, make_batch, step)  # warm-up (and numba's cache load)
     parts = {k: [] for k in PARTS}

@@ -106,7 +106,9 @@ def _forward(group: str, obj, cfg, body) -> None:
         mask = torch.zeros(1, 32, 32, 1)
         mask[0, 8:24, 12:20] = 1
         means = (x + torch.tensor([1.0, 0.0, 0.0])).requires_grad_()  # partly outside the mask
-        batch = {"viewmat": E[None], "K": K[None], "mask": mask}
+        from realityavatar.data.records import mask_distance
+
+        batch = {"viewmat": E[None], "K": K[None], "mask": mask, "mask_dist": mask_distance(mask[0, ..., 0])[None]}
         total, terms = obj(TrainingRender(torch.zeros(1, 32, 32, 3), torch.zeros(1, 32, 32, 1), batch,
                                           {"means": means[None]}, None, 0))
         assert torch.isfinite(total) and total.dim() == 0 and {"sil_outside", "sil_coverage"} <= set(terms)

@@ -145,7 +145,7 @@ class AvatarModule(Avatar, pl.LightningModule):
         """One step without a read of the device, except every `log_every` steps (logging, the finiteness checks):
         on a GPU each read waits for every kernel queued before it."""
         step = self.global_step
-        log_now = step % self.log_every == 0
+        log_now = (step + 1) % self.log_every == 0  # the steps Lightning writes the logs of
         if log_now:
             self._check_finite(step - 1, "")  # the steps since the last log step, before this one renders
         opt = self.optimizers()
