@@ -8,6 +8,8 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
+from realityavatar.runtime import constant
+
 
 class _Unit(torch.autograd.Function):
     """x / max(|x|, eps) along the last axis, with its backward written out: (g - y (g.y)) / |x|, five tensor
@@ -40,7 +42,7 @@ def axis_angle_to_matrix(aa: torch.Tensor) -> torch.Tensor:
     # Taylor series near zero keeps gradients finite.
     a = torch.where(small, 1 - theta2 / 6, torch.sin(theta) / theta)
     b = torch.where(small, 0.5 - theta2 / 24, (1 - torch.cos(theta)) / theta2.clamp_min(1e-24))
-    k = (aa @ _SKEW.to(aa)).unflatten(-1, (3, 3))  # [...,3,3] cross-product matrix [aa]x
+    k = (aa @ constant(_SKEW, aa)).unflatten(-1, (3, 3))  # [...,3,3] cross-product matrix [aa]x
     eye = torch.eye(3, dtype=aa.dtype, device=aa.device).expand_as(k)
     return eye + a[..., None] * k + b[..., None] * (k @ k)
 
@@ -56,6 +58,7 @@ for _i, _j, _k, _s in ((0, 0, 0, 1), (1, 1, 0, -1), (2, 2, 0, -1), (3, 3, 0, -1)
                        (0, 2, 2, 1), (1, 3, 2, -1), (2, 0, 2, 1), (3, 1, 2, 1),
                        (0, 3, 3, 1), (1, 2, 3, 1), (2, 1, 3, -1), (3, 0, 3, 1)):
     _HAMILTON[_i, _j, _k] = _s
+_HAMILTON_FLAT = _HAMILTON.flatten(1)  # [4,16]
 # matrix_to_quat's candidates: row i of [4,4] is 4 q_i q (wxyz), linear in R's entries m_rc (at 3r+c) plus a constant.
 _CANDIDATES_0 = torch.zeros(16)
 _CANDIDATES = torch.zeros(9, 16)
@@ -83,7 +86,7 @@ def matrix_to_quat(R: torch.Tensor) -> torch.Tensor:
     # pytorch3d's four candidates (each quaternion scaled by 4|q_i|, computed from R as one linear map: _CANDIDATES),
     # the best-conditioned one (largest |q_i|) kept.
     flat = R.reshape(-1, 9)
-    cands = torch.addmm(_CANDIDATES_0.to(R), flat, _CANDIDATES.to(R)).reshape(R.shape[:-2] + (4, 4))  # [...,4,4]
+    cands = torch.addmm(constant(_CANDIDATES_0, R), flat, constant(_CANDIDATES, R)).reshape(R.shape[:-2] + (4, 4))  # [...,4,4]
     t = torch.diagonal(cands, dim1=-2, dim2=-1)  # [...,4] = 4 q_i^2
     q_abs = torch.sqrt(t.clamp_min(1e-12))  # 2|q_i|
     cands = cands / (2 * q_abs[..., None].clamp_min(0.1))
@@ -98,12 +101,12 @@ def quat_to_matrix(q: torch.Tensor) -> torch.Tensor:
     q = unit(q)
     outer = (q[..., :, None] * q[..., None, :]).flatten(-2)  # [...,16]
     eye = torch.eye(3, dtype=q.dtype, device=q.device).flatten()
-    return torch.addmm(eye, outer.reshape(-1, 16), _QUAT_TO_MATRIX.to(q)).reshape(q.shape[:-1] + (3, 3))
+    return torch.addmm(eye, outer.reshape(-1, 16), constant(_QUAT_TO_MATRIX, q)).reshape(q.shape[:-1] + (3, 3))
 
 
 def quat_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """Hamilton product a*b of wxyz quaternions [...,4] (rotation b first, then a)."""
-    left = (a @ _HAMILTON.to(a).flatten(1)).unflatten(-1, (4, 4))  # [...,4,4]: (a*b)_k = sum_j left[j,k] b_j
+    left = (a @ constant(_HAMILTON_FLAT, a)).unflatten(-1, (4, 4))  # [...,4,4]: (a*b)_k = sum_j left[j,k] b_j
     return (left * b[..., :, None]).sum(-2)
 
 

@@ -252,7 +252,7 @@ class SilhouetteChamfer(nn.Module):
         score = torch.where(need, torch.rand(need.shape, device=need.device), -1.0)
         top, idx = score.topk(min(self.max_pixels, need.numel()))
         pix = torch.stack([idx % W, torch.div(idx, W, rounding_mode="floor")], -1).to(uv.dtype)  # [P,2] (x,y)
-        behind = uv.new_tensor(1e9) * (1 - front)[:, None]  # never the nearest while a centre in front exists
+        behind = (1e9 * (1 - front))[:, None]  # never the nearest while a centre in front exists
         nearest = nearest_index(pix, uv.detach() + behind)  # [P]
         weight = (top >= 0).to(uv.dtype) * front[nearest]
         err = (((uv[nearest] - pix) / H) ** 2).sum(-1)

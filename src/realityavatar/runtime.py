@@ -82,3 +82,15 @@ class OpCount(TorchDispatchMode):
     @property
     def reads(self) -> int:
         return self.ops["_local_scalar_dense"] + sum(self.ops[k] for k in DATA_DEPENDENT)
+
+
+_CONSTANTS: dict[tuple, torch.Tensor] = {}
+
+
+def constant(t: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+    """A module-level constant tensor `t` in `like`'s device and dtype, copied there once: a `t.to(like)` in the
+    training step would copy it from the host at every step on a GPU."""
+    key = (id(t), like.device, like.dtype)
+    if key not in _CONSTANTS:
+        _CONSTANTS[key] = t.to(like)
+    return _CONSTANTS[key]

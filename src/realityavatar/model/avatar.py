@@ -57,6 +57,7 @@ class Avatar(nn.Module):
         self.sheet = sheet  # sheet=skirt: Gaussians bound to a deformable garment surface, after the free ones
         self.render_cfg = dict(render)
         self.background = list(self.render_cfg.pop("background", [0.0, 0.0, 0.0]))
+        self.register_buffer("background_rgb", torch.tensor(self.background, dtype=torch.float32), persistent=False)
         # The decoder's normalisation box follows the initial canonical Gaussians (not those of its first forward at
         # deform_start, which have moved and been densified); a loaded checkpoint replaces it with the trained box.
         if not bool(deformer.bounds_fitted):
@@ -132,7 +133,7 @@ class Avatar(nn.Module):
               check_finite: bool = True):
         """Rasterize sample b of `posed` with colours rgb [N,3] from one camera (viewmat [1,4,4], K [1,3,3]) over
         the run's background. check_finite: name a non-finite input (reads the device)."""
-        bg = torch.tensor(self.background, dtype=rgb.dtype, device=rgb.device)[None]
+        bg = self.background_rgb.to(rgb)[None]
         return rasterize(posed["means"][b], posed["quats"][b], posed["scales"][b], posed["opacities"], rgb,
                          viewmat, K, W, H, backgrounds=bg, check_finite=check_finite, **self.render_cfg)
 

@@ -10,8 +10,11 @@ from torch import nn
 
 from realityavatar.geometry import quat_multiply, unit
 from realityavatar.model.encodings import FrequencyEncoding
+from realityavatar.runtime import constant
 
 _ACTIVATIONS = {"silu": nn.SiLU, "relu": nn.ReLU}
+
+_IDENTITY_QUAT = torch.tensor([1.0, 0.0, 0.0, 0.0])
 
 
 class MotionTrendDecoder(nn.Module):
@@ -86,7 +89,7 @@ class MotionTrendDecoder(nn.Module):
         # The MLP runs on [B*N,H] rows (2-D matmuls: no copies in the backward of 3-D inputs).
         z = torch.cat([F.linear(enc, self.in_x.weight, self.in_x.bias + e) for e in eh])  # [B*N,H]
         o = self.out(self.hidden(self.in_act(z))).reshape(eh.shape[0], enc.shape[0], -1)  # [B,N,10+F]
-        dq = unit(o[..., 6:10] + o.new_tensor([1.0, 0.0, 0.0, 0.0]))
+        dq = unit(o[..., 6:10] + constant(_IDENTITY_QUAT, o))
         return {"dx": o[..., :3], "ds": o[..., 3:6], "dq": dq, "f_mt": o[..., 10:]}
 
     def param_groups(self) -> dict[str, list[nn.Parameter]]:

@@ -178,9 +178,10 @@ class AvatarModule(Avatar, pl.LightningModule):
             for k, v in terms.items():
                 self.log(f"train/{k}", v, batch_size=bs)
             self.log("train/num_gaussians", float(self.gaussians.num_points), prog_bar=True, batch_size=bs)
-            for k, v in stats.items():
-                if isinstance(v, (int, float)):
-                    self.log(f"train/density_{k}", float(v), batch_size=bs)
+        # Density control's counts are host ints: a refinement's (cloned / split / pruned / reset) is logged at its step.
+        for k, v in stats.items():
+            if isinstance(v, (int, float)) and (log_now or k != "num_points"):
+                self.log(f"train/density_{k}", float(v), batch_size=rgb.shape[0])
         # Per-image error for samplers that draw hard frames more often (data.sampler=hard_frames, SamplerFeedback):
         # colour L1 plus the mask disagreement, both means over the image.
         with torch.no_grad():

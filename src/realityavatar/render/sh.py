@@ -4,6 +4,7 @@ from __future__ import annotations
 import torch
 
 from realityavatar.geometry import unit
+from realityavatar.runtime import constant
 
 _C0 = 0.28209479177387814
 _C1 = 0.4886025119029199
@@ -44,6 +45,7 @@ _BASIS = torch.zeros(40, 16, dtype=torch.float64)  # monomial features -> basis:
 for _band, _terms in _POLYNOMIALS.items():
     for _c, _axes in _terms:
         _BASIS[_monomial(*_axes), _band] += _c
+_BASIS_BY_DEGREE = [_BASIS[: (1, 4, 13, 40)[d], : (d + 1) ** 2].contiguous() for d in range(4)]
 
 
 def sh_basis(degree: int, dirs: torch.Tensor) -> torch.Tensor:
@@ -60,8 +62,7 @@ def sh_basis(degree: int, dirs: torch.Tensor) -> torch.Tensor:
     for _ in range(2, int(degree) + 1):  # d⊗d, d⊗d⊗d
         feats.append((feats[-1][..., :, None] * d[..., None, :]).flatten(-2))
     m = torch.cat(feats[: int(degree) + 1], -1)
-    k = (int(degree) + 1) ** 2
-    return m @ _BASIS[: m.shape[-1], :k].to(m)
+    return m @ constant(_BASIS_BY_DEGREE[int(degree)], m)
 
 
 def eval_sh(degree: int, coeffs: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
