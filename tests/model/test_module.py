@@ -148,12 +148,12 @@ def test_checkpoint_with_refined_gaussians_restores_model_and_optimizer(trained_
     assert module.density.grad2d is None or module.density.grad2d.shape[0] == g.num_points
 
 
-def _stepping_module(body, monkeypatch, device: str = "cpu", log_every: int = 5):
+def _stepping_module(body, monkeypatch, device: str = "cpu", log_every: int = 5, *overrides: str):
     """The default model (silhouette term included) with the trainer's hooks stubbed, a step counter and a batch."""
     from realityavatar.build import build_module
     from tests.helpers import benchmark
 
-    cfg = compose(["gaussians.num_points=400"])
+    cfg = compose(["gaussians.num_points=400", *overrides])
     module = build_module(cfg, body, num_train_frames=4, scene_extent=1.0).to(device)
     opt_cfg = module.configure_optimizers()
     opt, sched = opt_cfg["optimizer"], opt_cfg["lr_scheduler"]["scheduler"]
@@ -203,9 +203,11 @@ def test_a_training_step_on_a_gpu_does_not_synchronise(body, monkeypatch):
     raises, except those inside gsplat's rasterizer (its tile intersection sizes its buffers from the data)."""
     import warnings
 
-    if not torch.cuda.is_available():
-        pytest.skip("needs CUDA")
-    module, make_batch = _stepping_module(body, monkeypatch, "cuda")
+    from realityavatar.render.splat import gsplat_status
+
+    if not torch.cuda.is_available() or gsplat_status() != "ok":
+        pytest.skip("needs CUDA and gsplat")
+    module, make_batch = _stepping_module(body, monkeypatch, "cuda", 5, "render.backend=gsplat")
     module._test_step = 1
     module.training_step(make_batch(), 0)  # warm-up: one-time set-up (caches, kernels) may read the device
     module._test_step = 2
