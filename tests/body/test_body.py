@@ -99,14 +99,13 @@ def test_forward_batched_shapes(body):
     assert body.posed_vertices(pose[:, 0]).shape == (2, 24256, 3)
 
 
-def test_nan_pose_gives_clear_error(body):
-    from realityavatar.body.base import check_pose
+def test_wrong_pose_shape_gives_clear_error(body):
+    """The forward path checks shapes (values are checked where poses enter: tests/data/test_poses.py)."""
+    from realityavatar.body.base import check_pose_shape
 
-    pose = torch.zeros(24, 3)
-    pose[5, 1] = float("nan")
-    with pytest.raises(ValueError, match=r"pose has non-finite values \(NaN/inf\) at indices \[\[5, 1\]\]"):
-        check_pose(pose, torch.zeros(3))
     with pytest.raises(ValueError, match=r"\[\.\.\.,24,3\]"):
-        check_pose(torch.zeros(23, 3), None)
+        check_pose_shape(torch.zeros(23, 3), None)
+    with pytest.raises(ValueError, match=r"translation of shape \[\.\.\.,3\]"):
+        check_pose_shape(torch.zeros(24, 3), torch.zeros(2))
     with pytest.raises(ValueError, match=r"\[\.\.\.,24,3\]"):
-        body(torch.zeros(23, 3))  # the forward path checks shapes (values are checked where poses enter)
+        body(torch.zeros(23, 3))

@@ -21,6 +21,18 @@ def look_at(campos, target, dtype=F64):
     return torch.from_numpy(_look_at(np.asarray(campos, float), np.asarray(target, float), up=(0.0, 0.0, 1.0))).to(dtype)
 
 
+def gradcheck_gaussians(n: int = 5, cameras: int | None = None):
+    """Five float64 leaf tensors for the rasterizer's gradchecks: means, quats, scales, opacities, colours ([n,3], or
+    [cameras,n,3] per camera)."""
+    g = torch.Generator().manual_seed(1)
+    means = (torch.randn(n, 3, generator=g, dtype=F64) * 0.25).requires_grad_()
+    quats = torch.randn(n, 4, generator=g, dtype=F64).requires_grad_()
+    scales = (torch.rand(n, 3, generator=g, dtype=F64) * 0.1 + 0.1).requires_grad_()
+    op = (torch.rand(n, generator=g, dtype=F64) * 0.5 + 0.45).requires_grad_()
+    shape = (n, 3) if cameras is None else (cameras, n, 3)
+    return means, quats, scales, op, torch.rand(*shape, generator=g, dtype=F64).requires_grad_()
+
+
 def random_scene(n, seed, cams=1, w=40, h=32, dtype=F64, opaque_frac=0.3):
     g = torch.Generator().manual_seed(seed)
     means = torch.randn(n, 3, generator=g, dtype=dtype) * 0.4

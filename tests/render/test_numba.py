@@ -10,7 +10,7 @@ from omegaconf import OmegaConf
 from realityavatar.render import rasterize
 from realityavatar.render.reference import rasterize_reference
 from tests.helpers import human_scene
-from tests.render.scenes import CONF, F64, look_at, random_scene, single_gaussian
+from tests.render.scenes import CONF, F64, gradcheck_gaussians, look_at, random_scene, single_gaussian
 
 nb = pytest.importorskip("realityavatar.render.numba_backend")
 if nb.NUMBA_ERROR is not None:
@@ -81,13 +81,7 @@ def test_numba_matches_dense_reference(mode):
 
 @pytest.mark.parametrize("mode", ["classic", "antialiased"])
 def test_numba_gradcheck(mode):
-    g = torch.Generator().manual_seed(1)
-    n = 5
-    means = (torch.randn(n, 3, generator=g, dtype=F64) * 0.25).requires_grad_()
-    quats = torch.randn(n, 4, generator=g, dtype=F64).requires_grad_()
-    scales = (torch.rand(n, 3, generator=g, dtype=F64) * 0.1 + 0.1).requires_grad_()
-    op = (torch.rand(n, generator=g, dtype=F64) * 0.5 + 0.45).requires_grad_()
-    colors = torch.rand(n, 3, generator=g, dtype=F64).requires_grad_()
+    means, quats, scales, op, colors = gradcheck_gaussians()
 
     vms = look_at((0, -3, 0), (0, 0, 0))[None]
     Ks = torch.tensor([[18.0, 0, 3.4], [0, 18.0, 2.9], [0, 0, 1]], dtype=F64)[None]

@@ -14,7 +14,7 @@ from realityavatar.geometry import camera_centres
 from realityavatar.render import eval_sh, rasterize, sh_basis
 from realityavatar.render.reference import rasterize_reference
 from tests.helpers import human_scene
-from tests.render.scenes import CONF, F64, look_at, random_scene, single_gaussian
+from tests.render.scenes import CONF, F64, gradcheck_gaussians, look_at, random_scene, single_gaussian
 
 
 def _ref_projection(means, quats, scales, op, vms, Ks, w, h, mode):
@@ -61,13 +61,7 @@ def test_alpha_clamp_is_hit():
 @pytest.mark.parametrize("backend", ["torch", "auto"])  # auto: numba on CPU where it imports
 @pytest.mark.parametrize("mode", ["classic", "antialiased"])
 def test_gradcheck(mode, backend):
-    g = torch.Generator().manual_seed(1)
-    n = 5
-    means = (torch.randn(n, 3, generator=g, dtype=F64) * 0.25).requires_grad_()
-    quats = torch.randn(n, 4, generator=g, dtype=F64).requires_grad_()
-    scales = (torch.rand(n, 3, generator=g, dtype=F64) * 0.1 + 0.1).requires_grad_()
-    op = (torch.rand(n, generator=g, dtype=F64) * 0.5 + 0.45).requires_grad_()
-    colors = torch.rand(2, n, 3, generator=g, dtype=F64).requires_grad_()  # per-camera colours
+    means, quats, scales, op, colors = gradcheck_gaussians(cameras=2)  # per-camera colours
     vms = torch.stack([look_at((0, -3, 0), (0, 0, 0)), look_at((1, -2.8, 0.3), (0, 0, 0))])
     Ks = torch.tensor([[18.0, 0, 8.3], [0, 18.0, 7.6], [0, 0, 1]], dtype=F64)[None].repeat(2, 1, 1)
 

@@ -37,17 +37,6 @@ def check_pose_shape(pose: torch.Tensor, transl: torch.Tensor | None, where: str
         raise ValueError(f"{where}: expected translation of shape [...,3], got {tuple(transl.shape)}")
 
 
-def check_pose(pose: torch.Tensor, transl: torch.Tensor | None, where: str = "pose") -> None:
-    """check_pose_shape, and a ValueError naming the field when a pose or translation is not finite. Called where
-    poses enter on the host: pose tables and files, and each training / test batch before it moves to the device."""
-    check_pose_shape(pose, transl, where)
-    if not torch.isfinite(pose).all():
-        bad = (~torch.isfinite(pose)).nonzero()[:5].tolist()
-        raise ValueError(f"{where}: pose has non-finite values (NaN/inf) at indices {bad}")
-    if transl is not None and not torch.isfinite(transl).all():
-        raise ValueError(f"{where}: translation has non-finite values (NaN/inf)")
-
-
 def canonical_pose(dtype=torch.float32, leg_angle_deg: float = 30.0, arm_angle_deg: float = 0.0,
                    device: torch.device | str | None = None) -> torch.Tensor:
     """Star/A pose [24,3]: legs rotated apart about the forward (z) axis so the inner thighs separate."""

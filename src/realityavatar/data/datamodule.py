@@ -15,7 +15,6 @@ import pytorch_lightning as pl
 import torch
 from torch.utils.data import DataLoader, Dataset
 
-from realityavatar.body.base import check_pose
 from realityavatar.data.poses import PoseTable
 from realityavatar.data.records import (
     SPLITS,
@@ -507,9 +506,9 @@ class AvatarDataModule(pl.LightningDataModule):
         return self.datasets[split]
 
     def on_before_batch_transfer(self, batch: dict, dataloader_idx: int) -> dict:
-        """Before a batch moves to the device: its poses are checked on the host (NaN/inf names the field), and image
-        sizes become host ints (read from a GPU tensor, each would make the training step wait for the device)."""
-        check_pose(batch["poses"], batch["transl"], f"{batch['split'][0]} batch (frames {batch['frame'].tolist()})")
+        """Before a batch moves to the device, image sizes become host ints (read from a GPU tensor, each would make
+        the training step wait for the device). Poses need no check here: every window comes from a PoseTable, which
+        refused non-finite poses when it was built."""
         return {**batch, "width": batch["width"].tolist(), "height": batch["height"].tolist()}
 
     def train_dataloader(self) -> DataLoader:

@@ -85,7 +85,7 @@ class AvatarModule(Avatar, pl.LightningModule):
         self.lpips = lpips
         self.lpips_status = "computed" if lpips is not None else "not computed"  # build_module sets the reason
         self.test_records: list[dict] = []
-        self.log_every = 1  # the trainer's log_every_n_steps (on_fit_start)
+        self.log_every = 1  # the trainer's log_every_n_steps (set in setup)
         self._finite: torch.Tensor | None = None  # every loss since the last log step was finite (on the device)
         self._finite_since = 0  # the first step of that flag
         # Facts needed to rebuild the run from its checkpoint (num_train_frames, scene_extent, ...).
