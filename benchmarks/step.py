@@ -24,6 +24,7 @@ measurable on a CPU.
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import math
 import os
@@ -114,19 +115,31 @@ def make_batch_fn(module, size: int, window: int, views: int = 1):
     f = 0.92 * size * 3.0 / float(ext[up_axis])
     K = torch.tensor([[f, 0, size / 2], [0, f, size / 2], [0, 0, 1.0]])
     g = torch.Generator().manual_seed(0)
+    # the images, masks and distance fields a dataset with cache_images (the demo's) holds: made once
+    images = [torch.rand(views, size, size, 3, generator=g) for _ in range(4)]
+    masks = [(torch.rand(views, size, size, 1, generator=g) > 0.5).float() for _ in images]
+    dists = [torch.stack([mask_distance(m[..., 0]) for m in ms]) for ms in masks]
+    body = copy.deepcopy(module.body).cpu()  # the dataset's copy, on the host
 
     def make():
+        """Per sample, as AvatarDataset.__getitem__: a pose window and its pose inputs; a cached image."""
+        from realityavatar.model.avatar import pose_inputs
+
         V = views
+        k = int(torch.randint(len(images), (), generator=g))
+        poses = (torch.randn(1, window, 24, 3, generator=g) * 0.1).expand(V, -1, -1, -1).clone()
+        transl = torch.zeros(V, window, 3)
         batch = {
-            "poses": (torch.randn(1, window, 24, 3, generator=g) * 0.1).expand(V, -1, -1, -1).clone(),
-            "transl": torch.zeros(V, window, 3),
+            "poses": poses,
+            "transl": transl,
+            **pose_inputs(body, poses, transl),
             "frame_idx": torch.full((V,), 3),
             "viewmat": vm.clone(),
             "K": K[None].repeat(V, 1, 1),
-            "image": torch.rand(V, size, size, 3, generator=g),
-            "mask": (torch.rand(V, size, size, 1, generator=g) > 0.5).float(),
+            "image": images[k],
+            "mask": masks[k],
+            "mask_dist": dists[k],
         }
-        batch["mask_dist"] = torch.stack([mask_distance(m[..., 0]) for m in batch["mask"]])  # the dataset's
         batch = {k: v.to(_device) for k, v in batch.items()}
         return {**batch, "width": [size] * V, "height": [size] * V}  # host ints (AvatarDataModule.on_before_batch_transfer)
 
@@ -146,7 +159,7 @@ def step_parts(module, opt, sched, make_batch, step: int) -> dict:
     opt.zero_grad(set_to_none=True)
     module.set_progress(step)
     t0 = c()
-    posed = module.deform(batch["poses"], batch["transl"], deform=module.schedule.deform_on(step))
+    posed = module.deform(batch, deform=module.schedule.deform_on(step))
     rgb = module.shade(posed, batch["viewmat"], batch["frame_idx"])  # [B,N,3]
     t["networks_fwd"] = c() - t0
     net_out = [posed["means"], posed["quats"], posed["scales"], posed["opacities"], rgb]

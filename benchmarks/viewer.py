@@ -112,7 +112,7 @@ def measure_count(run_dir: Path, n: int, frames: int, size: int, browser: bool) 
         @torch.no_grad()
         def server_frame(i=0):
             poses, transl = seq.table.window(seq.frames[idx(i)], dm.window_len, dm.window_step)
-            posed = module.deform(poses[None], transl[None])
+            posed = module.deform(module.pose_inputs(poses[None], transl[None]))
             rgb = module.shade(posed, vm, torch.full((1,), -1, dtype=torch.long))[0]
             img, _, meta = module.splat(posed, 0, rgb, vm, K[None], W, H)
             buf = io.BytesIO()

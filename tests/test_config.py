@@ -7,6 +7,7 @@ import torch
 from hydra.utils import instantiate
 
 from realityavatar.config import CONFIG_DIR, compose, prepare_run
+from realityavatar.model.encoders import pose_features
 
 COMPONENT_GROUPS = ("gaussians", "encoder", "temporal", "deformer", "skinning", "color", "density", "loss",
                     "silhouette")
@@ -46,7 +47,7 @@ def _forward(group: str, obj, cfg, body) -> None:
         assert d.max() < 0.05, "canonical Gaussians do not start on the body surface"
         assert ((obj.opacities() > 0) & (obj.opacities() < 1)).all()
     elif group == "encoder":
-        f = obj(torch.randn(B, T, 24, 3, generator=gen) * 0.3, torch.randn(B, T, 3, generator=gen))
+        f = obj(pose_features(torch.randn(B, T, 24, 3, generator=gen) * 0.3, torch.randn(B, T, 3, generator=gen)))
         assert f.shape == (B, T, cfg.encoder.out_dim) == (B, T, cfg.temporal.in_dim)
         f.square().sum().backward()
         assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in obj.parameters())

@@ -79,7 +79,7 @@ def render_sequence(module, table: PoseTable, cameras: list[dict], window_len: i
     for i, f in enumerate(table.frames if frames_to_render is None else frames_to_render):
         poses, transl = table.window(int(f), window_len, window_step)
         idx = torch.full((1,), -1, dtype=torch.long, device=dev)
-        posed = module.deform(poses[None].to(dev, dt), transl[None].to(dev, dt))
+        posed = module.deform(module.pose_inputs(poses[None].to(dev, dt), transl[None].to(dev, dt)))
         tiles = []
         for cam in cameras:
             vm = (cam["viewmat"] if cam["viewmat"].ndim == 2 else cam["viewmat"][i])[None].to(dev, dt)

@@ -110,7 +110,7 @@ def gaussians_for_export(module, poses: torch.Tensor | None = None, transl: torc
         f_mt = g.means.new_zeros(1, N, module.deformer.feature_dim)  # canonical: no motion-trend feature
         x_e = means[None]
     else:
-        posed = module.deform(poses[None].to(dev, dt), transl[None].to(dev, dt))
+        posed = module.deform(module.pose_inputs(poses[None].to(dev, dt), transl[None].to(dev, dt)))
         means, quats, scales, rot, f_mt = posed["means"][0], posed["quats"][0], posed["scales"][0], posed["rot"], posed["f_mt"]
         x_e, opacities, N = posed["x_e"], posed["opacities"], posed["means"].shape[1]
     light = module.shading(x_e, rot)  # world-fixed light [1,N,3] (shading=irradiance), or None

@@ -16,8 +16,8 @@ from realityavatar.data.poses import PoseTable
 from tests.fixtures_data import SIZE, RandomBody, project, write_i3d, write_zju
 from tests.helpers import CONF
 
-KEYS = {"image", "mask", "mask_dist", "K", "viewmat", "width", "height", "poses", "transl", "index", "frame", "frame_idx", "view",
-        "split"}
+KEYS = {"image", "mask", "mask_dist", "K", "viewmat", "width", "height", "poses", "transl", "pose_features",
+        "bone_transforms", "index", "frame", "frame_idx", "view", "split"}
 
 
 @pytest.fixture(scope="module")
@@ -56,6 +56,11 @@ def test_sample_dict_follows_the_contract(scene_root, body):
     assert s["image"].shape == (SIZE, SIZE, 3) and s["image"].dtype == torch.float32
     assert s["mask"].shape == (SIZE, SIZE, 1) and set(s["mask"].unique().tolist()) <= {0.0, 1.0}
     assert s["poses"].shape == (3, 24, 3) and s["transl"].shape == (3, 3)
+    # the model's pose inputs, made by the dataset from the sample's own window with the body
+    from realityavatar.model.encoders import pose_features
+
+    torch.testing.assert_close(s["pose_features"], pose_features(s["poses"][None], s["transl"][None])[0])
+    torch.testing.assert_close(s["bone_transforms"], body.canonical_transforms(s["poses"][-1], s["transl"][-1]))
     b = next(iter(dm.train_dataloader()))
     assert b["image"].shape == (2, SIZE, SIZE, 3) and b["poses"].shape == (2, 3, 24, 3)
     assert b["K"].shape == (2, 3, 3) and b["viewmat"].shape == (2, 4, 4) and b["frame_idx"].shape == (2,)

@@ -8,13 +8,13 @@ import torch
 from realityavatar.geometry import (
     axis_angle_to_matrix,
 )
-from realityavatar.model.encoders import PART_DIMS, LatentBoneEncoder, pose_features
+from realityavatar.model.encoders import PART_DIMS, LatentBoneEncoder, pose_features, split_parts
 from tests.helpers import assert_all_grads, random_poses
 
 
 def test_pose_features_invariant_to_heading_but_not_to_spin():
     poses, transl = random_poses()
-    feats = pose_features(poses, transl)
+    feats = split_parts(pose_features(poses, transl))
     assert {k: v.shape[-1] for k, v in feats.items()} == PART_DIMS
     # rotate and shift the whole window about the world origin: root orientation and translation change, features not
     R0 = axis_angle_to_matrix(torch.tensor([0.0, 1.3, 0.0]))
@@ -23,13 +23,13 @@ def test_pose_features_invariant_to_heading_but_not_to_spin():
     p2 = poses.clone()
     p2[:, :, 0] = matrix_to_axis_angle(R0 @ axis_angle_to_matrix(poses[:, :, 0]))
     t2 = (R0 @ transl[..., None]).squeeze(-1) + torch.tensor([1.0, 0.0, -2.0])
-    feats2 = pose_features(p2, t2)
+    feats2 = split_parts(pose_features(p2, t2))
     for k in feats:
         assert torch.allclose(feats[k], feats2[k], atol=1e-5), k
     # a different spin history (only past root orientations differ) changes the torso features
     p3 = poses.clone()
     p3[:, 0, 0] += torch.tensor([0.0, 0.8, 0.0])
-    feats3 = pose_features(p3, transl)
+    feats3 = split_parts(pose_features(p3, transl))
     assert not torch.allclose(feats3["torso"], feats["torso"])
     assert torch.allclose(feats3["left_arm"], feats["left_arm"])
     # the current frame's own root terms are zero (relative to itself)
@@ -47,7 +47,7 @@ def test_pose_features_rejects_a_wrong_shape():
 def test_latentbone_encoder_options(split, zc):
     enc = LatentBoneEncoder(part_split=split, clothes_latent_dim=zc, out_dim=64)
     poses, transl = random_poses()
-    f = enc(poses, transl)
+    f = enc(pose_features(poses, transl))
     assert f.shape == (2, 5, 64) and enc.out_dim == 64
     f.square().sum().backward()
     assert_all_grads(enc)

@@ -31,9 +31,10 @@ def test_canonical_gaussians_land_on_the_posed_body_after_skinning_prefit(body):
     pose[0] = torch.tensor([0.3, 2.0, -0.2])  # turned and tilted root
     transl = torch.tensor([0.4, -0.1, 0.7])
     verts = body.posed_vertices(pose, transl)  # [V,3] ground truth: the body's own LBS
-    poses, transls = pose.expand(1, 3, 24, 3), transl.expand(1, 3, 3)  # a window holding the pose
+    poses = torch.stack([0.2 * pose, 0.5 * pose, pose])[None]  # a window ending in the pose: its current frame
+    transls = torch.stack([transl - 0.3, transl - 0.1, transl])[None]
     with torch.no_grad():
-        posed = module.deform(poses, transls)
+        posed = module.deform(module.pose_inputs(poses, transls))
     d_canon = torch.cdist(module.gaussians.means, body.canonical_vertices()).min(-1).values  # [N]
     d_posed = torch.cdist(posed["means"][0], verts).min(-1).values
     # distance gained by posing: 0 for a perfect LBS; the learnt weights blur near joints (measured: median ~0,
@@ -48,7 +49,7 @@ def test_canonical_gaussians_land_on_the_posed_body_after_skinning_prefit(body):
     E[:3, :3], E[:3, 3] = R, -R @ (centre + torch.tensor([0.0, 0.0, 3.0]))
     S = 64
     K = torch.tensor([[60.0, 0, S / 2], [0, 60.0, S / 2], [0, 0, 1]])
-    batch = {"poses": poses, "transl": transls, "frame_idx": torch.tensor([0]), "viewmat": E[None], "K": K[None],
+    batch = {**module.pose_inputs(poses, transls), "frame_idx": torch.tensor([0]), "viewmat": E[None], "K": K[None],
              "width": torch.tensor([S]), "height": torch.tensor([S])}
     with torch.no_grad():
         _, alpha, _, _ = module.render_batch(batch)

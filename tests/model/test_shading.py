@@ -142,10 +142,10 @@ def test_module_builds_the_grid_before_step_0_and_multiplies_the_colour(body):
     viewmat[0, 2, 3] = 3.0
     idx = torch.zeros(1, dtype=torch.long)
     with torch.no_grad():
-        posed = module.deform(poses, torch.zeros(1, 3, 3))
+        posed = module.deform(module.pose_inputs(poses, torch.zeros(1, 3, 3)))
         rgb = module.shade(posed, viewmat, idx)
         light = module.shading(posed["x_e"], posed["rot"])
-        posed_turned = module.deform(turned, torch.zeros(1, 3, 3))
+        posed_turned = module.deform(module.pose_inputs(turned, torch.zeros(1, 3, 3)))
         light_turned = module.shading(posed_turned["x_e"], posed_turned["rot"])
         module.shading = NoShading()
         base = module.shade(posed, viewmat, idx)

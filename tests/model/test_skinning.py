@@ -142,7 +142,7 @@ def test_skinning_query_at_reads_the_weights_where_it_says(scenes_root, query_at
     module.deformer.forward = far
     b = default_collate([dm.datasets["train"][0]])
     with torch.no_grad():
-        posed = module.deform(b["poses"], b["transl"])
+        posed = module.deform(b)
         at_rest, moved = module.skinning(module.gaussians.means), module.skinning(posed["x_e"][0])
     expected, other = (at_rest, moved) if query_at == "canonical" else (moved, at_rest)
     assert torch.allclose(posed["weights"][0], expected, atol=1e-6)

@@ -48,7 +48,7 @@ def test_trained_lstm_model_depends_on_motion_history(trained_run):
     assert isinstance(module.temporal, RecurrentTemporal)
     still, spin, transl = _still_and_spin(module.run_info.get("window_len", 6))
     with torch.no_grad():
-        diff = (module.deform(still, transl)["means"] - module.deform(spin, transl)["means"]).norm(dim=-1)
+        diff = (module.deform(module.pose_inputs(still, transl))["means"] - module.deform(module.pose_inputs(spin, transl))["means"]).norm(dim=-1)
     # 60 CPU steps move the zero-initialised decoder output only a little (~1e-5 m); the sweep-scale effect is
     # measured by python -m realityavatar.analysis.probe. What must hold: with an LSTM the history moves every Gaussian.
     assert float(diff.min()) > 1e-7 and float(diff.mean()) > 2e-6, f"history moved the Gaussians {float(diff.mean()):.2e} m"
@@ -66,10 +66,10 @@ def test_model_without_temporal_module_ignores_motion_history():
     still, spin, transl = _still_and_spin(4)
     g = torch.Generator().manual_seed(0)
     with torch.no_grad():
-        start = module.deform(still, transl)["means"]
+        start = module.deform(module.pose_inputs(still, transl))["means"]
         for part in (module.encoder, module.temporal, module.deformer):
             for p in part.parameters():
                 p.add_(0.05 * torch.randn(p.shape, generator=g))
-        a, b = module.deform(still, transl)["means"], module.deform(spin, transl)["means"]
+        a, b = module.deform(module.pose_inputs(still, transl))["means"], module.deform(module.pose_inputs(spin, transl))["means"]
     assert float((a - start).norm(dim=-1).mean()) > 1e-3, "the decoder does not move the Gaussians: nothing is checked"
     assert float((a - b).norm(dim=-1).max()) == 0.0

@@ -101,7 +101,7 @@ def extreme_poses(module, dm, n: int = 48, seed: int = 0, show: int = 6) -> dict
         trans.append(base_t.expand(T, 3))
     poses_w, transl_w = torch.stack(windows), torch.stack(trans)
     renders = render_poses(module, dm, poses_w[0:2 * show:2], transl_w[0:2 * show:2])  # the first joint-limit poses
-    posed = module.deform(poses_w, transl_w)
+    posed = module.deform(module.pose_inputs(poses_w, transl_w))
     joints = module.body.joints(poses_w[:, -1], transl_w[:, -1])  # [n,24,3]
     dist = torch.cdist(posed["means"], joints).min(-1).values  # [n,N] distance to the nearest joint
     finite = bool(torch.isfinite(posed["means"]).all() and torch.isfinite(posed["scales"]).all())
@@ -131,7 +131,7 @@ def render_poses(module, dm, poses_w: torch.Tensor, transl_w: torch.Tensor) -> n
     batch = default_collate([ds[0]])
     out = []
     for w, t in zip(poses_w, transl_w):
-        b = {**batch, "poses": w[None], "transl": t[None], "frame_idx": torch.full_like(batch["frame_idx"], -1)}
+        b = {**batch, **module.pose_inputs(w[None], t[None]), "frame_idx": torch.full_like(batch["frame_idx"], -1)}
         rgb = module.render_batch(b)[0][0].clamp(0, 1)
         out.append((rgb.numpy() * 255).round().astype(np.uint8))
     return np.stack(out)
@@ -149,7 +149,7 @@ def training_scales(module, dm, batch: int = 16) -> dict[int, float]:
     frames, out = list(first), {}
     for k in range(0, len(frames), batch):
         b = default_collate([ds[first[f]] for f in frames[k:k + batch]])
-        s = module.deform(b["poses"], b["transl"])["scales"].flatten(1).max(1).values
+        s = module.deform(b)["scales"].flatten(1).max(1).values
         out.update({f: float(v) for f, v in zip(frames[k:k + batch], s)})
     return out
 
@@ -172,7 +172,8 @@ def pose_noise(module, dm, view: int | None, sigmas=NOISE_SIGMAS, seed: int = 0)
         vals = []
         for i in idx:
             batch = default_collate([ds[i]])
-            batch["poses"] = batch["poses"] + sigma * torch.randn(batch["poses"].shape, generator=g)
+            noisy = batch["poses"] + sigma * torch.randn(batch["poses"].shape, generator=g)
+            batch.update(module.pose_inputs(noisy, batch["transl"]))  # what the model reads of the poses
             rgb, _, _, _ = module.render_batch(batch)
             vals.append(float(psnr(rgb[0].clamp(0, 1), batch["image"][0])))
         out[f"{sigma:g}"] = float(np.mean(vals))

@@ -1,11 +1,12 @@
 """The LightningDataModule over the scene readers (I3D-Human/synthetic layout, ZJU-MoCap) and its sample Dataset.
 
-Samples follow docs/CONTRACTS.md ("Samples"): image, mask, K, viewmat, width, height, poses [T,24,3], transl [T,3],
-frame, frame_idx, view, split.
+Samples follow docs/CONTRACTS.md ("Samples"): image, mask, mask_dist, K, viewmat, width, height, poses [T,24,3],
+transl [T,3], pose_features [T,D], bone_transforms [24,4,4], frame, frame_idx, view, split.
 """
 
 from __future__ import annotations
 
+import copy
 import logging
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -26,19 +27,23 @@ from realityavatar.data.records import (
     mask_distance,
 )
 from realityavatar.geometry import camera_centres
+from realityavatar.model.avatar import pose_inputs
 
 log = logging.getLogger(__name__)
 READERS = ("i3d", "zju")
 
 
 class AvatarDataset(Dataset):
-    """Image records of one split -> sample dicts. Images decode lazily; `cache_images` keeps decoded uint8 copies."""
+    """Image records of one split -> sample dicts. Images decode lazily; `cache_images` keeps decoded uint8 copies
+    (and the masks' distance fields). Every sample carries the model's pose inputs (model/avatar.py pose_inputs:
+    the encoder's features of its pose window and the body's bone transforms), made here on the host by `body`."""
 
     def __init__(
         self,
         records: Sequence[ImageRecord],
         poses: PoseTable,
         split: str,
+        body: torch.nn.Module,
         train_frame_index: dict[int, int],
         window_len: int,
         window_step: int,
@@ -50,6 +55,7 @@ class AvatarDataset(Dataset):
         self.records = list(records)
         self.poses = poses
         self.split = split
+        self.body = body
         self.train_frame_index = train_frame_index
         self.window_len, self.window_step = int(window_len), int(window_step)
         self.background = torch.as_tensor(background, dtype=torch.float32).reshape(3)
@@ -57,6 +63,7 @@ class AvatarDataset(Dataset):
         self.undistort = undistort
         self.cache_images = cache_images
         self._cache: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        self._dist_cache: dict[int, torch.Tensor] = {}
 
     def __len__(self) -> int:
         return len(self.records)
@@ -69,23 +76,35 @@ class AvatarDataset(Dataset):
                 self._cache[i] = hit
         return hit
 
+    def _distance(self, i: int, mask_b: np.ndarray) -> torch.Tensor:
+        """The distance field of record i's mask (kept with the cached images: computed once per image)."""
+        hit = self._dist_cache.get(i)
+        if hit is None:
+            hit = mask_distance(mask_b)
+            if self.cache_images:
+                self._dist_cache[i] = hit
+        return hit
+
     def __getitem__(self, i: int) -> dict:
         rec = self.records[i]
         img_u8, mask_b, K = self._decoded(i)
+        mask_dist = self._distance(i, mask_b)
         mask = torch.from_numpy(mask_b).float()[..., None]  # [H,W,1]
         image = torch.from_numpy(img_u8).float() / 255.0  # [H,W,3]
         image = image * mask + self.background * (1.0 - mask)
         poses, transl = self.poses.window(rec.frame, self.window_len, self.window_step)  # [T,24,3], [T,3]
+        inputs = pose_inputs(self.body, poses[None], transl[None])
         out = {
             "image": image,
             "mask": mask,
-            "mask_dist": mask_distance(mask_b),  # [H,W] pixels to the mask (losses.SilhouetteChamfer), on the host
+            "mask_dist": mask_dist,  # [H,W] pixels to the mask (losses.SilhouetteChamfer), on the host
             "K": torch.as_tensor(K, dtype=torch.float32),
             "viewmat": torch.as_tensor(rec.viewmat, dtype=torch.float32),
             "width": int(image.shape[1]),
             "height": int(image.shape[0]),
             "poses": poses,
             "transl": transl,
+            **{k: v[0] for k, v in inputs.items()},  # pose_features [T,D], bone_transforms [24,4,4]
             "index": int(i),
             "frame": int(rec.frame),
             "frame_idx": int(self.train_frame_index.get(rec.frame, -1)),
@@ -427,7 +446,11 @@ class AvatarDataModule(pl.LightningDataModule):
         kw = {"train_frame_index": frame_index, "window_len": self.window_len, "window_step": self.window_step,
               "background": self.background, "image_scale": self.image_scale, "undistort": self.undistort,
               "cache_images": self.cache_images}
-        self.datasets = {s: AvatarDataset(recs, scene.poses, s, **kw) for s, recs in selected.items() if recs}
+        if self.body is None:
+            raise ValueError(f"{scene.source}: AvatarDataModule needs the body model (body=...) to serve samples: "
+                             "each carries the pose window's bone transforms")
+        body = copy.deepcopy(self.body).to("cpu")  # the samples' pose inputs are made on the host, in the workers
+        self.datasets = {s: AvatarDataset(recs, scene.poses, s, body, **kw) for s, recs in selected.items() if recs}
         self.test_split_names = [s for s in ("novel_view", "novel_pose") if s in self.datasets]
         if self.shuffle_seed is None:
             self.shuffle_seed = int(torch.initial_seed()) % (2**31)

@@ -23,11 +23,23 @@ from torch import nn
 from realityavatar.body.base import BodyModel
 from realityavatar.geometry import camera_centres, unit
 from realityavatar.model.deform import apply_deformation
+from realityavatar.model.encoders import pose_features
 from realityavatar.model.skinning import lbs_gaussians
 from realityavatar.render import rasterize
 
 # Per-point entries of a posed dict, split between the sources and joined again in source order.
 PER_POINT = ("means", "quats", "scales", "rot", "f_mt", "weights", "x_e")
+
+
+@torch.no_grad()
+def pose_inputs(body: BodyModel, poses: torch.Tensor, transl: torch.Tensor) -> dict[str, torch.Tensor]:
+    """The part of the forward pass that depends on the poses alone (no parameters, no gradient), from a pose window
+    poses [B,T,24,3], transl [B,T,3]: `pose_features` [B,T,D] (the encoder's input) and `bone_transforms`
+    [B,24,4,4] (the body's canonical-to-posed transforms of the current, last frame). The dataset computes them for
+    every sample (on the host, in the loader's workers), so a training step on a GPU launches none of the ~130
+    operations they take; `Avatar.pose_inputs` computes them for poses from anywhere else (animation, export)."""
+    return {"pose_features": pose_features(poses, transl),
+            "bone_transforms": body.canonical_transforms(poses[:, -1], transl[:, -1])}
 
 
 def join(parts: list[torch.Tensor], dim: int = 0) -> torch.Tensor:
@@ -67,16 +79,22 @@ class Avatar(nn.Module):
     def sources(self) -> tuple[nn.Module, ...]:
         return (self.gaussians, self.sheet)
 
-    def deform(self, poses: torch.Tensor, transl: torch.Tensor, deform: bool = True) -> dict:
-        """poses [B,T,24,3], transl [B,T,3] -> the posed Gaussians of the current (last) frame of every source.
+    def pose_inputs(self, poses: torch.Tensor, transl: torch.Tensor) -> dict[str, torch.Tensor]:
+        """`pose_inputs` of a pose window poses [B,T,24,3], transl [B,T,3] with this avatar's body: deform's input."""
+        return pose_inputs(self.body, poses, transl)
+
+    def deform(self, inputs: dict, deform: bool = True) -> dict:
+        """The posed Gaussians of the current (last) frame of every source, from `pose_inputs` (a batch has them:
+        the dataset computes them; other poses: `self.deform(self.pose_inputs(poses, transl))`).
         Geometry does not depend on the frame index (only the colour's per-frame latent does, see `shade`).
         deform=False: the canonical warm-up before schedule.deform_start (decoder skipped, identity offsets).
 
         Returns dict: means [B,N,3], quats [B,N,4], scales [B,N,3], opacities [N], rot [B,N,3,3] (canonical-to-posed
         rotation per Gaussian, for canonical view directions), f_mt [B,N,F], weights [B,N,24], x_e [B,N,3], B.
         """
-        B = poses.shape[0]
-        h_t = self.temporal(self.encoder(poses, transl))  # [B,H]
+        features, A = inputs["pose_features"], inputs["bone_transforms"]  # [B,T,D], [B,24,4,4]
+        B = features.shape[0]
+        h_t = self.temporal(self.encoder(features))  # [B,H]
         # every source's points ride through one decoder, skinning and LBS pass
         points = [s.points() for s in self.sources]
         sizes = [p[0].shape[0] for p in points]
@@ -90,7 +108,6 @@ class Avatar(nn.Module):
         # skinning.query_at: the weights at the deformed canonical position (default) or at the undeformed one
         at_rest = self.skinning.query_at == "canonical"
         w = self.skinning(means[None].expand(B, -1, -1) if at_rest else x_e)  # [B,N,24]
-        A = self.body.canonical_transforms(poses[:, -1], transl[:, -1])  # [B,24,4,4]
         means_o, quats_o, rot = lbs_gaussians(x_e, q_e, w, A)
         posed = {"means": means_o, "quats": quats_o, "scales": torch.exp(log_s_e), "rot": rot, "f_mt": out["f_mt"],
                  "weights": w, "x_e": x_e}
@@ -142,7 +159,7 @@ class Avatar(nn.Module):
         check_finite: the rasterizer's input checks (they read the device)."""
         viewmats, Ks = batch["viewmat"], batch["K"]
         W, H = int(batch["width"][0]), int(batch["height"][0])  # host ints in training (on_before_batch_transfer)
-        posed = self.deform(batch["poses"], batch["transl"], deform=deform)
+        posed = self.deform(batch, deform=deform)
         rgb = self.shade(posed, viewmats, batch["frame_idx"])  # [B,N,3]
         images, alphas, metas = [], [], []
         for b in range(posed["B"]):

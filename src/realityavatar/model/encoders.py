@@ -24,12 +24,14 @@ def _rot6d(R: torch.Tensor) -> torch.Tensor:
     return (R[..., :, :2] - eye).flatten(-2)
 
 
-def pose_features(poses: torch.Tensor, transl: torch.Tensor) -> dict[str, torch.Tensor]:
-    """poses [B,T,24,3] axis-angle (last frame = current), transl [B,T,3] -> {part: [B,T,D_part]}.
+def pose_features(poses: torch.Tensor, transl: torch.Tensor) -> torch.Tensor:
+    """poses [B,T,24,3] axis-angle (last frame = current), transl [B,T,3] -> [B,T,sum(PART_DIMS)]: the four parts'
+    features side by side in PART_NAMES order (`split_parts` cuts them apart).
 
     The global orientation and translation of every window frame are expressed in the current frame's root
     frame (R_root(t)^T R_root(t_k), R_root(t)^T (transl_k - transl_t)): invariant to absolute heading and
     position, but carrying spin and velocity history (a spin that stops abruptly changes only these).
+    No parameters and no gradient: the dataset computes it for every sample (model/avatar.py pose_inputs).
     """
     check_pose_shape(poses, transl, "pose_features")
     if poses.ndim != 4 or transl.shape != poses.shape[:2] + (3,):
@@ -43,12 +45,14 @@ def pose_features(poses: torch.Tensor, transl: torch.Tensor) -> dict[str, torch.
     rel_transl = (R_root_t.transpose(-1, -2) @ (transl - transl[:, -1:])[..., None]).squeeze(-1)  # [B,T,3]
     hips = _rot6d(R[:, :, 1].transpose(-1, -2) @ R[:, :, 2])  # [B,T,6] right hip in the left hip's frame
     B, T = poses.shape[:2]
-    return {
-        "left_arm": six[:, :, list(LEFT_ARM)].reshape(B, T, -1),
-        "right_arm": six[:, :, list(RIGHT_ARM)].reshape(B, T, -1),
-        "legs": torch.cat([six[:, :, list(LEGS)].reshape(B, T, -1), hips], -1),
-        "torso": torch.cat([six[:, :, list(TORSO)].reshape(B, T, -1), rel_orient, rel_transl], -1),
-    }
+    return torch.cat([six[:, :, list(LEFT_ARM)].reshape(B, T, -1), six[:, :, list(RIGHT_ARM)].reshape(B, T, -1),
+                      six[:, :, list(LEGS)].reshape(B, T, -1), hips,
+                      six[:, :, list(TORSO)].reshape(B, T, -1), rel_orient, rel_transl], -1)
+
+
+def split_parts(features: torch.Tensor) -> dict[str, torch.Tensor]:
+    """[...,sum(PART_DIMS)] -> {part: [...,PART_DIMS[part]]} (views)."""
+    return dict(zip(PART_NAMES, features.split([PART_DIMS[p] for p in PART_NAMES], -1)))
 
 
 def _mlp(in_dim: int, hidden_dim: int, out_dim: int, num_layers: int) -> nn.Sequential:
@@ -107,13 +111,13 @@ class LatentBoneEncoder(nn.Module):
             return x
         return torch.cat([x, self.z_c.expand(x.shape[:-1] + (-1,))], -1)
 
-    def forward(self, poses: torch.Tensor, transl: torch.Tensor) -> torch.Tensor:
-        """poses [B,T,24,3], transl [B,T,3] -> f_p [B,T,out_dim]."""
-        feats = pose_features(poses, transl)
+    def forward(self, features: torch.Tensor) -> torch.Tensor:
+        """features [B,T,sum(PART_DIMS)] (`pose_features`) -> f_p [B,T,out_dim]."""
         if self.part_split:
-            h = torch.cat([self.part_layers[p](self._with_latent(feats[p])) for p in PART_NAMES], -1)
+            parts = split_parts(features)
+            h = torch.cat([self.part_layers[p](self._with_latent(parts[p])) for p in PART_NAMES], -1)
         else:
-            h = self.input_layer(self._with_latent(torch.cat([feats[p] for p in PART_NAMES], -1)))
+            h = self.input_layer(self._with_latent(features))
         return self.mlp(h)
 
     def param_groups(self) -> dict[str, list[nn.Parameter]]:
