@@ -11,8 +11,8 @@ backward = decoder, skinning, colour, encoder): the module's own forward path (A
 configured loss terms (losses.total_loss over module.losses: every term the run trains with), then
 data -> networks fwd -> render fwd -> losses fwd -> losses bwd -> render bwd -> networks bwd -> optimizer -> density.
 Data is a synthetic batch (random pose window, one camera framing the body, random target image) built the way the
-DataModule collates one. --views V adds the whole step of a batch of V images (data.batch_size=V): the same pose
-window seen by V cameras around the body; its parts are not split out.
+DataModule collates one. --views V adds the whole step of a batch of V images (data.views_per_step=V): the same pose
+window seen by V cameras around the body, the networks run once for them; its parts are not split out.
 --device cuda runs the module and its batches on the GPU (backends `gsplat torch` there); every clock reading waits
 for the GPU first (torch.cuda.synchronize), and each row also records the GPU kernels' own time per step
 (`gpu_kernel_s`, from torch.profiler over 3 whole steps): a step far longer than its kernels waits on Python and
@@ -141,7 +141,8 @@ def make_batch_fn(module, size: int, window: int, views: int = 1):
             "mask_dist": dists[k],
         }
         batch = {k: v.to(_device) for k, v in batch.items()}
-        return {**batch, "width": [size] * V, "height": [size] * V}  # host ints (AvatarDataModule.on_before_batch_transfer)
+        # host ints and the views of one frame (AvatarDataModule.on_before_batch_transfer, data.views_per_step=V)
+        return {**batch, "width": [size] * V, "height": [size] * V, **({"views_per_frame": V} if V > 1 else {})}
 
     return make
 

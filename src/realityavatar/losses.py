@@ -179,8 +179,7 @@ def project_points(points: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor)
     """points [N,3] world, viewmat [4,4] world-to-camera (OpenCV), K [3,3] -> pixel coords [N,2], depth [N]."""
     cam = points @ viewmat[:3, :3].T + viewmat[:3, 3]  # [N,3]
     z = cam[:, 2]
-    zc = z.clamp(min=1e-3)
-    uv = torch.stack([K[0, 0] * cam[:, 0] / zc + K[0, 2], K[1, 1] * cam[:, 1] / zc + K[1, 2]], -1)
+    uv = K.diagonal()[:2] * cam[:, :2] / z.clamp(min=1e-3)[:, None] + K[:2, 2]  # f * x / z + c
     return uv, z
 
 

@@ -72,6 +72,41 @@ def test_sample_dict_follows_the_contract(scene_root, body):
     assert len(val) == 4 and set(val) == {"novel_view"}
 
 
+def test_views_per_step_batches_cameras_of_one_frame(scene_root, body):
+    """data.views_per_step=V: every training batch holds V different cameras of one frame (batch_size frames), the
+    hook marks it for the model (training only), the order resumes, and too few cameras per frame is an error."""
+    from types import SimpleNamespace
+
+    dm = make(scene_root, body, views_per_step=3, batch_size=2)
+    loader = dm.train_dataloader()
+    batches = list(loader)
+    assert len(batches) == 12  # 24 training images drawn once each by the base order, each with its frame's others
+    for b in batches:
+        f, v = b["frame"].reshape(2, 3), b["view"].reshape(2, 3)
+        assert (f == f[:, :1]).all() and all(len(set(row)) == 3 for row in v.tolist())
+    assert {int(i) for b in batches for i in b["index"][::3]} == set(range(24))
+    dm.trainer = SimpleNamespace(training=True)
+    assert dm.on_before_batch_transfer(batches[0], 0)["views_per_frame"] == 3
+    dm.trainer = SimpleNamespace(training=False)  # evaluation batches: one sample each
+    assert "views_per_frame" not in dm.on_before_batch_transfer(batches[0], 0)
+    mixed = {**batches[0], "frame": torch.arange(6)}
+    dm.trainer = SimpleNamespace(training=True)
+    with pytest.raises(RuntimeError, match="views_per_step=3: a training batch mixes frames"):
+        dm.on_before_batch_transfer(mixed, 0)
+    # resume: the state after 4 batches continues with the uninterrupted order's batches 5..
+    dm2 = make(scene_root, body, views_per_step=3, batch_size=2, shuffle_seed=dm.shuffle_seed)
+    it = iter(dm2.train_dataloader())
+    for _ in range(4):
+        next(it)
+    state = dm2.train_sampler.state_dict()
+    dm3 = make(scene_root, body, views_per_step=3, batch_size=2, shuffle_seed=dm.shuffle_seed)
+    loader3 = dm3.train_dataloader()
+    loader3.load_state_dict(state)
+    assert torch.equal(next(iter(loader3))["index"], batches[4]["index"])
+    with pytest.raises(ValueError, match=r"views_per_step=4: frame \d+ has 3 training image"):
+        make(scene_root, body, views_per_step=4).train_dataloader()
+
+
 def test_joint_projects_inside_mask_in_samples(scene_root, body):
     dm = make(scene_root, body, image_scale=0.5)
     assert dm.image_size == (SIZE // 2, SIZE // 2)

@@ -168,6 +168,30 @@ def _stepping_module(body, monkeypatch, device: str = "cpu", log_every: int = 5,
     return module, step.make_batch_fn(module, 32, int(cfg.data.window_len))
 
 
+def test_views_of_one_frame_pose_it_once_and_render_as_separate_samples(body, monkeypatch):
+    """data.views_per_step: a batch of V cameras of one frame (views_per_frame) runs the networks for one frame and
+    renders what the same batch renders sample by sample, gradients included."""
+    from tests.helpers import benchmark
+
+    module, _ = _stepping_module(body, monkeypatch)
+    make = benchmark("step").make_batch_fn(module, 32, int(compose([]).data.window_len), views=3)
+    batch = make()
+    assert batch["views_per_frame"] == 3
+    shapes = []
+    module.deformer.register_forward_hook(lambda m, args, out: shapes.append(tuple(args[1].shape)))
+    rgb, alpha, metas, posed = module.render_batch(batch)
+    assert shapes == [(1, module.deformer.in_h.in_features)] and posed["B"] == 3 and len(metas) == 3
+    g = torch.autograd.grad(rgb.square().sum() + alpha.sum(), module.deformer.out.weight)[0]
+    separate = {k: v for k, v in batch.items() if k != "views_per_frame"}
+    rgb1, alpha1, _, _ = module.render_batch(separate)
+    assert shapes[1] == (3, module.deformer.in_h.in_features)
+    torch.testing.assert_close(rgb, rgb1, atol=1e-5, rtol=0)
+    torch.testing.assert_close(alpha, alpha1, atol=1e-5, rtol=0)
+    g1 = torch.autograd.grad(rgb1.square().sum() + alpha1.sum(), module.deformer.out.weight)[0]
+    torch.testing.assert_close(g, g1, atol=1e-4, rtol=1e-4)
+    assert not torch.allclose(rgb[0], rgb[1])  # three different cameras
+
+
 def test_a_training_step_reads_the_device_only_on_log_steps(body, monkeypatch):
     """No scalar read (.item(), float(), bool() of a tensor) and no data-dependent shape (nonzero, boolean-mask
     indexing) in a training step but every `log_every` steps: on a GPU each would wait for the device. Counted on the

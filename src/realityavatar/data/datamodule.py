@@ -114,6 +114,11 @@ class AvatarDataset(Dataset):
         return out
 
 
+def draw_seed(seed: int, epoch: int, draw: int) -> int:
+    """The generator seed of draw `draw` of `epoch` (below 2**63 for any run seed)."""
+    return ((seed * 1_000_003 + epoch) * 1_000_033 + draw) % (2**63 - 1)
+
+
 class EpochShuffle(torch.utils.data.Sampler):
     """Random order that depends only on (seed, epoch), with a position: a resumed run continues the epoch it
     stopped in with the samples it had not seen yet, in the order the uninterrupted run would have used."""
@@ -213,7 +218,7 @@ class HardFrameSampler(EpochShuffle):
         if self.consumed >= self.n:
             self.epoch, self.consumed = self.epoch + 1, 0
         while self.consumed < self.n:
-            g = torch.Generator().manual_seed((self.seed * 1_000_003 + self.epoch) * 1_000_033 + self.consumed)
+            g = torch.Generator().manual_seed(draw_seed(self.seed, self.epoch, self.consumed))
             self.consumed += 1
             if float(torch.rand((), generator=g)) < self.mix:
                 yield int(torch.randint(self.n, (), generator=g))
@@ -230,6 +235,48 @@ class HardFrameSampler(EpochShuffle):
         if state.get("n") == self.n and len(state.get("score", [])) == len(self.score):
             self.score = torch.tensor(state["score"], dtype=torch.float64)
             self.observed = int(state.get("observed", 0))
+
+
+class SameFrameViews(torch.utils.data.Sampler):
+    """`data.views_per_step` V > 1: each image the training order (`base`) draws is followed by V-1 other training
+    images of the same frame (other cameras, drawn at random), so one batch holds V views of one pose and
+    Avatar.render_batch runs the networks once for them. Epochs, resume and the hard-frames feedback are the base
+    order's; draw k of epoch e picks its cameras with a generator seeded by (seed, e, k)."""
+
+    def __init__(self, base: EpochShuffle, frames: Sequence[int], views: int, seed: int) -> None:
+        self.base, self.views, self.seed = base, int(views), int(seed)
+        self.frame_of = [int(f) for f in frames]
+        self.images_of: dict[int, list[int]] = {}
+        for i, f in enumerate(self.frame_of):
+            self.images_of.setdefault(f, []).append(i)
+        short = sorted((len(v), f) for f, v in self.images_of.items() if len(v) < self.views)
+        if short:
+            n, f = short[0]
+            raise ValueError(f"data.views_per_step={self.views}: frame {f} has {n} training image(s) (cameras); "
+                             f"{len(short)} frame(s) have fewer than {self.views}")
+
+    def __len__(self) -> int:
+        return len(self.base) * self.views
+
+    def __iter__(self):
+        for i in self.base:
+            others = [j for j in self.images_of[self.frame_of[i]] if j != i]
+            g = torch.Generator().manual_seed(draw_seed(self.seed, self.base.epoch, self.base.consumed))
+            yield i
+            for k in torch.randperm(len(others), generator=g)[: self.views - 1].tolist():
+                yield others[k]
+
+    def set_epoch(self, epoch: int) -> None:
+        self.base.set_epoch(epoch)
+
+    def observe(self, indices: torch.Tensor, losses: torch.Tensor) -> None:
+        self.base.observe(indices, losses)
+
+    def state_dict(self) -> dict:
+        return self.base.state_dict()
+
+    def load_state_dict(self, state: dict) -> None:
+        self.base.load_state_dict(state)
 
 
 class SamplerFeedback(pl.Callback):
@@ -291,6 +338,7 @@ class AvatarDataModule(pl.LightningDataModule):
         window_step: int = 1,
         fps: float | None = None,
         batch_size: int = 1,
+        views_per_step: int = 1,
         num_workers: int = 0,
         background: Sequence[float] = (0.0, 0.0, 0.0),
         image_scale: float = 1.0,
@@ -332,6 +380,9 @@ class AvatarDataModule(pl.LightningDataModule):
             raise ValueError(f"data.fps: expected the capture's frame rate > 0 (frames per second), got {fps!r}")
         self.fps = None if fps is None else float(fps)  # None: a config from before data.fps (data/motion.py)
         self.batch_size, self.num_workers = int(batch_size), int(num_workers)
+        if int(views_per_step) < 1:
+            raise ValueError(f"data.views_per_step: expected >= 1 training cameras of one frame per step, got {views_per_step!r}")
+        self.views_per_step = int(views_per_step)
         self.background = [float(c) for c in background]
         if len(self.background) != 3:
             raise ValueError(f"data.background: expected 3 values in [0,1], got {background}")
@@ -513,9 +564,12 @@ class AvatarDataModule(pl.LightningDataModule):
         # resumed run restores that RNG and must see the same stream as the uninterrupted run).
         gen = torch.Generator().manual_seed(int(self.shuffle_seed or 0))
         if shuffle:
-            sampler = self.sampler([r.frame for r in ds.records], self.shuffle_seed or 0)
+            frames = [r.frame for r in ds.records]
+            sampler = self.sampler(frames, self.shuffle_seed or 0)
+            if self.views_per_step > 1:
+                sampler = SameFrameViews(sampler, frames, self.views_per_step, self.shuffle_seed or 0)
             self.train_sampler = sampler
-            return ResumableLoader(ds, batch_size=self.batch_size, sampler=sampler,
+            return ResumableLoader(ds, batch_size=self.batch_size * self.views_per_step, sampler=sampler,
                                    num_workers=self.num_workers, persistent_workers=self.num_workers > 0,
                                    drop_last=False, generator=gen)
         return DataLoader(ds, batch_size=self.batch_size, shuffle=False, num_workers=self.num_workers,
@@ -531,8 +585,16 @@ class AvatarDataModule(pl.LightningDataModule):
     def on_before_batch_transfer(self, batch: dict, dataloader_idx: int) -> dict:
         """Before a batch moves to the device, image sizes become host ints (read from a GPU tensor, each would make
         the training step wait for the device). Poses need no check here: every window comes from a PoseTable, which
-        refused non-finite poses when it was built."""
-        return {**batch, "width": batch["width"].tolist(), "height": batch["height"].tolist()}
+        refused non-finite poses when it was built. A training batch of views_per_step cameras per frame says so
+        (`views_per_frame`, checked on the host frames): Avatar.render_batch poses each frame once."""
+        out = {**batch, "width": batch["width"].tolist(), "height": batch["height"].tolist()}
+        V = self.views_per_step
+        if V > 1 and self.trainer is not None and self.trainer.training:
+            f = batch["frame"].reshape(-1, V)
+            if not bool((f == f[:, :1]).all()):
+                raise RuntimeError(f"data.views_per_step={V}: a training batch mixes frames {f.tolist()}")
+            out["views_per_frame"] = V
+        return out
 
     def train_dataloader(self) -> DataLoader:
         return self._loader(self._require("train"), shuffle=True)

@@ -29,6 +29,7 @@ from realityavatar.render import rasterize
 
 # Per-point entries of a posed dict, split between the sources and joined again in source order.
 PER_POINT = ("means", "quats", "scales", "rot", "f_mt", "weights", "x_e")
+POSE_INPUTS = ("pose_features", "bone_transforms")  # pose_inputs' keys: what deform reads of a batch
 
 
 @torch.no_grad()
@@ -38,7 +39,7 @@ def pose_inputs(body: BodyModel, poses: torch.Tensor, transl: torch.Tensor) -> d
     [B,24,4,4] (the body's canonical-to-posed transforms of the current, last frame). The dataset computes them for
     every sample (on the host, in the loader's workers), so a training step on a GPU launches none of the ~130
     operations they take; `Avatar.pose_inputs` computes them for poses from anywhere else (animation, export)."""
-    return {"pose_features": pose_features(poses, transl),
+    return {"pose_features": pose_features(poses, transl),  # POSE_INPUTS
             "bone_transforms": body.canonical_transforms(poses[:, -1], transl[:, -1])}
 
 
@@ -159,15 +160,28 @@ class Avatar(nn.Module):
         check_finite: the rasterizer's input checks (they read the device)."""
         viewmats, Ks = batch["viewmat"], batch["K"]
         W, H = int(batch["width"][0]), int(batch["height"][0])  # host ints in training (on_before_batch_transfer)
-        posed = self.deform(batch, deform=deform)
+        V = batch.get("views_per_frame", 1)  # data.views_per_step: V cameras of each frame, one pass of the networks
+        posed = views_of(self.deform({k: batch[k][::V] for k in POSE_INPUTS}, deform=deform), V)
         rgb = self.shade(posed, viewmats, batch["frame_idx"])  # [B,N,3]
         images, alphas, metas = [], [], []
         for b in range(posed["B"]):
             img, alpha, meta = self.splat(posed, b, rgb[b], viewmats[b : b + 1], Ks[b : b + 1], W, H, check_finite)
-            images.append(img[0])
-            alphas.append(alpha[0])
+            images.append(img)
+            alphas.append(alpha)
             metas.append(meta)
-        return torch.stack(images), torch.stack(alphas), metas, posed
+        return torch.cat(images), torch.cat(alphas), metas, posed
+
+
+def views_of(posed: dict, V: int) -> dict:
+    """The posed Gaussians of F frames [F,...] -> those of their V cameras each [F*V,...] (views, no copy for F=1)."""
+    if V == 1:
+        return posed
+    out = dict(posed, B=posed["B"] * V)
+    for k in (*PER_POINT, "sheet_verts"):
+        if k in posed:
+            x = posed[k]
+            out[k] = x[:, None].expand(x.shape[0], V, *x.shape[1:]).reshape(x.shape[0] * V, *x.shape[1:])
+    return out
 
 
 def identity_deformation(B: int, means: torch.Tensor, feature_dim: int) -> dict:

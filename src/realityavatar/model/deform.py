@@ -87,10 +87,11 @@ class MotionTrendDecoder(nn.Module):
         eh = self.in_h(h_t)  # [B,H]
         # h_t's term enters as the first layer's bias (one addmm per sample instead of a broadcast add over [B,N,H])
         # The MLP runs on [B*N,H] rows (2-D matmuls: no copies in the backward of 3-D inputs).
-        z = torch.cat([F.linear(enc, self.in_x.weight, self.in_x.bias + e) for e in eh])  # [B*N,H]
+        z = [F.linear(enc, self.in_x.weight, self.in_x.bias + e) for e in eh.unbind(0)]
+        z = z[0] if len(z) == 1 else torch.cat(z)  # [B*N,H]
         o = self.out(self.hidden(self.in_act(z))).reshape(eh.shape[0], enc.shape[0], -1)  # [B,N,10+F]
-        dq = unit(o[..., 6:10] + constant(_IDENTITY_QUAT, o))
-        return {"dx": o[..., :3], "ds": o[..., 3:6], "dq": dq, "f_mt": o[..., 10:]}
+        dx, ds, dq, f_mt = o.split([3, 3, 4, o.shape[-1] - 10], -1)  # one backward node (slices: one each)
+        return {"dx": dx, "ds": ds, "dq": unit(dq + constant(_IDENTITY_QUAT, o)), "f_mt": f_mt}
 
     def param_groups(self) -> dict[str, list[nn.Parameter]]:
         return {"deformer": list(self.parameters())}

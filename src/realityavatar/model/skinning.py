@@ -229,7 +229,7 @@ def sample_grid(grid: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor, x: torch
     u = (x - lo) / (hi - lo) * 2 - 1
     flat = u.reshape(1, -1, 1, 1, 3).to(grid.dtype)
     v = F.grid_sample(grid, flat, mode="bilinear", padding_mode="border", align_corners=True)
-    return v[0, :, :, 0, 0].transpose(0, 1).reshape(x.shape[:-1] + (grid.shape[1],))
+    return v.view(grid.shape[1], -1).transpose(0, 1).reshape(x.shape[:-1] + (grid.shape[1],))  # views: no copy
 
 
 def skinning_loss(field: nn.Module, points: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
