@@ -1,7 +1,8 @@
 #!/bin/bash
 # One GPU check in one call (repo root, a GPU machine with CUDA torch and nvcc, no network): install the project's
 # missing packages from wheels in .whl/, build gsplat's kernels, run the `gpu` tests, profile the training step and
-# write everything under $OUT. STEP_SIZES="7000 128;35000 512" picks the profiled sizes; BASELINE=<folder with another
+# write everything under $OUT. STEP_SIZES="7000 128;35000 512" picks the profiled sizes, STEP_VIEWS="1 4" the cameras
+# per step (data.views_per_step) timed at each; BASELINE=<folder with another
 # commit's src/ conf/ benchmarks/> profiles that commit's step too, in the same call (compare timings only within one
 # call). SWEEP=1 trains the sweep preset (1,000 steps at 128 px; the baseline's too with BASELINE) and reports its
 # seconds per step; PAPER_SCALE=<seconds> trains `+experiment=paper_scale` for at most that long and evaluates it.
@@ -32,7 +33,8 @@ el "step profile"
 STEP="benchmarks/step.py --device cuda --backends gsplat"
 IFS=";" read -ra SIZES <<< "${STEP_SIZES:-7000 128;35000 512}"   # "N size;N size"
 for NS in "${SIZES[@]}"; do set -- $NS
-  timeout 120 python3 $STEP --n $1 --size $2 --out "$OUT/step_cuda_$1_$2.json" 2>&1 | grep -E "^  gsplat" | cut -c1-400
+  timeout 150 python3 $STEP --n $1 --size $2 --views ${STEP_VIEWS:-1 4} --out "$OUT/step_cuda_$1_$2.json" 2>&1 \
+    | grep -E "^  gsplat" | cut -c1-500
 done
 if [ -n "${BASELINE:-}" ]; then
   el "baseline step profile ($BASELINE, 7000 / 128)"
@@ -57,10 +59,10 @@ PY
 }
 if [ -n "${SWEEP:-}" ]; then
   el "sweep preset, 1000 steps (this commit)"
-  run_train "$PWD" "$OUT/sweep" 300 preset=sweep trainer=gpu render.backend=gsplat
+  run_train "$PWD" "$OUT/sweep" 300 +preset=sweep data=synthetic_sweep trainer=gpu render.backend=gsplat
   if [ -n "${BASELINE:-}" ]; then
     el "sweep preset, 1000 steps ($BASELINE)"
-    run_train "$BASELINE" "$OUT/sweep_baseline" 300 preset=sweep trainer=gpu render.backend=gsplat
+    run_train "$BASELINE" "$OUT/sweep_baseline" 300 +preset=sweep data=synthetic_sweep trainer=gpu render.backend=gsplat
   fi
 fi
 if [ -n "${PAPER_SCALE:-}" ]; then

@@ -96,3 +96,20 @@ def test_lpips_check_compares_with_the_package(tmp_path, monkeypatch, scale):
     assert [r["pair"] for r in res["pairs"]][-1] == "thin_box_12x40" and len(res["pairs"]) == 7
     assert res["max_rel_diff"] == pytest.approx(1 - 1 / scale, abs=1e-5)  # relative to the package
     assert all(r["lpips_package"] > 0 for r in res["pairs"] if not r["pair"].endswith("same"))
+
+
+def test_device_script_trains_configs_that_compose():
+    """benchmarks/device.sh's training stages name configs that compose: a GPU session has minutes, not enough to
+    find a wrong override there."""
+    import re
+    import shlex
+
+    from realityavatar.config import compose
+
+    text = (ROOT / "benchmarks" / "device.sh").read_text()
+    calls = re.findall(r'^\s*run_train "\$\w+" "\$OUT/\w+" \S+ (.+)$', text, re.M)
+    assert len(calls) == 3, calls
+    for overrides in calls:
+        cfg = compose(shlex.split(overrides))
+        assert cfg.trainer.accelerator == "gpu" or "paper_scale" in overrides
+    assert compose(shlex.split(calls[0])).data.image_scale == 0.5  # the sweep scene: 128 px
