@@ -55,3 +55,22 @@ def test_tune_malloc_reports_and_runs_once():
     first = tune_malloc()
     assert isinstance(first, str) and first
     assert tune_malloc() == first
+
+
+def test_constant_is_made_once_per_device_and_dtype():
+    """runtime.constant: a module tensor or a tuple of numbers, in `like`'s dtype, made once (a step on a GPU would
+    otherwise copy it from the host every time); each distinct value has its own entry."""
+    import torch
+
+    from realityavatar.runtime import constant
+
+    like = torch.zeros(2, dtype=torch.float64)
+    a = constant((63.0, 31.0), like)
+    assert a.dtype == torch.float64 and a.tolist() == [63.0, 31.0]
+    assert constant((63.0, 31.0), like) is a and constant((63.0, 31.0), like.float()) is not a
+    assert constant((127.0, 31.0), like).tolist() == [127.0, 31.0]
+    for w in range(60, 70):  # tuples made at run time (an image's size): keyed by value, never by a reused id
+        assert constant((w - 1.0, 31.0), like).tolist() == [w - 1.0, 31.0]
+        assert constant((w - 1.0, 31.0), like) is constant((w - 1.0, 31.0), like)
+    t = torch.arange(3.0)
+    assert constant(t, like) is constant(t, like) and constant(t, like).dtype == torch.float64

@@ -16,7 +16,9 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from realityavatar.geometry import _SKEW
 from realityavatar.render.numba_backend import NUMBA_ERROR, njit, prange
+from realityavatar.runtime import constant
 
 # ----------------------------------------------------------------------------------------------------------- D-SSIM
 SSIM_WINDOW = 11
@@ -289,6 +291,12 @@ def _polar_newton_torch(M: torch.Tensor, iters: int) -> torch.Tensor:
 POLAR_ITERS = 8  # Newton converges quadratically; blends of bone rotations are within a few steps of a rotation
 
 
+_EYE3 = torch.eye(3)
+_AXIAL = torch.zeros(9, 3)  # flattened A [9] -> 0.5 (A21 - A12, A02 - A20, A10 - A01)
+for _i, (_p, _m) in enumerate(((7, 5), (2, 6), (3, 1))):
+    _AXIAL[_p, _i], _AXIAL[_m, _i] = 0.5, -0.5
+
+
 class _PolarRotation(torch.autograd.Function):
     """R = polar factor of M; dL/dM = 2 R [y]_x with (tr(S) I - S) y = axial(skew(R^T dL/dR)), S = R^T M.
 
@@ -316,15 +324,12 @@ class _PolarRotation(torch.autograd.Function):
         S = Rt @ M
         S = 0.5 * (S + S.transpose(-1, -2))
         A = Rt @ G
-        k = 0.5 * torch.stack([A[..., 2, 1] - A[..., 1, 2], A[..., 0, 2] - A[..., 2, 0], A[..., 1, 0] - A[..., 0, 1]], -1)
+        k = A.flatten(-2) @ constant(_AXIAL, A)  # axial vector of A's skew part, 0.5 (A21 - A12, ...): one matmul
         tr = S[..., 0, 0] + S[..., 1, 1] + S[..., 2, 2]
-        T = tr[..., None, None] * torch.eye(3, dtype=M.dtype, device=M.device) - S  # symmetric positive definite
+        T = tr[..., None, None] * constant(_EYE3, M) - S  # symmetric positive definite
         adj, det = _cofactor_det(T, 1e-12)  # T symmetric: its cofactor matrix is its adjugate, T^-1 = adj / det
         y = (adj @ k[..., None]).squeeze(-1) / det[..., None]
-        zero = torch.zeros_like(y[..., 0])
-        Y = torch.stack([torch.stack([zero, -y[..., 2], y[..., 1]], -1),
-                         torch.stack([y[..., 2], zero, -y[..., 0]], -1),
-                         torch.stack([-y[..., 1], y[..., 0], zero], -1)], -2)
+        Y = (y @ constant(_SKEW, y)).unflatten(-1, (3, 3))  # [y]_x
         return 2.0 * (R @ Y)
 
 

@@ -17,6 +17,7 @@ from realityavatar.geometry import sample_surface
 from realityavatar.kernels import dssim
 from realityavatar.metrics import load_features_state, vgg_features
 from realityavatar.model.skinning import skinning_loss
+from realityavatar.runtime import constant
 
 _VGG19_TAPS = (1, 6, 11, 20, 29)  # relu1_1 .. relu5_1
 _VGG19_WEIGHTS = (1 / 32, 1 / 16, 1 / 8, 1 / 4, 1.0)  # pix2pixHD's per-layer weights (deeper = more semantic)
@@ -187,8 +188,8 @@ def outside_distance(uv: torch.Tensor, dist: torch.Tensor) -> torch.Tensor:
     """Pixel coords uv [N,2], a mask's distance field dist [H,W] (pixels) -> each point's distance to the mask [N]:
     the field sampled bilinearly inside the image, plus the distance to the image beyond it."""
     H, W = dist.shape
-    lim = uv.new_tensor([W - 1.0, H - 1.0])
-    inside = torch.minimum(torch.maximum(uv, uv.new_zeros(2)), lim)
+    lim = constant((W - 1.0, H - 1.0), uv)
+    inside = torch.minimum(uv.clamp(min=0.0), lim)
     grid = (inside / lim * 2 - 1)[None, None]  # [1,1,N,2] in grid_sample's [-1,1] (align_corners=True)
     d_in = F.grid_sample(dist[None, None], grid, mode="bilinear", align_corners=True)[0, 0, 0]  # [N]
     return d_in + (uv - inside).norm(dim=-1)

@@ -87,10 +87,11 @@ class OpCount(TorchDispatchMode):
 _CONSTANTS: dict[tuple, torch.Tensor] = {}
 
 
-def constant(t: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
-    """A module-level constant tensor `t` in `like`'s device and dtype, copied there once: a `t.to(like)` in the
-    training step would copy it from the host at every step on a GPU."""
-    key = (id(t), like.device, like.dtype)
+def constant(t: torch.Tensor | tuple[float, ...], like: torch.Tensor) -> torch.Tensor:
+    """A constant in `like`'s device and dtype, copied there once: a module-level tensor `t`, or a tuple of numbers
+    (e.g. an image's size). A `t.to(like)` or `like.new_tensor(values)` in the training step would copy it from the
+    host at every step on a GPU (and wait for the copy)."""
+    key = (t if isinstance(t, tuple) else id(t), like.device, like.dtype)
     if key not in _CONSTANTS:
-        _CONSTANTS[key] = t.to(like)
+        _CONSTANTS[key] = torch.tensor(t, dtype=like.dtype, device=like.device) if isinstance(t, tuple) else t.to(like)
     return _CONSTANTS[key]

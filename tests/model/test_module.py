@@ -169,8 +169,9 @@ def _stepping_module(body, monkeypatch, device: str = "cpu", log_every: int = 5,
 
 
 def test_views_of_one_frame_pose_it_once_and_render_as_separate_samples(body, monkeypatch):
-    """data.views_per_step: a batch of V cameras of one frame (views_per_frame) runs the networks for one frame and
-    renders what the same batch renders sample by sample, gradients included."""
+    """data.views_per_step: a batch of V cameras of one frame (views_per_frame) runs the networks for one frame,
+    rasterizes its cameras in one call and renders what the same batch renders sample by sample, gradients
+    included."""
     from tests.helpers import benchmark
 
     module, _ = _stepping_module(body, monkeypatch)
@@ -180,7 +181,8 @@ def test_views_of_one_frame_pose_it_once_and_render_as_separate_samples(body, mo
     shapes = []
     module.deformer.register_forward_hook(lambda m, args, out: shapes.append(tuple(args[1].shape)))
     rgb, alpha, metas, posed = module.render_batch(batch)
-    assert shapes == [(1, module.deformer.in_h.in_features)] and posed["B"] == 3 and len(metas) == 3
+    assert shapes == [(1, module.deformer.in_h.in_features)] and posed["B"] == 3
+    assert len(metas) == 1 and metas[0]["means2d"].shape[0] == 3  # one rasterizer call for the frame's 3 cameras
     g = torch.autograd.grad(rgb.square().sum() + alpha.sum(), module.deformer.out.weight)[0]
     separate = {k: v for k, v in batch.items() if k != "views_per_frame"}
     rgb1, alpha1, _, _ = module.render_batch(separate)

@@ -149,9 +149,9 @@ class Avatar(nn.Module):
 
     def splat(self, posed: dict, b: int, rgb: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor, W: int, H: int,
               check_finite: bool = True):
-        """Rasterize sample b of `posed` with colours rgb [N,3] from one camera (viewmat [1,4,4], K [1,3,3]) over
-        the run's background. check_finite: name a non-finite input (reads the device)."""
-        bg = self.background_rgb.to(rgb)[None]
+        """Rasterize sample b of `posed` from C cameras (viewmat [C,4,4], K [C,3,3]; colours rgb [N,3] or [C,N,3])
+        over the run's background: one rasterizer call. check_finite: name a non-finite input (reads the device)."""
+        bg = self.background_rgb.to(rgb)[None].expand(viewmat.shape[0], -1)
         return rasterize(posed["means"][b], posed["quats"][b], posed["scales"][b], posed["opacities"], rgb,
                          viewmat, K, W, H, backgrounds=bg, check_finite=check_finite, **self.render_cfg)
 
@@ -164,8 +164,9 @@ class Avatar(nn.Module):
         posed = views_of(self.deform({k: batch[k][::V] for k in POSE_INPUTS}, deform=deform), V)
         rgb = self.shade(posed, viewmats, batch["frame_idx"])  # [B,N,3]
         images, alphas, metas = [], [], []
-        for b in range(posed["B"]):
-            img, alpha, meta = self.splat(posed, b, rgb[b], viewmats[b : b + 1], Ks[b : b + 1], W, H, check_finite)
+        for b in range(0, posed["B"], V):  # one rasterizer call per frame, for its V cameras
+            img, alpha, meta = self.splat(posed, b, rgb[b : b + V], viewmats[b : b + V], Ks[b : b + V], W, H,
+                                          check_finite)
             images.append(img)
             alphas.append(alpha)
             metas.append(meta)
