@@ -113,3 +113,15 @@ def test_device_script_trains_configs_that_compose():
         cfg = compose(shlex.split(overrides))
         assert cfg.trainer.accelerator == "gpu" or "paper_scale" in overrides
     assert compose(shlex.split(calls[0])).data.image_scale == 0.5  # the sweep scene: 128 px
+
+
+def test_components_benchmark_runs_and_states_the_decoder_floor(tmp_path, monkeypatch):
+    """benchmarks/components.py runs the model path as the model calls it and prints the decoder's matmul floor."""
+    components = benchmark("components")
+    out = tmp_path / "c.json"
+    monkeypatch.setattr(sys, "argv", ["components.py", "--points", "300", "--repeats", "1", "--out", str(out)])
+    components.main()
+    rows = json.loads(out.read_text())["rows"]
+    assert [r["what"] for r in rows] == ["encoder+lstm+decoder+skinning+lbs+colour", "decoder (motion trend, ReLU)"]
+    # 300 x (39x128 + 2x128x128 + 128x26) multiply-adds forward, twice that backward less the first layer's input
+    assert rows[1]["matmul_gflop"] == pytest.approx(2 * 300 * (3 * 41088 - 39 * 128) / 1e9)
