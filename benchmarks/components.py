@@ -92,7 +92,7 @@ def main() -> None:
     unit_rate = 8 * 2 * 1024**3 / unit  # FLOP/s
     rows = []
     for n in args.points:
-        rows.append({"what": "encoder+lstm+decoder+skinning+lbs+colour", "points": n,
+        rows.append({"what": "encoder+lstm+decoder+skinning MLP+lbs+colour", "points": n,
                      "seconds": best_of(path_step(n), args.repeats)})
         step, flops = decoder_step(n)
         rows.append({"what": "decoder (motion trend, ReLU)", "points": n, "seconds": best_of(step, args.repeats),

@@ -122,6 +122,6 @@ def test_components_benchmark_runs_and_states_the_decoder_floor(tmp_path, monkey
     monkeypatch.setattr(sys, "argv", ["components.py", "--points", "300", "--repeats", "1", "--out", str(out)])
     components.main()
     rows = json.loads(out.read_text())["rows"]
-    assert [r["what"] for r in rows] == ["encoder+lstm+decoder+skinning+lbs+colour", "decoder (motion trend, ReLU)"]
+    assert [r["what"] for r in rows] == ["encoder+lstm+decoder+skinning MLP+lbs+colour", "decoder (motion trend, ReLU)"]
     # 300 x (39x128 + 2x128x128 + 128x26) multiply-adds forward, twice that backward less the first layer's input
     assert rows[1]["matmul_gflop"] == pytest.approx(2 * 300 * (3 * 41088 - 39 * 128) / 1e9)
