@@ -109,3 +109,14 @@ def test_wrong_pose_shape_gives_clear_error(body):
         check_pose_shape(torch.zeros(24, 3), torch.zeros(2))
     with pytest.raises(ValueError, match=r"\[\.\.\.,24,3\]"):
         body(torch.zeros(23, 3))
+
+def test_host_copy_poses_like_the_body_with_caches_of_its_own(body):
+    """The datasets' copy of the body (BodyModel.host_copy): same transforms, on the CPU, its own canonical cache."""
+    pose = torch.randn(2, 24, 3, generator=torch.Generator().manual_seed(3)) * 0.3
+    A = body.canonical_transforms(pose)  # fills the body's cache
+    copy = body.host_copy()
+    assert copy is not body and copy._canonical_inverse == {} and body._canonical_inverse
+    assert all(b.device.type == "cpu" for b in copy.buffers())
+    torch.testing.assert_close(copy.canonical_transforms(pose), A)
+    copy.rest_joints.add_(1.0)  # its buffers are its own
+    assert not torch.equal(copy.rest_joints, body.rest_joints)

@@ -10,6 +10,8 @@ Conventions (shared with the data readers and the avatar model):
 
 from __future__ import annotations
 
+import copy
+
 import functools
 import math
 
@@ -93,6 +95,13 @@ class BodyModel(nn.Module):
         w = torch.as_tensor(skin_weights, dtype=torch.float32)
         self.register_buffer("skin_weights", w / w.sum(-1, keepdim=True).clamp_min(1e-8), persistent=False)
         self.register_buffer("rest_joints", torch.as_tensor(rest_joints, dtype=torch.float32), persistent=False)
+
+    def host_copy(self) -> BodyModel:
+        """A copy on the CPU with caches of its own (the datasets pose their samples with it, in the loader's
+        workers, while the model's body may live on a GPU)."""
+        body = copy.deepcopy(self).to("cpu")
+        body._canonical_inverse = {}
+        return body
 
     @property
     def num_vertices(self) -> int:

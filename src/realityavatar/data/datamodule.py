@@ -6,7 +6,6 @@ transl [T,3], pose_features [T,D], bone_transforms [24,4,4], frame, frame_idx, v
 
 from __future__ import annotations
 
-import copy
 import logging
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -500,7 +499,7 @@ class AvatarDataModule(pl.LightningDataModule):
         if self.body is None:
             raise ValueError(f"{scene.source}: AvatarDataModule needs the body model (body=...) to serve samples: "
                              "each carries the pose window's bone transforms")
-        body = copy.deepcopy(self.body).to("cpu")  # the samples' pose inputs are made on the host, in the workers
+        body = self.body.host_copy()  # the samples' pose inputs are made on the host, in the workers
         self.datasets = {s: AvatarDataset(recs, scene.poses, s, body, **kw) for s, recs in selected.items() if recs}
         self.test_split_names = [s for s in ("novel_view", "novel_pose") if s in self.datasets]
         if self.shuffle_seed is None:
