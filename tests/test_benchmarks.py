@@ -110,9 +110,10 @@ def test_device_script_trains_configs_that_compose():
     calls = re.findall(r'^\s*run_train "\$\w+" "\$OUT/\w+" \S+ (.+)$', text, re.M)
     assert len(calls) == 3, calls
     for overrides in calls:
-        cfg = compose(shlex.split(overrides))
+        cfg = compose(shlex.split(overrides.replace("$MAXT", "00:00:04:00")))
         assert cfg.trainer.accelerator == "gpu" or "paper_scale" in overrides
     assert compose(shlex.split(calls[0])).data.image_scale == 0.5  # the sweep scene: 128 px
+    assert compose(shlex.split(calls[2].replace("$MAXT", "00:00:04:00"))).trainer.max_time == "00:00:04:00"
 
 
 def test_components_benchmark_runs_and_states_the_decoder_floor(tmp_path, monkeypatch):
