@@ -132,10 +132,14 @@ def test_feet_on_ground_and_garment_near_body(ci_scene, body):
     assert 0.2 < g[:, 1].min() < 1.0 and g[:, 1].max() < 1.3  # a skirt: from about knee to waist height
 
 
-def test_determinism_cache_and_other_seed(ci_scene, tmp_path):
-    root_a = ci_scene.parent
+def test_determinism_cache_and_other_seed(ci_scene, tmp_path, monkeypatch):
+    import os
+
+    root_a = ci_scene.parent  # frames ray cast by one process per core (scene._rendered_frames)
     root_b = tmp_path / "b"
-    prefix_b = build_scene("ci", root_b, seed=0, progress=False)
+    with monkeypatch.context() as m:
+        m.setattr(os, "sched_getaffinity", lambda pid: {0})  # one core: every frame in this process
+        prefix_b = build_scene("ci", root_b, seed=0, progress=False)
     assert _tree_hashes(root_a) == _tree_hashes(root_b)  # same seed -> byte-identical files
     meta = scene_paths(prefix_b)["meta"]
     stamp = meta.stat().st_mtime_ns

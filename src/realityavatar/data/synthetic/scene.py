@@ -245,6 +245,31 @@ def remove_stale_builds(root: Path, name: str, max_age_s: float = 24 * 3600) -> 
     return removed
 
 
+_FRAME_JOB: dict | None = None  # what _render_frame needs, inherited by the forked workers (not pickled per frame)
+
+
+def _render_frame(f: int) -> tuple[np.ndarray, np.ndarray]:
+    """Frame f of the scene being written: rgb [C,H,W,3], mask [C,H,W] (uint8) of every camera."""
+    j = _FRAME_JOB
+    verts_w, body_faces, body_tex, garment_verts, garment_faces, garm_tex = j["parts"]
+    return render_views([(verts_w[f], body_faces, body_tex), (garment_verts[f], garment_faces, garm_tex)], j["Ks"],
+                        j["viewmats"], j["width"], j["height"], j["rays"], ambient=j["ambient"],
+                        diffuse=j["diffuse"], supersample=j["supersample"])
+
+
+def _rendered_frames(F: int):
+    """The frames' renders in order, ray cast by one forked process per CPU core (each frame is independent and
+    deterministic, so the files are the same as from one process); in one process where forking is not possible."""
+    import multiprocessing as mp
+
+    workers = min(len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1, F)
+    if workers < 2 or mp.current_process().daemon or "fork" not in mp.get_all_start_methods():
+        yield from map(_render_frame, range(F))
+        return
+    with mp.get_context("fork").Pool(workers) as pool:
+        yield from pool.imap(_render_frame, range(F))
+
+
 def _write(tmp: Path, p: dict, seed: int, phash: str, body, motion: Motion, Ks, viewmats, train_ids, nv_ids,
            verts_w, joints_body, garment, progress: bool) -> None:
     from tqdm import tqdm
@@ -260,10 +285,12 @@ def _write(tmp: Path, p: dict, seed: int, phash: str, body, motion: Motion, Ks, 
     all_ids = list(range(p["cameras"]))
     F = motion.num_frames
     rays = all_camera_rays(Ks, viewmats, p["width"], p["height"])
-    for f in tqdm(range(F), desc=f"scene {name}", disable=not progress, unit="frame"):
-        rgb, mask = render_views([(verts_w[f], body_faces, body_tex), (garment.vertices[f], garment.faces, garm_tex)],
-                                 Ks, viewmats, p["width"], p["height"], rays, ambient=p["ambient"],
-                                 diffuse=p["diffuse"], supersample=p["supersample"])
+    global _FRAME_JOB
+    _FRAME_JOB = dict(parts=(verts_w, body_faces, body_tex, garment.vertices, garment.faces, garm_tex), Ks=Ks,
+                      viewmats=viewmats, width=p["width"], height=p["height"], rays=rays, ambient=p["ambient"],
+                      diffuse=p["diffuse"], supersample=p["supersample"])
+    for f, (rgb, mask) in enumerate(tqdm(_rendered_frames(F), total=F, desc=f"scene {name}", disable=not progress,
+                                         unit="frame")):
         poses = motion.pose[f].reshape(72).astype(np.float32)
         info = {"poses": poses, "Rh": motion.Rh[f].astype(np.float32), "Th": motion.Th[f].astype(np.float32),
                 "joints": joints_body[f].astype(np.float32), "tpose_joints": tpose}
