@@ -9,6 +9,7 @@ from torch import nn
 
 from realityavatar.geometry import quat_to_matrix
 from realityavatar.model.gaussians import CanonicalGaussians, inverse_sigmoid
+from realityavatar.runtime import constant
 
 
 def _swap_in_optimizer(
@@ -131,10 +132,9 @@ class DensityControl:
             if m2d.grad is None:
                 continue
             P = m2d.shape[-2]  # Gaussians rendered
-            g = m2d.grad.detach().reshape(-1, P, 2)[:, :N].clone()  # [C,N,2]
+            g = m2d.grad.detach().reshape(-1, P, 2)[:, :N]  # [C,N,2]
             C = g.shape[0]
-            g[..., 0] *= W / 2.0 * n_images
-            g[..., 1] *= H / 2.0 * n_images
+            g = g * constant((W / 2.0 * n_images, H / 2.0 * n_images), g)  # to pixels, like gsplat
             if "radii" in meta:
                 vis = meta["radii"].reshape(C, P, -1)[:, :N].amax(-1) > 0  # [C,N]
             else:
