@@ -107,7 +107,7 @@ def test_device_script_trains_configs_that_compose():
     from realityavatar.config import compose
 
     text = (ROOT / "benchmarks" / "device.sh").read_text()
-    calls = re.findall(r'^\s*run_train "\$\w+" "\$OUT/\w+" \S+ (.+)$', text, re.M)
+    calls = re.findall(r'^\s*run_train "\$\w+" "\$OUT/\w+" \S+ (.+)$', text, re.MULTILINE)
     assert len(calls) == 3, calls
     for overrides in calls:
         cfg = compose(shlex.split(overrides.replace("$MAXT", "00:00:04:00")))

@@ -11,7 +11,6 @@ Conventions (shared with the data readers and the avatar model):
 from __future__ import annotations
 
 import copy
-
 import functools
 import math
 

@@ -286,9 +286,9 @@ def _write(tmp: Path, p: dict, seed: int, phash: str, body, motion: Motion, Ks, 
     F = motion.num_frames
     rays = all_camera_rays(Ks, viewmats, p["width"], p["height"])
     global _FRAME_JOB
-    _FRAME_JOB = dict(parts=(verts_w, body_faces, body_tex, garment.vertices, garment.faces, garm_tex), Ks=Ks,
-                      viewmats=viewmats, width=p["width"], height=p["height"], rays=rays, ambient=p["ambient"],
-                      diffuse=p["diffuse"], supersample=p["supersample"])
+    _FRAME_JOB = {"parts": (verts_w, body_faces, body_tex, garment.vertices, garment.faces, garm_tex), "Ks": Ks,
+                  "viewmats": viewmats, "width": p["width"], "height": p["height"], "rays": rays,
+                  "ambient": p["ambient"], "diffuse": p["diffuse"], "supersample": p["supersample"]}
     for f, (rgb, mask) in enumerate(tqdm(_rendered_frames(F), total=F, desc=f"scene {name}", disable=not progress,
                                          unit="frame")):
         poses = motion.pose[f].reshape(72).astype(np.float32)
