@@ -194,6 +194,27 @@ def test_views_of_one_frame_pose_it_once_and_render_as_separate_samples(body, mo
     assert not torch.allclose(rgb[0], rgb[1])  # three different cameras
 
 
+def test_views_of_two_frames_in_one_batch(body, monkeypatch):
+    """batch_size 2 x views_per_step 2: each frame's pose inputs are read once (every V-th sample) and its images come
+    from its own pose, as when every sample is rendered on its own."""
+    from tests.helpers import benchmark
+
+    module, _ = _stepping_module(body, monkeypatch)
+    make = benchmark("step").make_batch_fn(module, 32, int(compose([]).data.window_len), views=2)
+    a, b = make(), make()  # two pose windows, two cameras each
+    batch = {k: torch.cat([a[k], b[k]]) if torch.is_tensor(a[k]) else a[k] for k in a}
+    batch.update(width=a["width"] + b["width"], height=a["height"] + b["height"])
+    shapes = []
+    module.deformer.register_forward_hook(lambda m, args, out: shapes.append(tuple(args[1].shape)))
+    with torch.no_grad():
+        rgb, alpha, metas, posed = module.render_batch(batch)
+        rgb1, alpha1, _, _ = module.render_batch({k: v for k, v in batch.items() if k != "views_per_frame"})
+    assert shapes[0][0] == 2 and shapes[1][0] == 4 and len(metas) == 2 and posed["B"] == 4
+    torch.testing.assert_close(rgb, rgb1, atol=1e-5, rtol=0)
+    torch.testing.assert_close(alpha, alpha1, atol=1e-5, rtol=0)
+    assert not torch.allclose(rgb[0], rgb[2], atol=1e-3)  # the two frames differ
+
+
 def test_a_training_step_reads_the_device_only_on_log_steps(body, monkeypatch):
     """No scalar read (.item(), float(), bool() of a tensor) and no data-dependent shape (nonzero, boolean-mask
     indexing) in a training step but every `log_every` steps: on a GPU each would wait for the device. Counted on the
