@@ -37,7 +37,7 @@ def pose_inputs(body: BodyModel, poses: torch.Tensor, transl: torch.Tensor) -> d
     """The part of the forward pass that depends on the poses alone (no parameters, no gradient), from a pose window
     poses [B,T,24,3], transl [B,T,3]: `pose_features` [B,T,D] (the encoder's input) and `bone_transforms`
     [B,24,4,4] (the body's canonical-to-posed transforms of the current, last frame). The dataset computes them for
-    every sample (on the host, in the loader's workers), so a training step on a GPU launches none of the ~130
+    every sample (on the host, in the loader's workers), so a training step on a GPU launches none of the ~110
     operations they take; `Avatar.pose_inputs` computes them for poses from anywhere else (animation, export)."""
     return {"pose_features": pose_features(poses, transl),  # POSE_INPUTS
             "bone_transforms": body.canonical_transforms(poses[:, -1], transl[:, -1])}
