@@ -24,7 +24,6 @@ measurable on a CPU.
 from __future__ import annotations
 
 import argparse
-import copy
 import json
 import math
 import os
@@ -119,7 +118,7 @@ def make_batch_fn(module, size: int, window: int, views: int = 1):
     images = [torch.rand(views, size, size, 3, generator=g) for _ in range(4)]
     masks = [(torch.rand(views, size, size, 1, generator=g) > 0.5).float() for _ in images]
     dists = [torch.stack([mask_distance(m[..., 0]) for m in ms]) for ms in masks]
-    body = copy.deepcopy(module.body).cpu()  # the dataset's copy, on the host
+    body = module.body.host_copy()  # the dataset's copy, on the host
 
     def make():
         """Per sample, as AvatarDataset.__getitem__: a pose window and its pose inputs; a cached image."""

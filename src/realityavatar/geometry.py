@@ -34,6 +34,11 @@ def unit(x: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
     return _Unit.apply(x, eps)
 
 
+def skew(v: torch.Tensor) -> torch.Tensor:
+    """v [...,3] -> the cross-product matrix [v]x [...,3,3] (one matmul with a constant map)."""
+    return (v @ constant(_SKEW, v)).unflatten(-1, (3, 3))
+
+
 def axis_angle_to_matrix(aa: torch.Tensor) -> torch.Tensor:
     """aa: [...,3] -> [...,3,3] (Rodrigues, stable and differentiable near zero)."""
     theta2 = (aa * aa).sum(-1, keepdim=True)  # [...,1]
@@ -42,7 +47,7 @@ def axis_angle_to_matrix(aa: torch.Tensor) -> torch.Tensor:
     # Taylor series near zero keeps gradients finite.
     a = torch.where(small, 1 - theta2 / 6, torch.sin(theta) / theta)
     b = torch.where(small, 0.5 - theta2 / 24, (1 - torch.cos(theta)) / theta2.clamp_min(1e-24))
-    k = (aa @ constant(_SKEW, aa)).unflatten(-1, (3, 3))  # [...,3,3] cross-product matrix [aa]x
+    k = skew(aa)  # [...,3,3] cross-product matrix [aa]x
     eye = torch.eye(3, dtype=aa.dtype, device=aa.device).expand_as(k)
     return eye + a[..., None] * k + b[..., None] * (k @ k)
 

@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from realityavatar.geometry import _SKEW
+from realityavatar.geometry import skew
 from realityavatar.render.numba_backend import NUMBA_ERROR, njit, prange
 from realityavatar.runtime import constant
 
@@ -329,8 +329,7 @@ class _PolarRotation(torch.autograd.Function):
         T = tr[..., None, None] * constant(_EYE3, M) - S  # symmetric positive definite
         adj, det = _cofactor_det(T, 1e-12)  # T symmetric: its cofactor matrix is its adjugate, T^-1 = adj / det
         y = (adj @ k[..., None]).squeeze(-1) / det[..., None]
-        Y = (y @ constant(_SKEW, y)).unflatten(-1, (3, 3))  # [y]_x
-        return 2.0 * (R @ Y)
+        return 2.0 * (R @ skew(y))
 
 
 def polar_rotation(M: torch.Tensor, backend: str = "closed_form") -> torch.Tensor:

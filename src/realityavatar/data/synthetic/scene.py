@@ -257,17 +257,23 @@ def _render_frame(f: int) -> tuple[np.ndarray, np.ndarray]:
                         diffuse=j["diffuse"], supersample=j["supersample"])
 
 
-def _rendered_frames(F: int):
-    """The frames' renders in order, ray cast by one forked process per CPU core (each frame is independent and
-    deterministic, so the files are the same as from one process); in one process where forking is not possible."""
+def _rendered_frames(job: dict, F: int):
+    """The renders of frames 0..F-1 of `job` (_render_frame's inputs) in order, ray cast by one forked process per CPU
+    core (each frame is independent and deterministic, so the files are the same as from one process); in one
+    process where forking is not possible. The job is released when the frames are done."""
     import multiprocessing as mp
 
-    workers = min(len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1, F)
-    if workers < 2 or mp.current_process().daemon or "fork" not in mp.get_all_start_methods():
-        yield from map(_render_frame, range(F))
-        return
-    with mp.get_context("fork").Pool(workers) as pool:
-        yield from pool.imap(_render_frame, range(F))
+    global _FRAME_JOB
+    _FRAME_JOB = job
+    try:
+        workers = min(len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1, F)
+        if workers < 2 or mp.current_process().daemon or "fork" not in mp.get_all_start_methods():
+            yield from map(_render_frame, range(F))
+            return
+        with mp.get_context("fork").Pool(workers) as pool:
+            yield from pool.imap(_render_frame, range(F))
+    finally:
+        _FRAME_JOB = None
 
 
 def _write(tmp: Path, p: dict, seed: int, phash: str, body, motion: Motion, Ks, viewmats, train_ids, nv_ids,
@@ -285,12 +291,11 @@ def _write(tmp: Path, p: dict, seed: int, phash: str, body, motion: Motion, Ks, 
     all_ids = list(range(p["cameras"]))
     F = motion.num_frames
     rays = all_camera_rays(Ks, viewmats, p["width"], p["height"])
-    global _FRAME_JOB
-    _FRAME_JOB = {"parts": (verts_w, body_faces, body_tex, garment.vertices, garment.faces, garm_tex), "Ks": Ks,
-                  "viewmats": viewmats, "width": p["width"], "height": p["height"], "rays": rays,
-                  "ambient": p["ambient"], "diffuse": p["diffuse"], "supersample": p["supersample"]}
-    for f, (rgb, mask) in enumerate(tqdm(_rendered_frames(F), total=F, desc=f"scene {name}", disable=not progress,
-                                         unit="frame")):
+    job = {"parts": (verts_w, body_faces, body_tex, garment.vertices, garment.faces, garm_tex), "Ks": Ks,
+           "viewmats": viewmats, "width": p["width"], "height": p["height"], "rays": rays, "ambient": p["ambient"],
+           "diffuse": p["diffuse"], "supersample": p["supersample"]}
+    for f, (rgb, mask) in enumerate(tqdm(_rendered_frames(job, F), total=F, desc=f"scene {name}",
+                                         disable=not progress, unit="frame")):
         poses = motion.pose[f].reshape(72).astype(np.float32)
         info = {"poses": poses, "Rh": motion.Rh[f].astype(np.float32), "Th": motion.Th[f].astype(np.float32),
                 "joints": joints_body[f].astype(np.float32), "tpose_joints": tpose}
