@@ -233,7 +233,9 @@ class SilhouetteChamfer(nn.Module):
         for b in range(B):
             for k, v in self.image_terms(out.posed["means"][b], out.batch["viewmat"][b], out.batch["K"][b],
                                          out.batch["mask"][b], out.batch["mask_dist"][b], out.alpha[b]).items():
-                sil[k] = sil.get(k, 0.0) + v / B
+                sil[k] = sil[k] + v if k in sil else v
+        if B > 1:
+            sil = {k: v / B for k, v in sil.items()}
         return self.total(sil), {k: v.detach() for k, v in sil.items()}
 
     def image_terms(self, means: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor, mask: torch.Tensor,

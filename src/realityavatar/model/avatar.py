@@ -49,6 +49,15 @@ def join(parts: list[torch.Tensor], dim: int = 0) -> torch.Tensor:
     return parts[0] if len(parts) == 1 else torch.cat(parts, dim)
 
 
+def cut(x: torch.Tensor, sizes: list[int], dim: int) -> list[torch.Tensor]:
+    """`join`'s inverse: x split into parts of `sizes` along `dim`. With one non-empty part it is x itself and the
+    others are empty views, so the backward has no split to undo (a split's backward fills the empty parts' gradients
+    with zeros and concatenates: a dozen operations per step with sheet=none)."""
+    if sum(1 for n in sizes if n) != 1:
+        return list(x.split(sizes, dim))
+    return [x if n else x.narrow(dim, 0, 0) for n in sizes]
+
+
 class Avatar(nn.Module):
     """Canonical Gaussians (+ garment sheet) -> pose encoder -> temporal -> motion-trend decoder -> skinning -> colour.
 
@@ -102,7 +111,7 @@ class Avatar(nn.Module):
         means, log_scales, quats = (join([p[i] for p in points]) for i in range(3))
         if deform:
             out = self.deformer(means, h_t)
-            out["dx"] = join([s.move(dx, h_t) for s, dx in zip(self.sources, out["dx"].split(sizes, 1))], 1)
+            out["dx"] = join([s.move(dx, h_t) for s, dx in zip(self.sources, cut(out["dx"], sizes, 1))], 1)
         else:
             out = identity_deformation(B, means, self.deformer.feature_dim)
         x_e, log_s_e, q_e = apply_deformation(means, log_scales, quats, out)  # [B,N,3],[B,N,3],[B,N,4]
@@ -112,7 +121,7 @@ class Avatar(nn.Module):
         means_o, quats_o, rot = lbs_gaussians(x_e, q_e, w, A)
         posed = {"means": means_o, "quats": quats_o, "scales": torch.exp(log_s_e), "rot": rot, "f_mt": out["f_mt"],
                  "weights": w, "x_e": x_e}
-        chunks = {k: v.split(sizes, 1) for k, v in posed.items()}
+        chunks = {k: cut(v, sizes, 1) for k, v in posed.items()}
         per_source = [s.splats({k: c[i] for k, c in chunks.items()}) for i, s in enumerate(self.sources)]
         posed = {k: v for part in per_source for k, v in part.items() if k not in PER_POINT}  # e.g. sheet_verts
         for k in PER_POINT:

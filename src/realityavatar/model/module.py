@@ -86,8 +86,10 @@ class AvatarModule(Avatar, pl.LightningModule):
         self.lpips_status = "computed" if lpips is not None else "not computed"  # build_module sets the reason
         self.test_records: list[dict] = []
         self.log_every = 1  # the trainer's log_every_n_steps (set in setup)
-        self._finite: torch.Tensor | None = None  # every loss since the last log step was finite (on the device)
-        self._finite_since = 0  # the first step of that flag
+        # The sum of the losses since the last log step, on the device: finite iff every one of them was (a NaN or an
+        # infinity stays in a sum). One addition per step; read on log steps only.
+        self._loss_sum: torch.Tensor | None = None
+        self._loss_sum_since = 0  # the first step in that sum
         # Facts needed to rebuild the run from its checkpoint (num_train_frames, scene_extent, ...).
         self.run_info: dict = {"scene_extent": self.scene_extent}
         # Frozen networks from weight files (LPIPS, the perceptual loss's VGG19) stay out of the checkpoint, so a run
@@ -153,11 +155,10 @@ class AvatarModule(Avatar, pl.LightningModule):
         total, terms, out, metas = self.training_loss(batch, step, check=log_now)
         # A non-finite loss is remembered on the device and raised on the next log step (ModelCheckpoint saves
         # after this hook: no checkpoint is written between a non-finite step and the error).
-        finite = torch.isfinite(total.detach())
-        if self._finite is None:
-            self._finite, self._finite_since = finite, step
+        if self._loss_sum is None:
+            self._loss_sum, self._loss_sum_since = total.detach(), step
         else:
-            self._finite = self._finite & finite
+            self._loss_sum = self._loss_sum + total.detach()
         if log_now:
             self._check_finite(step, f": {terms}")  # before this step's update
         self.manual_backward(total)
@@ -189,11 +190,11 @@ class AvatarModule(Avatar, pl.LightningModule):
         return {"loss": total.detach(), "image_loss": image_loss}
 
     def _check_finite(self, last_step: int, detail: str) -> None:
-        """Raise if a loss since the flag was last cleared was non-finite (one read of the device), then clear it."""
-        if self._finite is not None and not bool(self._finite):
-            raise FloatingPointError(f"training loss became non-finite between steps {self._finite_since} and "
+        """Raise if a loss since the sum was last cleared was non-finite (one read of the device), then clear it."""
+        if self._loss_sum is not None and not bool(torch.isfinite(self._loss_sum)):
+            raise FloatingPointError(f"training loss became non-finite between steps {self._loss_sum_since} and "
                                      f"{last_step}{detail}")
-        self._finite = None
+        self._loss_sum = None
 
     def components(self) -> dict[str, nn.Module]:
         """The trained components, in optimizer-group order."""

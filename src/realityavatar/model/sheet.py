@@ -352,10 +352,13 @@ class NoSheet(nn.Module):
         super().__init__()
         self.feature_dim = int(feature_dim)
         self.register_buffer("features", torch.zeros(0, self.feature_dim), persistent=False)
+        # empty points, made once (not per step)
+        self.register_buffer("_empty3", torch.zeros(0, 3), persistent=False)
+        self.register_buffer("_empty4", torch.zeros(0, 4), persistent=False)
+        self.register_buffer("_empty", torch.zeros(0), persistent=False)
 
     def points(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        e = self.features.new_zeros(0, 3)
-        return e, e, self.features.new_zeros(0, 4)
+        return self._empty3, self._empty3, self._empty4
 
     def move(self, dx: torch.Tensor, h_t: torch.Tensor) -> torch.Tensor:
         return dx
@@ -364,11 +367,10 @@ class NoSheet(nn.Module):
         return posed
 
     def opacities(self) -> torch.Tensor:
-        return self.features.new_zeros(0)
+        return self._empty
 
     def canonical(self) -> dict:
-        e = self.features.new_zeros(0, 3)
-        return {"means": e, "quats": self.features.new_zeros(0, 4), "scales": e, "opacities": self.opacities()}
+        return {"means": self._empty3, "quats": self._empty4, "scales": self._empty3, "opacities": self._empty}
 
     def param_groups(self) -> dict[str, list[nn.Parameter]]:
         return {}
