@@ -88,16 +88,13 @@ for _row, _terms in enumerate((
 
 def matrix_to_quat(R: torch.Tensor) -> torch.Tensor:
     """R: [...,3,3] -> unit quaternion [...,4] (wxyz, w >= 0)."""
-    # pytorch3d's four candidates (each quaternion scaled by 4|q_i|, computed from R as one linear map: _CANDIDATES),
-    # the best-conditioned one (largest |q_i|) kept.
+    # pytorch3d's four candidates (row i = 4 q_i q, computed from R as one linear map: _CANDIDATES), the
+    # best-conditioned one (largest q_i^2, the diagonal) kept and normalised: that removes the scale 4 q_i, so the
+    # candidates need no division by it (pytorch3d's; norm >= 2 for the kept row of a rotation).
     flat = R.reshape(-1, 9)
     cands = torch.addmm(constant(_CANDIDATES_0, R), flat, constant(_CANDIDATES, R)).reshape(R.shape[:-2] + (4, 4))  # [...,4,4]
-    t = torch.diagonal(cands, dim1=-2, dim2=-1)  # [...,4] = 4 q_i^2
-    q_abs = torch.sqrt(t.clamp_min(1e-12))  # 2|q_i|
-    cands = cands / (2 * q_abs[..., None].clamp_min(0.1))
-    idx = q_abs.argmax(-1)
-    q = torch.gather(cands, -2, idx[..., None, None].expand(idx.shape + (1, 4))).squeeze(-2)
-    q = unit(q)
+    idx = torch.diagonal(cands, dim1=-2, dim2=-1).argmax(-1)  # [...] the largest 4 q_i^2
+    q = unit(torch.gather(cands, -2, idx[..., None, None].expand(idx.shape + (1, 4))).squeeze(-2))
     return q * torch.where(q[..., :1] < 0, -1.0, 1.0)
 
 

@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import pytest
 import torch
+import torch.nn.functional as F
+from torch import nn
 
 from realityavatar.geometry import (
     axis_angle_to_matrix,
 )
-from realityavatar.model.encoders import PART_DIMS, LatentBoneEncoder, pose_features, split_parts
+from realityavatar.model.encoders import PART_DIMS, PART_NAMES, LatentBoneEncoder, pose_features, split_parts
 from tests.helpers import assert_all_grads, random_poses
 
 
@@ -47,18 +49,44 @@ def test_pose_features_rejects_a_wrong_shape():
 def test_latentbone_encoder_options(split, zc):
     enc = LatentBoneEncoder(part_split=split, clothes_latent_dim=zc, out_dim=64)
     poses, transl = random_poses()
-    f = enc(pose_features(poses, transl))
+    features = pose_features(poses, transl)
+    f = enc(features)
     assert f.shape == (2, 5, 64) and enc.out_dim == 64
     f.square().sum().backward()
-    assert_all_grads(enc)
-    names = dict(enc.named_parameters())
-    if zc == 0:
-        assert enc.z_c is None and not any("z_c" in n for n in names)
-    else:
-        assert enc.z_c.shape == (zc,)
-    if split:
-        assert set(enc.part_layers) == {"left_arm", "right_arm", "legs", "torso"}
-        assert enc.part_layers["legs"][0].in_features == PART_DIMS["legs"] + zc
-    else:
-        assert not hasattr(enc, "part_layers")
-        assert enc.input_layer[0].in_features == sum(PART_DIMS.values()) + zc
+    assert_all_grads(enc) if zc else assert_all_grads(nn.ModuleList([enc.input_layer, enc.mlp]))
+    assert enc.z_c.shape == (zc,)  # no Z_c: no entries, the same path
+    with torch.no_grad():  # a training step: the split must hold after updates, not only as initialised
+        for q in enc.parameters():
+            q -= 0.1 * q.grad
+    # The part split: a part's features reach its own part_dim outputs of the input layer only.
+    legs = PART_NAMES.index("legs")
+    bumped = features.clone()
+    at = sum(PART_DIMS[p] for p in PART_NAMES[:legs])
+    bumped[..., at : at + PART_DIMS["legs"]] += 0.5
+    changed = (enc.parts(bumped) - enc.parts(features)).abs().amax((0, 1)) > 0  # [4*part_dim]
+    rows = torch.zeros_like(changed)
+    rows[legs * enc.part_dim : (legs + 1) * enc.part_dim] = True
+    assert torch.equal(changed, rows) if split else changed.all()
+
+
+def test_part_split_is_the_papers_four_layers_and_loads_their_checkpoints():
+    """The masked input layer computes what four Linear+SiLU layers on (part features ⊕ Z_c) computed, and a state dict
+    in that layout (`part_layers.<part>.0.*`, runs before the layers became one) loads into it."""
+    torch.manual_seed(0)
+    enc = LatentBoneEncoder()
+    features = pose_features(*random_poses())
+    first, z, total = enc.input_layer[0], enc.z_c, sum(PART_DIMS.values())
+    old, start, outs = {}, 0, []
+    for i, (p, x) in enumerate(split_parts(features).items()):
+        rows = slice(i * enc.part_dim, (i + 1) * enc.part_dim)
+        w = torch.cat([first.weight[rows, start : start + PART_DIMS[p]], first.weight[rows, total:]], 1)
+        old[f"part_layers.{p}.0.weight"], old[f"part_layers.{p}.0.bias"] = w.detach(), first.bias[rows].detach()
+        outs.append(F.silu(F.linear(torch.cat([x, z.expand(x.shape[:-1] + (-1,))], -1), w, first.bias[rows])))
+        start += PART_DIMS[p]
+    assert torch.allclose(enc.parts(features), torch.cat(outs, -1), atol=1e-6)
+    state = {k: v for k, v in enc.state_dict().items() if not k.startswith("input_layer")} | old
+    loaded = LatentBoneEncoder()
+    loaded.load_state_dict(state)
+    assert torch.allclose(loaded(features), enc(features), atol=1e-6)
+    no_zc = {k: v for k, v in LatentBoneEncoder(clothes_latent_dim=0).state_dict().items() if k != "z_c"}
+    LatentBoneEncoder(clothes_latent_dim=0).load_state_dict(no_zc)  # written when Z_c was no parameter at all

@@ -21,7 +21,7 @@ import torch
 from torch import nn
 
 from realityavatar.body.base import BodyModel
-from realityavatar.geometry import camera_centres, unit
+from realityavatar.geometry import camera_centres
 from realityavatar.model.deform import apply_deformation
 from realityavatar.model.encoders import pose_features
 from realityavatar.model.skinning import lbs_gaussians
@@ -150,10 +150,10 @@ class Avatar(nn.Module):
     def shade(self, posed: dict, viewmats: torch.Tensor, frame_idx: torch.Tensor) -> torch.Tensor:
         """View-dependent colour of every Gaussian for each sample's camera: [B,N,3]."""
         cam_centre = camera_centres(viewmats)  # [B,3]
-        d = unit(posed["means"] - cam_centre[:, None, :])  # [B,N,3] posed view dir
-        # Canonicalise: undo each Gaussian's blended skinning rotation.
-        d_c = (posed["rot"].transpose(-1, -2) @ d[..., None]).squeeze(-1)
-        rgb = self.color(self.all_features(), unit(d_c), posed["f_mt"], frame_idx)
+        # The camera-to-Gaussian vector, canonicalised (each Gaussian's blended skinning rotation undone); the colour
+        # model's SH basis normalises it (normalising before a rotation as well would only add operations).
+        d_c = (posed["rot"].transpose(-1, -2) @ (posed["means"] - cam_centre[:, None, :])[..., None]).squeeze(-1)
+        rgb = self.color(self.all_features(), d_c, posed["f_mt"], frame_idx)
         return self.shading.apply(rgb, posed["x_e"], posed["rot"])  # x world-fixed light (shading=none: as it is)
 
     def splat(self, posed: dict, b: int, rgb: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor, W: int, H: int,

@@ -56,7 +56,7 @@ class MLPColor(nn.Module):
     def forward(
         self, features: torch.Tensor, view_dirs: torch.Tensor, f_mt: torch.Tensor | None, frame_idx: torch.Tensor
     ) -> torch.Tensor:
-        """features [N,F], view_dirs [B,N,3] (canonical), f_mt [B,N,Fm] | None, frame_idx [B] -> rgb [B,N,3]."""
+        """features [N,F], view_dirs [B,N,3] (canonical, any length), f_mt [B,N,Fm] | None, frame_idx [B] -> rgb [B,N,3]."""
         h = self.in_feat(features)[None]  # [1,N,H]
         if self.in_dir is not None:
             h = h + self.in_dir(sh_basis(self.sh_degree, view_dirs)[..., 1:])

@@ -102,9 +102,10 @@ def apply_deformation(
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Paper eqs.: x_e = x_c + Δx, R_e = ΔR R_c (q_e = Δq ⊗ q_c), s_e = s_c exp(Δs) (log_s_e = log_s_c + Δs).
 
-    means, log_scales [N,3], quats [N,4] -> x_e [B,N,3], log_s_e [B,N,3], q_e [B,N,4] (unit).
+    means, log_scales [N,3], quats [N,4] -> x_e [B,N,3], log_s_e [B,N,3], q_e [B,N,4] (the product of two unit
+    quaternions: unit up to rounding; LBS normalises it).
     """
     x_e = means + out["dx"]
     log_s_e = log_scales + out["ds"]
-    q_e = unit(quat_multiply(out["dq"], unit(quats).expand_as(out["dq"])))
+    q_e = quat_multiply(out["dq"], unit(quats).expand_as(out["dq"]))
     return x_e, log_s_e, q_e

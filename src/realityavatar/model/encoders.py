@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from realityavatar.body.base import check_pose_shape
@@ -66,13 +67,21 @@ def _mlp(in_dim: int, hidden_dim: int, out_dim: int, num_layers: int) -> nn.Sequ
     return nn.Sequential(*layers)
 
 
+def _part_blocks(part_dim: int, latent_dim: int) -> list[tuple[slice, slice]]:
+    """(rows, feature columns) of each part's block in the input layer [4*part_dim, sum(PART_DIMS) + latent_dim]."""
+    offsets = torch.tensor([0] + [PART_DIMS[p] for p in PART_NAMES]).cumsum(0).tolist()
+    return [(slice(i * part_dim, (i + 1) * part_dim), slice(offsets[i], offsets[i + 1])) for i in range(len(PART_NAMES))]
+
+
 class LatentBoneEncoder(nn.Module):
     """The paper's latentbone encoder F_le({p_lm, p_rm, p_lg, p_to}; Z_c) applied to every frame of the window.
 
-    part_split=True: each part's features ⊕ Z_c go through their own single Linear+SiLU (part_dim outputs);
-    the four outputs are concatenated into a shallow MLP. part_split=False: all features ⊕ Z_c go through one
-    Linear+SiLU of width 4*part_dim into the same MLP. clothes_latent_dim=0 removes Z_c.
-    Note: with one avatar per model Z_c is a learned constant, i.e. it acts as extra bias in the input layers.
+    part_split=True: each part's features ⊕ Z_c go through their own Linear+SiLU (part_dim outputs); the four outputs
+    are concatenated into a shallow MLP. part_split=False: all features ⊕ Z_c go through one Linear+SiLU of width
+    4*part_dim into the same MLP. Both are one input layer (`input_layer`) whose weight is masked (`part_mask`): block
+    diagonal, each part's rows seeing its own features and Z_c (initialised as four separate layers would be), or
+    full. One matmul instead of four layers (a step had ~30 operations more with them). clothes_latent_dim=0: Z_c
+    has no entries. Note: with one avatar per model Z_c is a learned constant, i.e. extra bias in the input layer.
     """
 
     def __init__(
@@ -86,39 +95,59 @@ class LatentBoneEncoder(nn.Module):
         latent_init_std: float = 0.1,
     ) -> None:
         super().__init__()
-        dims = PART_DIMS
         if num_layers < 1:
             raise ValueError(f"encoder.num_layers: expected >= 1, got {num_layers}")
         self.part_split = part_split
         self.clothes_latent_dim = clothes_latent_dim
+        self.part_dim = part_dim
         self.out_dim = out_dim
-        if clothes_latent_dim > 0:
-            self.z_c = nn.Parameter(torch.randn(clothes_latent_dim) * latent_init_std)
-        else:
-            self.register_parameter("z_c", None)
+        self.z_c = nn.Parameter(torch.randn(clothes_latent_dim) * latent_init_std)
+        total = sum(PART_DIMS.values())
+        size = (total + clothes_latent_dim, 4 * part_dim)
+        # with part_split the blocks are drawn below (the full layer's own initialisation would draw other numbers)
+        first = torch.nn.utils.skip_init(nn.Linear, *size) if part_split else nn.Linear(*size)
+        self.input_layer = nn.Sequential(first, nn.SiLU())
+        mask = torch.ones(size[::-1])
         if part_split:
-            self.part_layers = nn.ModuleDict(
-                {p: nn.Sequential(nn.Linear(dims[p] + clothes_latent_dim, part_dim), nn.SiLU())
-                 for p in PART_NAMES}
-            )
-        else:
-            total = sum(dims.values())
-            self.input_layer = nn.Sequential(nn.Linear(total + clothes_latent_dim, 4 * part_dim), nn.SiLU())
+            mask.zero_()
+            with torch.no_grad():
+                first.weight.zero_()
+                for rows, cols in _part_blocks(part_dim, clothes_latent_dim):
+                    # nn.Linear's own initialisation for a part's fan-in, drawn in part order
+                    part = nn.Linear(cols.stop - cols.start + clothes_latent_dim, part_dim)
+                    first.weight[rows, cols] = part.weight[:, : cols.stop - cols.start]
+                    first.weight[rows, total:] = part.weight[:, cols.stop - cols.start :]
+                    first.bias[rows] = part.bias
+                    mask[rows, cols] = 1.0
+                    mask[rows, total:] = 1.0
+        self.register_buffer("part_mask", mask, persistent=False)
         self.mlp = _mlp(4 * part_dim, hidden_dim, out_dim, num_layers)
 
-    def _with_latent(self, x: torch.Tensor) -> torch.Tensor:
-        if self.z_c is None:
-            return x
-        return torch.cat([x, self.z_c.expand(x.shape[:-1] + (-1,))], -1)
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        # Checkpoints written before the part layers became one masked layer: their four layers' blocks.
+        old = [f"{prefix}part_layers.{p}.0." for p in PART_NAMES]
+        if old[0] + "weight" in state_dict:
+            first = self.input_layer[0]
+            weight, bias = torch.zeros_like(first.weight), torch.zeros_like(first.bias)
+            total = sum(PART_DIMS.values())
+            for key, (rows, cols) in zip(old, _part_blocks(self.part_dim, self.clothes_latent_dim)):
+                w, n = state_dict.pop(key + "weight"), cols.stop - cols.start
+                weight[rows, cols], weight[rows, total:] = w[:, :n], w[:, n:]
+                bias[rows] = state_dict.pop(key + "bias")
+            state_dict[prefix + "input_layer.0.weight"], state_dict[prefix + "input_layer.0.bias"] = weight, bias
+        state_dict.setdefault(prefix + "z_c", self.z_c.detach().new_zeros(0))  # written without Z_c (dim 0)
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
+    def parts(self, features: torch.Tensor) -> torch.Tensor:
+        """features [B,T,sum(PART_DIMS)] -> the input layer's output [B,T,4*part_dim] (with part_split, part i's
+        features reach rows i*part_dim..(i+1)*part_dim only)."""
+        x = torch.cat([features, self.z_c.expand(features.shape[:-1] + (-1,))], -1)
+        first = self.input_layer[0]
+        return self.input_layer[1](F.linear(x, first.weight * self.part_mask, first.bias))
 
     def forward(self, features: torch.Tensor) -> torch.Tensor:
         """features [B,T,sum(PART_DIMS)] (`pose_features`) -> f_p [B,T,out_dim]."""
-        if self.part_split:
-            parts = split_parts(features)
-            h = torch.cat([self.part_layers[p](self._with_latent(parts[p])) for p in PART_NAMES], -1)
-        else:
-            h = self.input_layer(self._with_latent(features))
-        return self.mlp(h)
+        return self.mlp(self.parts(features))
 
     def param_groups(self) -> dict[str, list[nn.Parameter]]:
         return {"encoder": list(self.parameters())}

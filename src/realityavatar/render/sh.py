@@ -46,23 +46,32 @@ for _band, _terms in _POLYNOMIALS.items():
     for _c, _axes in _terms:
         _BASIS[_monomial(*_axes), _band] += _c
 _BASIS_BY_DEGREE = [_BASIS[: (1, 4, 13, 40)[d], : (d + 1) ** 2].contiguous() for d in range(4)]
+# the constant monomial's row (a bias: the basis is one addmm of the other monomials, no column of ones) and the rest
+_CONSTANT_BY_DEGREE = [b[0].contiguous() for b in _BASIS_BY_DEGREE]
+_LINEAR_BY_DEGREE = [b[1:].contiguous() for b in _BASIS_BY_DEGREE]
 
 
 def sh_basis(degree: int, dirs: torch.Tensor) -> torch.Tensor:
     """dirs: [...,3] (normalised here) -> basis [...,(degree+1)^2], gsplat's ordering and signs.
 
-    The monomials of the normalised direction up to `degree` times one constant matrix (_POLYNOMIALS): a handful of
-    tensor operations (each a kernel launch on a GPU, and a node of the backward) for any degree."""
+    The monomials of the normalised direction up to `degree` times one constant matrix (_POLYNOMIALS), the constant
+    monomial's row added as a bias: a handful of tensor operations (each a kernel launch on a GPU, and a node of the
+    backward) for any degree."""
     if not 0 <= int(degree) <= 3:
         raise ValueError(f"realityavatar/render/sh.py: `degree` must be in 0..3, got {degree}")
     if dirs.shape[-1] != 3:
         raise ValueError(f"realityavatar/render/sh.py: `dirs` expected [...,3], got {tuple(dirs.shape)}")
+    degree = int(degree)
+    if degree == 0:
+        return constant(_CONSTANT_BY_DEGREE[0], dirs).expand(dirs.shape[:-1] + (1,))
     d = unit(dirs)
-    feats = [d.new_ones(d.shape[:-1] + (1,)), d]
-    for _ in range(2, int(degree) + 1):  # d⊗d, d⊗d⊗d
+    feats = [d]
+    for _ in range(2, degree + 1):  # d⊗d, d⊗d⊗d
         feats.append((feats[-1][..., :, None] * d[..., None, :]).flatten(-2))
-    m = torch.cat(feats[: int(degree) + 1], -1)
-    return m @ constant(_BASIS_BY_DEGREE[int(degree)], m)
+    m = torch.cat(feats, -1) if degree > 1 else d
+    basis = torch.addmm(constant(_CONSTANT_BY_DEGREE[degree], m), m.reshape(-1, m.shape[-1]),
+                        constant(_LINEAR_BY_DEGREE[degree], m))
+    return basis.reshape(m.shape[:-1] + (basis.shape[-1],))
 
 
 def eval_sh(degree: int, coeffs: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
