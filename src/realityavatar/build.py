@@ -134,13 +134,23 @@ def load_run(run_dir: str | Path, overrides: list[str] | None = None, ckpt: str 
     try:
         module = build_module(cfg, body, info["num_train_frames"], info["scene_extent"])
     except InstantiationException as e:  # a config.yaml of another version (an option or key since removed)
-        raise ValueError(f"{cfg_path} does not build with this version of realityavatar ({e}). Runs written at or "
-                         f"before commit c46aa26 (before the consolidation: loss.lambda_*, flow, posefit, ...) load "
-                         f"with that commit: git checkout c46aa26") from e
+        raise ValueError(f"{cfg_path} does not build with this version of realityavatar ({e}): an option it sets was "
+                         f"removed (docs/research/removed-options.md). It loads with the commit that trained it: "
+                         f"git checkout {_trained_at(run_dir)}") from e
     module.load_state_dict(state["state_dict"])
     module.set_progress(state.get("global_step"))  # step-dependent state (the decoder's coarse-to-fine window)
     module.eval()
     return cfg, module, info
+
+
+def _trained_at(run_dir: Path) -> str:
+    """The commit a run folder's metrics.json records (without -dirty); c46aa26 where it records none (runs from
+    before the consolidation, or a run that stopped before writing it)."""
+    try:
+        commit = str(json.loads((run_dir / "metrics.json").read_text())["commit"]).removesuffix("-dirty")
+    except (OSError, ValueError, KeyError):
+        return "c46aa26"
+    return commit if commit and commit != "unknown" else "c46aa26"
 
 
 def run_device(cfg: DictConfig, override: str | None = None) -> torch.device:

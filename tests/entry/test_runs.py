@@ -314,8 +314,9 @@ def test_sigkill_resume_matches_uninterrupted(scenes_root, tmp_path):
 
 
 def test_a_run_folder_of_an_older_version_names_its_config_and_the_commit(trained_run, tmp_path):
-    """A config.yaml with a key that a removed option had (gaussians.deform_code_dim, before the consolidation)
-    stops with an error naming the file and the commit that reads it, not hydra's instantiation trace."""
+    """A config.yaml with a key that a removed option had (gaussians.deform_code_dim, before the consolidation;
+    color.use_fmt, after 3b9168b) stops with an error naming the file and the commit that reads it (the one its
+    metrics.json records), not hydra's instantiation trace."""
     import yaml
 
     from realityavatar.build import load_run
@@ -328,4 +329,10 @@ def test_a_run_folder_of_an_older_version_names_its_config_and_the_commit(traine
     (run / "config.yaml").write_text(yaml.safe_dump(cfg))
     shutil.copy(out / "last.ckpt", run / "last.ckpt")
     with pytest.raises(ValueError, match=r"(?s)old/config\.yaml does not build.*deform_code_dim.*git checkout c46aa26"):
+        load_run(run)
+    del cfg["gaussians"]["deform_code_dim"]
+    cfg["color"]["use_fmt"] = True
+    (run / "config.yaml").write_text(yaml.safe_dump(cfg))
+    (run / "metrics.json").write_text(json.dumps({"commit": "3b9168b-dirty"}))
+    with pytest.raises(ValueError, match=r"(?s)old/config\.yaml does not build.*use_fmt.*git checkout 3b9168b$"):
         load_run(run)

@@ -35,8 +35,11 @@ def test_mlp_color_shapes_grads_and_novel_pose_latent():
     assert not torch.allclose(a, col(feats, dirs[:1], f_mt[:1], torch.tensor([0])), atol=1e-4)
     with pytest.raises(IndexError):
         col(feats, dirs[:1], f_mt[:1], torch.tensor([5]))
-    no_fmt = MLPColor(feature_dim=8, fmt_dim=16, num_frames=5, use_fmt=False)
-    assert no_fmt(feats, dirs, None, torch.tensor([0, 1])).shape == (2, 40, 3)
+    # the paper's colour model has every input: no option turns one off
+    for bad, field in ((dict(sh_degree=0), "color.sh_degree"), (dict(frame_latent_dim=0), "color.frame_latent_dim"),
+                       (dict(num_frames=0), "color.num_frames")):
+        with pytest.raises(ValueError, match=field):
+            MLPColor(**bad)
 
 
 def test_sh_color_matches_eval_sh():

@@ -84,6 +84,8 @@ def test_part_split_is_the_papers_four_layers_and_loads_their_checkpoints():
         outs.append(F.silu(F.linear(torch.cat([x, z.expand(x.shape[:-1] + (-1,))], -1), w, first.bias[rows])))
         start += PART_DIMS[p]
     assert torch.allclose(enc.parts(features), torch.cat(outs, -1), atol=1e-6)
+    four_layers = sum(v.numel() for v in old.values())
+    assert enc.num_parameters() == sum(q.numel() for q in enc.parameters()) - first.weight.numel() - first.bias.numel() + four_layers
     state = {k: v for k, v in enc.state_dict().items() if not k.startswith("input_layer")} | old
     loaded = LatentBoneEncoder()
     loaded.load_state_dict(state)

@@ -24,27 +24,26 @@ class MLPColor(nn.Module):
         num_frames: int = 1,
         sh_degree: int = 3,
         hidden_dim: int = 64,
-        use_fmt: bool = True,
     ) -> None:
         super().__init__()
-        if num_frames < 1 and frame_latent_dim > 0:
+        if num_frames < 1:
             raise ValueError(f"color.num_frames: expected >= 1 training frames for Z_r, got {num_frames}")
+        if not 1 <= int(sh_degree) <= 3:
+            raise ValueError(f"color.sh_degree: expected 1, 2 or 3 (the view direction's SH basis), got {sh_degree}")
+        if frame_latent_dim < 1:
+            raise ValueError(f"color.frame_latent_dim: expected >= 1 (the per-frame latent Z_r), got {frame_latent_dim}")
         self.feature_dim = feature_dim
-        self.fmt_dim = fmt_dim if use_fmt else 0
-        self.sh_degree = sh_degree
+        self.fmt_dim = fmt_dim
+        self.sh_degree = int(sh_degree)
         self.frame_latent_dim = frame_latent_dim
         self.num_frames = num_frames
-        n_basis = (sh_degree + 1) ** 2 - 1
         # First layer split by input so the per-Gaussian feature term is computed once for the whole batch.
         self.in_feat = nn.Linear(feature_dim, hidden_dim)
-        self.in_dir = nn.Linear(n_basis, hidden_dim, bias=False) if n_basis > 0 else None
-        self.in_fmt = nn.Linear(fmt_dim, hidden_dim, bias=False) if use_fmt else None
-        if frame_latent_dim > 0:
-            self.frame_latents = nn.Embedding(num_frames, frame_latent_dim)
-            nn.init.normal_(self.frame_latents.weight, std=0.01)
-            self.in_latent = nn.Linear(frame_latent_dim, hidden_dim, bias=False)
-        else:
-            self.frame_latents = None
+        self.in_dir = nn.Linear((self.sh_degree + 1) ** 2 - 1, hidden_dim, bias=False)
+        self.in_fmt = nn.Linear(fmt_dim, hidden_dim, bias=False)
+        self.frame_latents = nn.Embedding(num_frames, frame_latent_dim)
+        nn.init.normal_(self.frame_latents.weight, std=0.01)
+        self.in_latent = nn.Linear(frame_latent_dim, hidden_dim, bias=False)
         self.out = nn.Linear(hidden_dim, 3)
 
     def latent(self, frame_idx: torch.Tensor) -> torch.Tensor:
@@ -54,18 +53,13 @@ class MLPColor(nn.Module):
         return torch.where((frame_idx < 0)[:, None], table.mean(0, keepdim=True).expand_as(z), z)
 
     def forward(
-        self, features: torch.Tensor, view_dirs: torch.Tensor, f_mt: torch.Tensor | None, frame_idx: torch.Tensor
+        self, features: torch.Tensor, view_dirs: torch.Tensor, f_mt: torch.Tensor, frame_idx: torch.Tensor
     ) -> torch.Tensor:
-        """features [N,F], view_dirs [B,N,3] (canonical, any length), f_mt [B,N,Fm] | None, frame_idx [B] -> rgb [B,N,3]."""
+        """features [N,F], view_dirs [B,N,3] (canonical, any length), f_mt [B,N,Fm], frame_idx [B] -> rgb [B,N,3]."""
         h = self.in_feat(features)[None]  # [1,N,H]
-        if self.in_dir is not None:
-            h = h + self.in_dir(sh_basis(self.sh_degree, view_dirs)[..., 1:])
-        if self.in_fmt is not None:
-            if f_mt is None:
-                raise ValueError("color: use_fmt=True needs f_mt [B,N,Fm] from the deformer, got None")
-            h = h + self.in_fmt(f_mt)
-        if self.frame_latents is not None:
-            h = h + self.in_latent(self.latent(frame_idx.long().to(features.device)))[:, None]
+        h = h + self.in_dir(sh_basis(self.sh_degree, view_dirs)[..., 1:])
+        h = h + self.in_fmt(f_mt)
+        h = h + self.in_latent(self.latent(frame_idx.long().to(features.device)))[:, None]
         return torch.sigmoid(self.out(torch.relu(h)))
 
     def param_groups(self) -> dict[str, list[nn.Parameter]]:
@@ -86,9 +80,9 @@ class SHColor(nn.Module):
         self.feature_dim = expected
 
     def forward(
-        self, features: torch.Tensor, view_dirs: torch.Tensor, f_mt: torch.Tensor | None, frame_idx: torch.Tensor
+        self, features: torch.Tensor, view_dirs: torch.Tensor, f_mt: torch.Tensor, frame_idx: torch.Tensor
     ) -> torch.Tensor:
-        """features [N,K*3], view_dirs [B,N,3] -> rgb [B,N,3]."""
+        """features [N,K*3], view_dirs [B,N,3] -> rgb [B,N,3] (f_mt and frame_idx unused)."""
         coeffs = self.sh_coefficients(features)  # [N,K,3]
         return torch.clamp_min(eval_sh(self.sh_degree, coeffs[None], view_dirs) + 0.5, 0.0)
 

@@ -149,5 +149,9 @@ class LatentBoneEncoder(nn.Module):
         """features [B,T,sum(PART_DIMS)] (`pose_features`) -> f_p [B,T,out_dim]."""
         return self.mlp(self.parts(features))
 
+    def num_parameters(self) -> int:
+        """Trained entries: every parameter's, less the input layer's entries that the part mask holds at zero."""
+        return sum(p.numel() for p in self.parameters()) - int((self.part_mask == 0).sum())
+
     def param_groups(self) -> dict[str, list[nn.Parameter]]:
         return {"encoder": list(self.parameters())}

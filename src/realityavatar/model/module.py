@@ -291,8 +291,11 @@ class AvatarModule(Avatar, pl.LightningModule):
         return repeats / (time.perf_counter() - t0)
 
     def num_parameters(self) -> int:
-        """Learnable parameters of the avatar: Gaussians and every network (the body model has none)."""
-        return int(sum(p.numel() for p in self.parameters() if p.requires_grad))
+        """Learnable parameters of the avatar: Gaussians and every network (the body model has none); the encoder
+        counts the entries it trains (its part split holds the input layer's off-block entries at zero)."""
+        mine = {id(p) for p in self.encoder.parameters()}
+        rest = sum(p.numel() for p in self.parameters() if p.requires_grad and id(p) not in mine)
+        return int(rest + self.encoder.num_parameters())
 
 
 FROZEN_NETWORKS = ("lpips.", "losses.perceptual.vgg.")  # state-dict prefixes of networks loaded from weight files
