@@ -36,8 +36,8 @@ def test_mlp_color_shapes_grads_and_novel_pose_latent():
     with pytest.raises(IndexError):
         col(feats, dirs[:1], f_mt[:1], torch.tensor([5]))
     # the paper's colour model has every input: no option turns one off
-    for bad, field in ((dict(sh_degree=0), "color.sh_degree"), (dict(frame_latent_dim=0), "color.frame_latent_dim"),
-                       (dict(num_frames=0), "color.num_frames")):
+    for bad, field in (({"sh_degree": 0}, "color.sh_degree"), ({"frame_latent_dim": 0}, "color.frame_latent_dim"),
+                       ({"num_frames": 0}, "color.num_frames")):
         with pytest.raises(ValueError, match=field):
             MLPColor(**bad)
 
