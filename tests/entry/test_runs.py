@@ -315,7 +315,7 @@ def test_sigkill_resume_matches_uninterrupted(scenes_root, tmp_path):
 
 def test_a_run_folder_of_an_older_version_names_its_config_and_the_commit(trained_run, tmp_path):
     """A config.yaml with a key that a removed option had (gaussians.deform_code_dim, before the consolidation;
-    color.use_fmt, after 3b9168b) stops with an error naming the file and the commit that reads it (the one its
+    color.use_fmt, up to 3b9168b) stops with an error naming the file and the commit that reads it (the one its
     metrics.json records), not hydra's instantiation trace."""
     import yaml
 
