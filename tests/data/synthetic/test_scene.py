@@ -3,6 +3,7 @@ parameters, and the hysteresis of the simulated garment."""
 
 import hashlib
 import json
+import os
 import pickle
 from pathlib import Path
 
@@ -133,8 +134,6 @@ def test_feet_on_ground_and_garment_near_body(ci_scene, body):
 
 
 def test_determinism_cache_and_other_seed(ci_scene, tmp_path, monkeypatch):
-    import os
-
     root_a = ci_scene.parent  # frames ray cast by one process per core (scene._rendered_frames)
     root_b = tmp_path / "b"
     with monkeypatch.context() as m:
@@ -332,3 +331,39 @@ def test_resolve_params_names():
     p = resolve_params("demo", sequence="dress_walk")
     assert p["garment"] == "dress" and p["motion"] == "walk" and p["name"] == "dress_walk_demo"
     assert p["width"] == 256 and p["cameras"] == 6 and p["novel_view_cameras"] == 2
+
+
+def test_two_builds_of_one_scene_at_once_ray_cast_it_once(tmp_path, monkeypatch):
+    """The jobs of a sweep that find the scene missing at the same moment: one writes it, the other waits for it and
+    reuses it (before, both ray cast it and replaced each other's files under a reader)."""
+    import multiprocessing as mp
+
+    from realityavatar.data.synthetic import cloth, scene
+
+    ctx = mp.get_context("fork")
+    both_checked = ctx.Barrier(2, timeout=120)  # both are past the first "is it built?" before either writes
+    simulate, write, log = cloth.simulate_garment, scene._write, tmp_path / "writers.txt"
+
+    def simulate_then_meet(*a, **k):
+        out = simulate(*a, **k)
+        both_checked.wait()
+        return out
+
+    def logged_write(*a, **k):
+        with open(log, "a") as f:
+            f.write(f"{os.getpid()}\n")
+        return write(*a, **k)
+
+    monkeypatch.setattr(cloth, "simulate_garment", simulate_then_meet)  # build_scene imports it when it runs
+    monkeypatch.setattr(scene, "_write", logged_write)
+    small = {"width": 16, "height": 16, "supersample": 1, "train_frames": 16, "novel_frames": 4}
+    jobs = [ctx.Process(target=build_scene, args=("ci", tmp_path / "scenes"),
+                        kwargs={"seed": 0, "overrides": small, "progress": False}) for _ in range(2)]
+    for j in jobs:
+        j.start()
+    for j in jobs:
+        j.join(300)
+    assert [j.exitcode for j in jobs] == [0, 0]
+    assert len(log.read_text().split()) == 1  # one process wrote the scene
+    prefix = build_scene("ci", tmp_path / "scenes", seed=0, overrides=small, progress=False)
+    assert scene.is_built(prefix, json.loads(scene_paths(prefix)["meta"].read_text())["params_hash"])

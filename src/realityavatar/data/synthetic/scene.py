@@ -7,11 +7,13 @@ cached by a hash of the parameters, written to a temporary folder and moved into
 
 from __future__ import annotations
 
+import fcntl
 import hashlib
 import json
 import os
 import shutil
 import tempfile
+from contextlib import contextmanager
 from importlib import metadata
 from pathlib import Path
 
@@ -205,23 +207,39 @@ def build_scene(preset_or_params: str | dict = "demo", root: str | Path | None =
     garment = simulate_garment(joints_w, rots_w, p["fps"], p["garment"], p["cloth_params"], seed=seed)
 
     root.mkdir(parents=True, exist_ok=True)
-    # The builder's pid is in the name, so a later build can tell a killed build's leftovers from a running one.
-    tmp = Path(tempfile.mkdtemp(prefix=f".tmp-{p['name']}-{os.getpid()}-", dir=root))
-    try:
-        _write(tmp, p, seed, phash, body, motion, Ks, viewmats, train_ids, nv_ids, verts_w, joints_body, garment,
-               progress)
-        paths = scene_paths(prefix)
-        # Replace an old build piece by piece; the meta file (the cache marker) moves last.
-        for key in ("meta", "train", "novel_view", "novel_pose", "garment"):
-            if paths[key].is_dir():
-                shutil.rmtree(paths[key])
-            elif paths[key].exists():
-                paths[key].unlink()
-        for key in ("train", "novel_view", "novel_pose", "garment", "meta"):
-            os.replace(tmp / paths[key].name, paths[key])
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
+    with _building(root):  # the jobs of a sweep that start at once: the first builds, the others wait and reuse it
+        if not force and is_built(prefix, phash):
+            return prefix
+        # The builder's pid is in the name, so a later build can tell a killed build's leftovers from a running one.
+        tmp = Path(tempfile.mkdtemp(prefix=f".tmp-{p['name']}-{os.getpid()}-", dir=root))
+        try:
+            _write(tmp, p, seed, phash, body, motion, Ks, viewmats, train_ids, nv_ids, verts_w, joints_body, garment,
+                   progress)
+            paths = scene_paths(prefix)
+            # Replace an old build piece by piece; the meta file (the cache marker) moves last.
+            for key in ("meta", "train", "novel_view", "novel_pose", "garment"):
+                if paths[key].is_dir():
+                    shutil.rmtree(paths[key])
+                elif paths[key].exists():
+                    paths[key].unlink()
+            for key in ("train", "novel_view", "novel_pose", "garment", "meta"):
+                os.replace(tmp / paths[key].name, paths[key])
+        finally:
+            shutil.rmtree(tmp, ignore_errors=True)
     return prefix
+
+
+@contextmanager
+def _building(root: Path):
+    """An exclusive lock on the scenes folder (flock on the folder itself: no lock file), held while a scene is
+    written into it. Two processes that found a scene missing at once no longer both ray cast it and replace each
+    other's files under a reader."""
+    fd = os.open(root, os.O_RDONLY)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)  # releases the lock
 
 
 def remove_stale_builds(root: Path, name: str, max_age_s: float = 24 * 3600) -> list[Path]:
