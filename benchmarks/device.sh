@@ -2,7 +2,8 @@
 # One GPU check in one call (repo root, a GPU machine with CUDA torch and nvcc, no network): install the project's
 # missing packages from wheels in .whl/, build gsplat's kernels, run the `gpu` tests, profile the training step and
 # write everything under $OUT. STEP_SIZES="7000 128;35000 512" picks the profiled sizes, STEP_VIEWS="1 4" the cameras
-# per step (data.views_per_step) timed at each; BASELINE=<folder with another
+# per step (data.views_per_step) timed at each, STEP_COMPILE="default reduce-overhead" the torch.compile modes timed at
+# the first size (the networks compiled; reduce-overhead adds CUDA graphs); BASELINE=<folder with another
 # commit's src/ conf/ benchmarks/> profiles that commit's step too, in the same call (compare timings only within one
 # call). SWEEP=1 trains the sweep preset (1,000 steps at 128 px; the baseline's too with BASELINE) and reports its
 # seconds per step; PAPER_SCALE=<seconds> trains `+experiment=paper_scale` for at most that long (15,000 steps if it
@@ -35,6 +36,12 @@ STEP="benchmarks/step.py --device cuda --backends gsplat"
 IFS=";" read -ra SIZES <<< "${STEP_SIZES:-7000 128;35000 512}"   # "N size;N size"
 for NS in "${SIZES[@]}"; do set -- $NS
   timeout 150 python3 $STEP --n $1 --size $2 --views ${STEP_VIEWS:-1 4} --out "$OUT/step_cuda_$1_$2.json" 2>&1 \
+    | grep -E "^  gsplat" | cut -c1-500
+done
+for MODE in ${STEP_COMPILE:-}; do  # e.g. STEP_COMPILE="default reduce-overhead" (CUDA graphs): the networks compiled
+  set -- ${SIZES[0]}
+  el "step profile, torch.compile $MODE ($1 / $2; first_step_s includes compiling)"
+  timeout 240 python3 $STEP --n $1 --size $2 --compile $MODE --out "$OUT/step_cuda_$1_$2_compile_$MODE.json" 2>&1 \
     | grep -E "^  gsplat" | cut -c1-500
 done
 if [ -n "${BASELINE:-}" ]; then

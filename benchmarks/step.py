@@ -230,14 +230,20 @@ def count_ops(module, opt, sched, make_batch, step: int, steps: int = 3) -> dict
             "top_ops": dict(sorted(per.items(), key=lambda kv: -kv[1])[:15])}
 
 
-def run_config(n: int, size: int, backend: str, repeats: int, overrides: list[str], views=(1,)) -> dict:
+def run_config(n: int, size: int, backend: str, repeats: int, overrides: list[str], views=(1,),
+               compile_mode: str = "none") -> dict:
     torch.manual_seed(0)
     cfg, module, opt, sched = build(n, backend, overrides)
+    if compile_mode != "none":  # the per-Gaussian networks (skinning, LBS, the rasterizer and losses stay eager)
+        for net in (module.encoder, module.temporal, module.deformer, module.color, module.shading):
+            net.compile(mode=None if compile_mode == "default" else compile_mode)  # automatic dynamic shapes: N changes
     make_batch = make_batch_fn(module, size, int(cfg.data.window_len))
     step = max(int(cfg.schedule.deform_start), 1) + 1  # motion-trend decoder on; not a densification step
     step += (step + 1) % LOG_EVERY == 0  # nor a log step (module.training_step reads the device on those only)
     _stub_trainer_hooks(module, opt, sched, step)
-    step_parts(module, opt, sched, make_batch, step)  # warm-up (and numba's cache load)
+    t0 = _clock()
+    step_parts(module, opt, sched, make_batch, step)  # warm-up: numba's cache load, torch.compile's compilation
+    first_step_s = _clock() - t0
     parts = {k: [] for k in PARTS}
     whole = []
     for _ in range(repeats):
@@ -266,7 +272,8 @@ def run_config(n: int, size: int, backend: str, repeats: int, overrides: list[st
         make_v = make_batch_fn(module, size, int(cfg.data.window_len), V)
         step_whole(module, opt, sched, make_v, step)  # warm-up
         multi[str(V)] = statistics.median([step_whole(module, opt, sched, make_v, step) for _ in range(repeats)])
-    return {"n": n, "size": size, "backend": backend, "device": _device,
+    return {"n": n, "size": size, "backend": backend, "device": _device, "compile": compile_mode,
+            "first_step_s": first_step_s,
             "num_gaussians": int(module.gaussians.num_points), "step_s": statistics.median(whole),
             "sum_of_parts_s": sum(med.values()), "parts_s": med, "views_step_s": multi, "gpu_kernel_s": gpu_kernel_s,
             **counts, **cuda_calls}
@@ -285,6 +292,8 @@ def main() -> None:
     ap.add_argument("--views", type=int, nargs="+", default=[1],
                     help="also time the whole step with V cameras of one pose window per batch (data.batch_size=V)")
     ap.add_argument("--device", default="cpu", help="cpu or cuda[:i] (the module and batches there)")
+    ap.add_argument("--compile", default="none", choices=["none", "default", "reduce-overhead", "max-autotune"],
+                    help="torch.compile mode for the networks: encoder, temporal, decoder, colour, shading (first_step_s includes compiling)")
     ap.add_argument("--out", default=None, help="JSON (default results/step_cpu.json, step_cuda.json with --device cuda)")
     ap.add_argument("--no-tune-malloc", action="store_true",
                     help="leave glibc malloc as it is (training tunes it: realityavatar.runtime.tune_malloc)")
@@ -306,7 +315,7 @@ def main() -> None:
     for n in a.n:
         for size in a.size:
             for backend in a.backends:
-                r = run_config(n, size, backend, a.repeats, a.override, a.views)
+                r = run_config(n, size, backend, a.repeats, a.override, a.views, a.compile)
                 units.append(gemm_unit())  # the load drifts: each row is divided by the unit measured next to it
                 r["gemm_unit_s"] = statistics.median(units[-2:])
                 results.append(r)
@@ -315,6 +324,7 @@ def main() -> None:
                     f"; GPU kernels {r['gpu_kernel_s']:.4f}s of it, {r['kernel_launches_per_step']:.0f} launches, "
                     f"{r['stream_syncs_per_step']:.0f} stream syncs")
                 print(f"  {backend:6s} N={n:6d} {size}^2  step {r['step_s']:.3f}s = {r['step_s'] / u:.2f} units "
+                      f"(first step {r['first_step_s']:.1f}s, compile {r['compile']}) "
                       f"(render fwd+bwd {r['parts_s']['render_fwd'] + r['parts_s']['render_bwd']:.3f}s{gk}); "
                       f"{r['ops_per_step']:.0f} tensor ops, {r['scalar_reads_per_step']:.0f} scalar reads, "
                       f"{r['data_dependent_per_step']:.0f} data-dependent shapes per step"
