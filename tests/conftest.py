@@ -26,9 +26,12 @@ def pytest_collection_modifyitems(config, items):
 @pytest.fixture(scope="session", autouse=True)
 def no_weights_from_this_machine(tmp_path_factory):
     """LPIPS and the VGG19 loss look for weights in the lpips package and torch's hub cache (metrics.py): the suite
-    sees neither, so its results do not depend on what this machine has installed or downloaded."""
+    sees neither, so its results do not depend on what this machine has installed or downloaded. Caches the package
+    writes go to the session's folder."""
     with pytest.MonkeyPatch.context() as mp:
         mp.setenv("TORCH_HOME", str(tmp_path_factory.mktemp("torch_home")))
+        # body grids' nearest-sample queries (model/skinning.py): kept for the session, not in the user's cache
+        mp.setenv("REALITYAVATAR_CACHE", str(tmp_path_factory.mktemp("cache")))
         mp.setitem(sys.modules, "lpips", None)  # neither imported nor found by importlib.util.find_spec
         yield
 
