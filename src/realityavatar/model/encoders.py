@@ -67,10 +67,19 @@ def _mlp(in_dim: int, hidden_dim: int, out_dim: int, num_layers: int) -> nn.Sequ
     return nn.Sequential(*layers)
 
 
-def _part_blocks(part_dim: int, latent_dim: int) -> list[tuple[slice, slice]]:
-    """(rows, feature columns) of each part's block in the input layer [4*part_dim, sum(PART_DIMS) + latent_dim]."""
-    offsets = torch.tensor([0] + [PART_DIMS[p] for p in PART_NAMES]).cumsum(0).tolist()
-    return [(slice(i * part_dim, (i + 1) * part_dim), slice(offsets[i], offsets[i + 1])) for i in range(len(PART_NAMES))]
+def _from_parts(parts: list[tuple[torch.Tensor, torch.Tensor]], latent_dim: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Four part layers in PART_NAMES order, each (weight [part_dim, PART_DIMS[p] + latent_dim], bias [part_dim]) on
+    (its part's features ⊕ Z_c) -> the one input layer's block-diagonal weight [4*part_dim, sum(PART_DIMS) +
+    latent_dim] (part i: rows i*part_dim.., its features' columns and Z_c's, the last latent_dim) and bias."""
+    part_dim, total = parts[0][0].shape[0], sum(PART_DIMS.values())
+    weight = parts[0][0].new_zeros(len(parts) * part_dim, total + latent_dim)
+    bias = parts[0][1].new_zeros(len(parts) * part_dim)
+    start = 0
+    for i, (p, (w, b)) in enumerate(zip(PART_NAMES, parts)):
+        rows, n = slice(i * part_dim, (i + 1) * part_dim), PART_DIMS[p]
+        weight[rows, start : start + n], weight[rows, total:], bias[rows] = w[:, :n], w[:, n:], b
+        start += n
+    return weight, bias
 
 
 class LatentBoneEncoder(nn.Module):
@@ -109,17 +118,14 @@ class LatentBoneEncoder(nn.Module):
         self.input_layer = nn.Sequential(first, nn.SiLU())
         mask = torch.ones(size[::-1])
         if part_split:
-            mask.zero_()
+            dims = [PART_DIMS[p] + clothes_latent_dim for p in PART_NAMES]
+            # nn.Linear's own initialisation for each part's fan-in, drawn in part order
+            layers = [nn.Linear(d, part_dim) for d in dims]
             with torch.no_grad():
-                first.weight.zero_()
-                for rows, cols in _part_blocks(part_dim, clothes_latent_dim):
-                    # nn.Linear's own initialisation for a part's fan-in, drawn in part order
-                    part = nn.Linear(cols.stop - cols.start + clothes_latent_dim, part_dim)
-                    first.weight[rows, cols] = part.weight[:, : cols.stop - cols.start]
-                    first.weight[rows, total:] = part.weight[:, cols.stop - cols.start :]
-                    first.bias[rows] = part.bias
-                    mask[rows, cols] = 1.0
-                    mask[rows, total:] = 1.0
+                weight, bias = _from_parts([(m.weight, m.bias) for m in layers], clothes_latent_dim)
+                first.weight.copy_(weight)
+                first.bias.copy_(bias)
+            mask = _from_parts([(torch.ones(part_dim, d), torch.ones(part_dim)) for d in dims], clothes_latent_dim)[0]
         self.register_buffer("part_mask", mask, persistent=False)
         self.mlp = _mlp(4 * part_dim, hidden_dim, out_dim, num_layers)
 
@@ -127,13 +133,8 @@ class LatentBoneEncoder(nn.Module):
         # Checkpoints written before the part layers became one masked layer: their four layers' blocks.
         old = [f"{prefix}part_layers.{p}.0." for p in PART_NAMES]
         if old[0] + "weight" in state_dict:
-            first = self.input_layer[0]
-            weight, bias = torch.zeros_like(first.weight), torch.zeros_like(first.bias)
-            total = sum(PART_DIMS.values())
-            for key, (rows, cols) in zip(old, _part_blocks(self.part_dim, self.clothes_latent_dim)):
-                w, n = state_dict.pop(key + "weight"), cols.stop - cols.start
-                weight[rows, cols], weight[rows, total:] = w[:, :n], w[:, n:]
-                bias[rows] = state_dict.pop(key + "bias")
+            parts = [(state_dict.pop(k + "weight"), state_dict.pop(k + "bias")) for k in old]
+            weight, bias = _from_parts(parts, self.clothes_latent_dim)
             state_dict[prefix + "input_layer.0.weight"], state_dict[prefix + "input_layer.0.bias"] = weight, bias
         state_dict.setdefault(prefix + "z_c", self.z_c.detach().new_zeros(0))  # written without Z_c (dim 0)
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
