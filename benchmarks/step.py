@@ -10,7 +10,8 @@ same step cut at detach points, so each backward is timed on its own (render bac
 backward = decoder, skinning, colour, encoder): the module's own forward path (Avatar.deform, shade, splat) and its
 configured loss terms (losses.total_loss over module.losses: every term the run trains with), then
 data -> networks fwd -> render fwd -> losses fwd -> losses bwd -> render bwd -> networks bwd -> optimizer -> density.
-Data is a synthetic batch (random pose window, one camera framing the body, random target image) built the way the
+The body grids are built as training builds them (skinning weights, shading normals: ~171k voxels for the
+mannequin). Data is a synthetic batch (random pose window, one camera framing the body, random target image) built the way the
 DataModule collates one. --views V adds the whole step of a batch of V images (data.views_per_step=V): the same pose
 window seen by V cameras around the body, the networks run once for them; its parts are not split out.
 --device cuda runs the module and its batches on the GPU (backends `gsplat torch` there); every clock reading waits
@@ -83,8 +84,12 @@ def build(n: int, backend: str, overrides: list[str]):
         cfg = compose("train", overrides=[f"gaussians.num_points={n}", f"render.backend={backend}", "iterations=2000",
                                           "out_dir=/tmp/realityavatar_step_bench", *overrides])
     body = instantiate(cfg.body)
-    module = build_module(cfg, body, num_train_frames=100, scene_extent=1.0).to(_device)
+    module = build_module(cfg, body, num_train_frames=100, scene_extent=1.0)
     opt_cfg = module.configure_optimizers()
+    # the body grids (skinning weights, shading normals) at their real resolution, as training builds them once
+    # before step 0 (AvatarModule.on_fit_start): a grid lookup's cost depends on the grid's size
+    module.on_fit_start()
+    module.to(_device)
     return cfg, module, opt_cfg["optimizer"], opt_cfg["lr_scheduler"]["scheduler"]
 
 
