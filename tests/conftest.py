@@ -30,8 +30,6 @@ def no_weights_from_this_machine(tmp_path_factory):
     writes go to the session's folder."""
     with pytest.MonkeyPatch.context() as mp:
         mp.setenv("TORCH_HOME", str(tmp_path_factory.mktemp("torch_home")))
-        # body grids' nearest-sample queries (model/skinning.py): kept for the session, not in the user's cache
-        mp.setenv("REALITYAVATAR_CACHE", str(tmp_path_factory.mktemp("cache")))
         mp.setitem(sys.modules, "lpips", None)  # neither imported nor found by importlib.util.find_spec
         yield
 

@@ -155,34 +155,22 @@ def test_skinning_query_at_reads_the_weights_where_it_says(scenes_root, query_at
         SkinningField(query_at="rest")
 
 
-def test_grid_queries_are_kept_on_disk_for_later_runs(monkeypatch, tmp_path):
-    """A body grid's nearest-sample query (10-13 s on one thread) is written under $REALITYAVATAR_CACHE: a later run
-    (here: the process's own cache cleared) builds the same grid bit for bit without querying; a damaged file is
-    queried again and replaced."""
+def test_grid_query_finds_the_neighbours_of_scipys_default_tree(monkeypatch):
+    """The body grids' nearest-sample query uses a sliding-midpoint k-d tree (7x faster far from the body): the same
+    neighbours as scipy's default tree, so the grid is the same bit for bit."""
+    from scipy.spatial import cKDTree
+
     from realityavatar.body import build_body
     from realityavatar.model import skinning
 
-    monkeypatch.setenv("REALITYAVATAR_CACHE", str(tmp_path))
-    monkeypatch.setattr(skinning, "_KNN_CACHE", skinning.OrderedDict())
     body = build_body("mannequin")
     v = body.canonical_vertices().detach()
 
     def build():
-        return skinning.diffuse_to_grid(v, body.faces, body.skin_weights, 0.08, 0.1, 4, 2, 0.1, 400_000)[0]
+        skinning._KNN_CACHE.clear()
+        return skinning.diffuse_to_grid(v, body.faces, body.skin_weights, 0.08, 0.3, 8, 2, 0.1, 400_000)[0]
 
-    first = build()
-    files = list((tmp_path / "knn").glob("*.npz"))
-    assert len(files) == 1 and skinning.knn_cache_dir() == tmp_path / "knn"
+    grid = build()
+    monkeypatch.setattr("scipy.spatial.cKDTree", lambda pts, **kw: cKDTree(pts))  # scipy's default tree
+    assert torch.equal(build(), grid)
     skinning._KNN_CACHE.clear()
-
-    class NoQuery:
-        def __init__(self, *a, **k):
-            raise AssertionError("queried although the query was on disk")
-
-    with monkeypatch.context() as m:
-        m.setattr("scipy.spatial.cKDTree", NoQuery)
-        assert torch.equal(build(), first)
-    skinning._KNN_CACHE.clear()
-    files[0].write_bytes(b"not an npz")
-    assert torch.equal(build(), first)
-    assert skinning._read_knn(next(iter(skinning._KNN_CACHE))) is not None  # rewritten whole
