@@ -1,8 +1,8 @@
 """Interactive browser viewer of a trained run: viser draws the Gaussians in the browser; the server poses them per frame
 (module.deform + the baked colour of `export.gaussians_for_export`) and streams means, covariances, colours, opacities.
 
-Command: `realityavatar-view run_dir=<run> [port=8080] [host=127.0.0.1] [split=train] [poses=<file.npz>] [fps=10]
-[poses_fps=<the file's frame rate>] [up=auto|z|y] [place=subject|keep]`
+Command: `realityavatar-view run_dir=<run> [port=8080] [host=127.0.0.1] [split=train] [poses=<file.npz>]
+[fps=<the run's data.fps>] [poses_fps=<the file's frame rate>] [up=auto|z|y] [place=subject|keep]`
 (viewer settings: conf/view.yaml; any other key=value overrides the run's config, as for realityavatar-evaluate).
 """
 
@@ -114,7 +114,7 @@ class AvatarViewer:
     """
 
     def __init__(self, module, dm, run_dir: str | Path, host: str = "127.0.0.1", port: int = 8080, split: str = "train",
-                 poses: str | None = None, fps: float = 10.0, frustum_scale: float = 0.1,
+                 poses: str | None = None, fps: float | None = None, frustum_scale: float = 0.1,
                  poses_fps: float | None = None, up: str = "auto", place: str = "subject"):
         import viser
 
@@ -124,6 +124,7 @@ class AvatarViewer:
         self._gaussians_for = gaussians_for_export
         self.module, self.dm, self.run_dir = module, dm, Path(run_dir)
         self.motion = {"fps": poses_fps, "up": up, "place": place}  # how pose files are read (data/motion.py)
+        fps = float(fps if fps is not None else dm.fps or 10.0)  # the run's frame rate: real time (10: configs before data.fps)
         if fps <= 0:
             raise ViewerError(f"fps={fps}: expected a playback rate > 0 frames per second")
         self.sequences: dict[str, Timeline] = {}
@@ -398,7 +399,7 @@ def load_viewer(vcfg, overrides: list[str] | None = None) -> AvatarViewer:
     module.to(run_device(cfg, vcfg.get("device")))
     dm = build_data(cfg, module.body)
     return AvatarViewer(module, dm, run_dir, host=str(vcfg.host), port=int(vcfg.port), split=str(vcfg.split),
-                        poses=vcfg.get("poses"), fps=float(vcfg.fps), frustum_scale=float(vcfg.frustum_scale),
+                        poses=vcfg.get("poses"), fps=vcfg.get("fps"), frustum_scale=float(vcfg.frustum_scale),
                         poses_fps=vcfg.get("poses_fps"), up=str(vcfg.up), place=str(vcfg.place))
 
 

@@ -216,6 +216,16 @@ def test_controls_pose_file_cameras_canonical_and_metrics(view_run, tmp_path):
         viewer.close()
 
 
+def test_playback_runs_at_the_runs_frame_rate_unless_told(view_run):
+    """fps=null (conf/view.yaml): the timeline plays in real time, at the run's data.fps; fps=<n> sets it."""
+    for extra, want in (("data.fps=12.5", 12.5), ("fps=7", 7.0)):
+        viewer = start(view_run, extra)
+        try:
+            assert viewer.fps.value == want
+        finally:
+            viewer.close()
+
+
 def test_bad_input_gives_clear_messages(view_run, tmp_path, capsys):
     from realityavatar.view import main
 
