@@ -93,7 +93,8 @@ def matrix_to_quat(R: torch.Tensor) -> torch.Tensor:
     # candidates need no division by it (pytorch3d's; norm >= 2 for the kept row of a rotation).
     flat = R.reshape(-1, 9)
     cands = torch.addmm(constant(_CANDIDATES_0, R), flat, constant(_CANDIDATES, R)).reshape(R.shape[:-2] + (4, 4))  # [...,4,4]
-    idx = torch.diagonal(cands, dim1=-2, dim2=-1).argmax(-1)  # [...] the largest 4 q_i^2
+    # [...] the largest 4 q_i^2 (argmax over the strided diagonal view takes 7x as long as over a copy of it)
+    idx = torch.diagonal(cands, dim1=-2, dim2=-1).contiguous().argmax(-1)
     q = unit(torch.gather(cands, -2, idx[..., None, None].expand(idx.shape + (1, 4))).squeeze(-2))
     return q * torch.where(q[..., :1] < 0, -1.0, 1.0)
 
