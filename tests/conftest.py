@@ -10,8 +10,10 @@ from pathlib import Path
 import pytest
 import torch
 
-# One thread: the suite is dominated by small ops, and 2 OpenMP threads stall badly when anything shares the cores.
+# One thread: the suite is dominated by small ops, and 2 OpenMP threads stall badly when anything shares the cores
+# (`make test` runs two pytest processes on 2 cores). The trainings and tools the tests start inherit it.
 torch.set_num_threads(1)
+os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 
 def pytest_collection_modifyitems(config, items):
