@@ -235,8 +235,23 @@ def count_ops(module, opt, sched, make_batch, step: int, steps: int = 3) -> dict
             "top_ops": dict(sorted(per.items(), key=lambda kv: -kv[1])[:15])}
 
 
+def top_ops(module, opt, sched, make_batch, step: int, k: int, steps: int = 3) -> list[dict]:
+    """The k operations that take the most time over `steps` whole steps (torch.profiler, grouped by operation and
+    input shapes; on a GPU by the time of their kernels): where a step's time goes, per step."""
+    from torch.profiler import ProfilerActivity, profile
+
+    acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if _device != "cpu" else [])
+    with profile(activities=acts, record_shapes=True) as prof:
+        for _ in range(steps):
+            step_whole(module, opt, sched, make_batch, step)
+    key = "self_cpu_time_total" if _device == "cpu" else "self_device_time_total"
+    rows = sorted(prof.key_averages(group_by_input_shape=True), key=lambda e: -getattr(e, key))[:k]
+    return [{"op": e.key, "shapes": str(e.input_shapes)[:120], "calls_per_step": e.count / steps,
+             "ms_per_step": getattr(e, key) / 1e3 / steps} for e in rows]
+
+
 def run_config(n: int, size: int, backend: str, repeats: int, overrides: list[str], views=(1,),
-               compile_mode: str = "none") -> dict:
+               compile_mode: str = "none", profile_top: int = 0) -> dict:
     torch.manual_seed(0)
     cfg, module, opt, sched = build(n, backend, overrides)
     if compile_mode != "none":  # the per-Gaussian networks (skinning, LBS, the rasterizer and losses stay eager)
@@ -257,6 +272,7 @@ def run_config(n: int, size: int, backend: str, repeats: int, overrides: list[st
         whole.append(step_whole(module, opt, sched, make_batch, step))
     med = {k: statistics.median(v) for k, v in parts.items()}
     counts = count_ops(module, opt, sched, make_batch, step)
+    top = top_ops(module, opt, sched, make_batch, step, profile_top) if profile_top else []
     gpu_kernel_s, cuda_calls = None, {}
     if _device != "cpu":
         from torch.profiler import ProfilerActivity, profile
@@ -281,6 +297,7 @@ def run_config(n: int, size: int, backend: str, repeats: int, overrides: list[st
             "first_step_s": first_step_s,
             "num_gaussians": int(module.gaussians.num_points), "step_s": statistics.median(whole),
             "sum_of_parts_s": sum(med.values()), "parts_s": med, "views_step_s": multi, "gpu_kernel_s": gpu_kernel_s,
+            "top_ops_time": top,
             **counts, **cuda_calls}
 
 
@@ -299,6 +316,8 @@ def main() -> None:
     ap.add_argument("--device", default="cpu", help="cpu or cuda[:i] (the module and batches there)")
     ap.add_argument("--compile", default="none", choices=["none", "default", "reduce-overhead", "max-autotune"],
                     help="torch.compile mode for the networks: encoder, temporal, decoder, colour, shading (first_step_s includes compiling)")
+    ap.add_argument("--profile", type=int, default=0, metavar="K",
+                    help="also list the K operations (by input shapes) that take the most time per step")
     ap.add_argument("--out", default=None, help="JSON (default results/step_cpu.json, step_cuda.json with --device cuda)")
     ap.add_argument("--no-tune-malloc", action="store_true",
                     help="leave glibc malloc as it is (training tunes it: realityavatar.runtime.tune_malloc)")
@@ -320,7 +339,7 @@ def main() -> None:
     for n in a.n:
         for size in a.size:
             for backend in a.backends:
-                r = run_config(n, size, backend, a.repeats, a.override, a.views, a.compile)
+                r = run_config(n, size, backend, a.repeats, a.override, a.views, a.compile, a.profile)
                 units.append(gemm_unit())  # the load drifts: each row is divided by the unit measured next to it
                 r["gemm_unit_s"] = statistics.median(units[-2:])
                 results.append(r)
@@ -335,6 +354,8 @@ def main() -> None:
                       f"{r['data_dependent_per_step']:.0f} data-dependent shapes per step"
                       + "".join(f"; {V} views {t:.3f}s = {t / u:.2f} units ({t / r['step_s']:.2f}x)"
                                 for V, t in r["views_step_s"].items()), flush=True)
+                for t in r["top_ops_time"]:
+                    print(f"      {t['ms_per_step']:7.2f} ms  x{t['calls_per_step']:<5.1f} {t['op']:32s} {t['shapes']}")
     cols = ["step", *PARTS]
     print("\nseconds (GEMM units); GEMM unit = 8 float32 matmuls of 1024^3 timed in this process")
     print("| backend | N | image | " + " | ".join(cols) + " |")

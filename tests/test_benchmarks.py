@@ -1,4 +1,4 @@
-"""benchmarks/: the one-command GPU benchmark and the training-step benchmark's CUDA refusal (and run, on a GPU)."""
+"""benchmarks/: the one-command GPU benchmark, the training-step benchmark (on the CPU, its CUDA refusal, on a GPU)."""
 
 from __future__ import annotations
 
@@ -116,13 +116,18 @@ def test_device_script_trains_configs_that_compose():
     assert compose(shlex.split(calls[2].replace("$MAXT", "00:00:04:00"))).trainer.max_time == "00:00:04:00"
 
 
-def test_components_benchmark_runs_and_states_the_decoder_floor(tmp_path, monkeypatch):
-    """benchmarks/components.py runs the model path as the model calls it and prints the decoder's matmul floor."""
-    components = benchmark("components")
-    out = tmp_path / "c.json"
-    monkeypatch.setattr(sys, "argv", ["components.py", "--points", "300", "--repeats", "1", "--out", str(out)])
-    components.main()
-    rows = json.loads(out.read_text())["rows"]
-    assert [r["what"] for r in rows] == ["encoder+lstm+decoder+skinning MLP+lbs+colour", "decoder (motion trend, ReLU)"]
-    # 300 x (39x128 + 2x128x128 + 128x26) multiply-adds forward, twice that backward less the first layer's input
-    assert rows[1]["matmul_gflop"] == pytest.approx(2 * 300 * (3 * 41088 - 39 * 128) / 1e9)
+def test_step_benchmark_on_the_cpu_counts_and_profiles(tmp_path, monkeypatch, capsys):
+    """benchmarks/step.py on the CPU: the step and its parts, tensor operations and host syncs counted (none between
+    log steps), and --profile's list of the operations that take the most time."""
+    out = tmp_path / "step.json"
+    monkeypatch.setattr(sys, "argv", ["step.py", "--backends", "numba", "--profile", "5", "--n", "2000", "--size", "64",
+                                      "--repeats", "1", "--no-tune-malloc", "--out", str(out), "--override",
+                                      "skinning.voxel_size=0.1", "shading.voxel_size=0.1"])  # small grids: quick
+    benchmark("step").main()
+    (row,) = json.loads(out.read_text())["results"]
+    assert row["step_s"] > 0 and set(row["parts_s"]) >= {"networks_fwd", "render_bwd", "optimizer"}
+    assert row["ops_per_step"] > 100 and row["scalar_reads_per_step"] == 0 and row["data_dependent_per_step"] == 0
+    top = row["top_ops_time"]
+    assert len(top) == 5 and all(t["ms_per_step"] > 0 and t["calls_per_step"] > 0 for t in top)
+    assert [t["ms_per_step"] for t in top] == sorted((t["ms_per_step"] for t in top), reverse=True)
+    assert "ms  x" in capsys.readouterr().out
