@@ -35,8 +35,8 @@ el "step profile"
 STEP="benchmarks/step.py --device cuda --backends gsplat"
 IFS=";" read -ra SIZES <<< "${STEP_SIZES:-7000 128;35000 512}"   # "N size;N size"
 for NS in "${SIZES[@]}"; do set -- $NS
-  timeout 150 python3 $STEP --n $1 --size $2 --views ${STEP_VIEWS:-1 4} --out "$OUT/step_cuda_$1_$2.json" 2>&1 \
-    | grep -E "^  gsplat" | cut -c1-500
+  timeout 150 python3 $STEP --n $1 --size $2 --views ${STEP_VIEWS:-1 4} --profile 15 --out "$OUT/step_cuda_$1_$2.json" \
+    2>&1 | grep -E "^  gsplat|ms  x" | cut -c1-500
 done
 for MODE in ${STEP_COMPILE:-}; do  # e.g. STEP_COMPILE="default reduce-overhead" (CUDA graphs): the networks compiled
   set -- ${SIZES[0]}

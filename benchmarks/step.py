@@ -244,8 +244,10 @@ def top_ops(module, opt, sched, make_batch, step: int, k: int, steps: int = 3) -
     with profile(activities=acts, record_shapes=True) as prof:
         for _ in range(steps):
             step_whole(module, opt, sched, make_batch, step)
-    key = "self_cpu_time_total" if _device == "cpu" else "self_device_time_total"
-    rows = sorted(prof.key_averages(group_by_input_shape=True), key=lambda e: -getattr(e, key))[:k]
+    events = prof.key_averages(group_by_input_shape=True)
+    key = "self_cpu_time_total" if _device == "cpu" else next(  # torch < 2.4 names the device time cuda
+        n for n in ("self_device_time_total", "self_cuda_time_total") if events and hasattr(events[0], n))
+    rows = sorted(events, key=lambda e: -getattr(e, key))[:k]
     return [{"op": e.key, "shapes": str(e.input_shapes)[:120], "calls_per_step": e.count / steps,
              "ms_per_step": getattr(e, key) / 1e3 / steps} for e in rows]
 
