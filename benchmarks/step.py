@@ -218,6 +218,7 @@ def _stub_trainer_hooks(module, opt, sched, step: int) -> None:
 
 
 LOG_EVERY = 25  # conf/trainer: log_every_n_steps; the timed and counted step is not a log step
+PROFILED_STEPS = 3  # whole steps under torch.profiler (GPU kernel time and calls, --profile)
 
 
 def count_ops(module, opt, sched, make_batch, step: int, steps: int = 3) -> dict:
@@ -235,21 +236,27 @@ def count_ops(module, opt, sched, make_batch, step: int, steps: int = 3) -> dict
             "top_ops": dict(sorted(per.items(), key=lambda kv: -kv[1])[:15])}
 
 
-def top_ops(module, opt, sched, make_batch, step: int, k: int, steps: int = 3) -> list[dict]:
-    """The k operations that take the most time over `steps` whole steps (torch.profiler, grouped by operation and
-    input shapes; on a GPU by the time of their kernels): where a step's time goes, per step."""
+def profile_steps(module, opt, sched, make_batch, step: int, shapes: bool = False):
+    """torch.profiler over PROFILED_STEPS whole steps (the GPU's kernels too on a GPU; input shapes with `shapes`)."""
     from torch.profiler import ProfilerActivity, profile
 
     acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if _device != "cpu" else [])
-    with profile(activities=acts, record_shapes=True) as prof:
-        for _ in range(steps):
+    with profile(activities=acts, record_shapes=shapes) as prof:
+        for _ in range(PROFILED_STEPS):
             step_whole(module, opt, sched, make_batch, step)
+    return prof
+
+
+def top_ops(prof, k: int) -> list[dict]:
+    """The k operations of a `profile_steps(shapes=True)` profile that take the most time (grouped by operation and
+    input shapes; on a GPU by the time of their kernels): where a step's time goes, per step."""
     events = prof.key_averages(group_by_input_shape=True)
     key = "self_cpu_time_total" if _device == "cpu" else next(  # torch < 2.4 names the device time cuda
         n for n in ("self_device_time_total", "self_cuda_time_total") if events and hasattr(events[0], n))
     rows = sorted(events, key=lambda e: -getattr(e, key))[:k]
-    return [{"op": e.key, "shapes": str(e.input_shapes)[:120], "calls_per_step": e.count / steps,
-             "ms_per_step": getattr(e, key) / 1e3 / steps} for e in rows]
+    n = PROFILED_STEPS
+    return [{"op": e.key, "shapes": str(e.input_shapes)[:120], "calls_per_step": e.count / n,
+             "ms_per_step": getattr(e, key) / 1e3 / n} for e in rows]
 
 
 def run_config(n: int, size: int, backend: str, repeats: int, overrides: list[str], views=(1,),
@@ -274,20 +281,19 @@ def run_config(n: int, size: int, backend: str, repeats: int, overrides: list[st
         whole.append(step_whole(module, opt, sched, make_batch, step))
     med = {k: statistics.median(v) for k, v in parts.items()}
     counts = count_ops(module, opt, sched, make_batch, step)
-    top = top_ops(module, opt, sched, make_batch, step, profile_top) if profile_top else []
+    # one profiled run for the GPU's kernel time and calls and for --profile's list
+    prof = (profile_steps(module, opt, sched, make_batch, step, shapes=bool(profile_top))
+            if profile_top or _device != "cpu" else None)
+    top = top_ops(prof, profile_top) if profile_top else []
     gpu_kernel_s, cuda_calls = None, {}
     if _device != "cpu":
-        from torch.profiler import ProfilerActivity, profile
-
-        with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
-            for _ in range(3):
-                step_whole(module, opt, sched, make_batch, step)
+        n = PROFILED_STEPS
         kernels = [e for e in prof.events() if str(getattr(e, "device_type", "")).endswith("CUDA")]
-        gpu_kernel_s = sum(e.time_range.elapsed_us() for e in kernels) / 3e6
+        gpu_kernel_s = sum(e.time_range.elapsed_us() for e in kernels) / (n * 1e6)
         names = [e.name for e in prof.events()]
-        cuda_calls = {"kernel_launches_per_step": sum("LaunchKernel" in k for k in names) / 3,
-                      "stream_syncs_per_step": sum("Synchronize" in k for k in names) / 3,
-                      "device_to_host_copies_per_step": sum(k.startswith("Memcpy DtoH") for k in names) / 3}
+        cuda_calls = {"kernel_launches_per_step": sum("LaunchKernel" in k for k in names) / n,
+                      "stream_syncs_per_step": sum("Synchronize" in k for k in names) / n,
+                      "device_to_host_copies_per_step": sum(k.startswith("Memcpy DtoH") for k in names) / n}
     multi = {}
     for V in views:
         if V == 1:
