@@ -280,10 +280,14 @@ def run_config(n: int, size: int, backend: str, repeats: int, overrides: list[st
             parts[k].append(v)
         whole.append(step_whole(module, opt, sched, make_batch, step))
     med = {k: statistics.median(v) for k, v in parts.items()}
-    counts = count_ops(module, opt, sched, make_batch, step)
     # one profiled run for the GPU's kernel time and calls and for --profile's list
     prof = (profile_steps(module, opt, sched, make_batch, step, shapes=bool(profile_top))
             if profile_top or _device != "cpu" else None)
+    # Counted last and for eager rows only: under a TorchDispatchMode dynamo runs the compiled networks eagerly, and
+    # keeps doing so after it (a profile taken after the count saw eager kernels): a compiled row's launches are the
+    # profile's kernel_launches_per_step.
+    counts = (count_ops(module, opt, sched, make_batch, step) if compile_mode == "none" else
+              {"ops_per_step": None, "scalar_reads_per_step": None, "data_dependent_per_step": None, "top_ops": {}})
     top = top_ops(prof, profile_top) if profile_top else []
     gpu_kernel_s, cuda_calls = None, {}
     if _device != "cpu":
@@ -358,8 +362,9 @@ def main() -> None:
                 print(f"  {backend:6s} N={n:6d} {size}^2  step {r['step_s']:.3f}s = {r['step_s'] / u:.2f} units "
                       f"(first step {r['first_step_s']:.1f}s, compile {r['compile']}) "
                       f"(render fwd+bwd {r['parts_s']['render_fwd'] + r['parts_s']['render_bwd']:.3f}s{gk}); "
-                      f"{r['ops_per_step']:.0f} tensor ops, {r['scalar_reads_per_step']:.0f} scalar reads, "
-                      f"{r['data_dependent_per_step']:.0f} data-dependent shapes per step"
+                      + ("tensor ops not counted (compiled)" if r["ops_per_step"] is None else
+                         f"{r['ops_per_step']:.0f} tensor ops, {r['scalar_reads_per_step']:.0f} scalar reads, "
+                         f"{r['data_dependent_per_step']:.0f} data-dependent shapes per step")
                       + "".join(f"; {V} views {t:.3f}s = {t / u:.2f} units ({t / r['step_s']:.2f}x)"
                                 for V, t in r["views_step_s"].items()), flush=True)
                 for t in r["top_ops_time"]:

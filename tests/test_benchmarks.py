@@ -131,3 +131,19 @@ def test_step_benchmark_on_the_cpu_counts_and_profiles(tmp_path, monkeypatch, ca
     assert len(top) == 5 and all(t["ms_per_step"] > 0 and t["calls_per_step"] > 0 for t in top)
     assert [t["ms_per_step"] for t in top] == sorted((t["ms_per_step"] for t in top), reverse=True)
     assert "ms  x" in capsys.readouterr().out
+
+
+def test_step_benchmark_profiles_the_compiled_networks(tmp_path, monkeypatch):
+    """--compile: the profiled steps run the compiled networks (a TorchDispatchMode count before them made dynamo run
+    them eagerly from then on), and no eager count is reported as theirs. Dynamo with the aot_eager backend (no C++
+    compiler, seconds) stands in for inductor: the same graphs, which the profile shows as CompiledFunction."""
+    compile_ = torch.nn.Module.compile
+    monkeypatch.setattr(torch.nn.Module, "compile", lambda self, mode=None: compile_(self, backend="aot_eager"))
+    out = tmp_path / "step.json"
+    monkeypatch.setattr(sys, "argv", ["step.py", "--backends", "numba", "--profile", "300", "--n", "500", "--size", "32",
+                                      "--repeats", "1", "--no-tune-malloc", "--out", str(out), "--compile", "default",
+                                      "--override", "skinning.voxel_size=0.1", "shading.voxel_size=0.1"])
+    benchmark("step").main()
+    (row,) = json.loads(out.read_text())["results"]
+    assert any("CompiledFunction" in t["op"] for t in row["top_ops_time"]), [t["op"] for t in row["top_ops_time"]]
+    assert row["ops_per_step"] is None
