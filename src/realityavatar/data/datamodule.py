@@ -35,7 +35,8 @@ READERS = ("i3d", "zju")
 class AvatarDataset(Dataset):
     """Image records of one split -> sample dicts. Images decode lazily; `cache_images` keeps decoded uint8 copies
     (and the masks' distance fields). Every sample carries the model's pose inputs (model/avatar.py pose_inputs:
-    the encoder's features of its pose window and the body's bone transforms), made here on the host by `body`."""
+    the encoder's features of its pose window and the body's bone transforms), made here on the host by `body`, once
+    per frame (the poses are fixed: every camera of a frame and every epoch reuse them)."""
 
     def __init__(
         self,
@@ -63,6 +64,7 @@ class AvatarDataset(Dataset):
         self.cache_images = cache_images
         self._cache: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
         self._dist_cache: dict[int, torch.Tensor] = {}
+        self._pose_cache: dict[int, tuple] = {}  # frame -> (poses, transl, pose_inputs): ~1 kB each
 
     def __len__(self) -> int:
         return len(self.records)
@@ -91,8 +93,11 @@ class AvatarDataset(Dataset):
         mask = torch.from_numpy(mask_b).float()[..., None]  # [H,W,1]
         image = torch.from_numpy(img_u8).float() / 255.0  # [H,W,3]
         image = image * mask + self.background * (1.0 - mask)
-        poses, transl = self.poses.window(rec.frame, self.window_len, self.window_step)  # [T,24,3], [T,3]
-        inputs = pose_inputs(self.body, poses[None], transl[None])
+        hit = self._pose_cache.get(rec.frame)
+        if hit is None:
+            poses, transl = self.poses.window(rec.frame, self.window_len, self.window_step)  # [T,24,3], [T,3]
+            hit = self._pose_cache[rec.frame] = (poses, transl, pose_inputs(self.body, poses[None], transl[None]))
+        poses, transl, inputs = hit
         out = {
             "image": image,
             "mask": mask,
