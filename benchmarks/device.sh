@@ -7,7 +7,8 @@
 # commit's src/ conf/ benchmarks/> profiles that commit's step too, in the same call (compare timings only within one
 # call). SWEEP=1 trains the sweep preset (1,000 steps at 128 px; the baseline's too with BASELINE) and reports its
 # seconds per step; PAPER_SCALE=<seconds> trains `+experiment=paper_scale` for at most that long (15,000 steps if it
-# gets there) and evaluates it. A 15-minute device session fits one call: e.g. SWEEP=1 BASELINE=<tree> PAPER_SCALE=240.
+# gets there) and evaluates it; their scenes are built while the gpu tests run. A 15-minute device session fits one
+# call: e.g. SWEEP=1 BASELINE=<tree> PAPER_SCALE=240.
 #
 # Wheels (Python 3.12, x86_64; on a machine with pip and network):
 #   python3 -m pip download --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
@@ -28,9 +29,24 @@ timeout 240 python3 -c "
 import time; t = time.time()
 from realityavatar.render.splat import gsplat_status
 print('gsplat_status:', gsplat_status()[-1500:], '| build_s', round(time.time() - t, 1))" 2>&1 | tail -2
+# The scenes the trainings below read, built by their own data configs while the gpu tests run (ray casting on every
+# core; after gsplat's build, which has its own time limit). The step profile waits for them: no timing shares the CPU.
+SCENES=(); [ -n "${SWEEP:-}" ] && SCENES+=("+preset=sweep data=synthetic_sweep")
+[ -n "${PAPER_SCALE:-}" ] && SCENES+=("+experiment=paper_scale")
+if [ ${#SCENES[@]} -gt 0 ]; then
+  python3 - "${SCENES[@]}" > "$OUT/scenes.log" 2>&1 <<'PY' &
+import sys
+from hydra.utils import instantiate
+from realityavatar.config import compose
+for overrides in sys.argv[1:]:
+    instantiate(compose(overrides.split()).data, body=None).prepare_data()
+PY
+  SCENES_PID=$!
+fi
 el "gpu tests"
 timeout ${PYTEST_TIMEOUT:-200} python3 -m pytest -q -m gpu -p no:cacheprovider > "$OUT/pytest_gpu.log" 2>&1; echo "pytest rc $?"
 grep -E "passed|failed|^FAILED|^E " "$OUT/pytest_gpu.log" | tail -8
+if [ -n "${SCENES_PID:-}" ]; then wait "$SCENES_PID"; el "scenes built (rc $?; $OUT/scenes.log)"; fi
 el "step profile"
 STEP="benchmarks/step.py --device cuda --backends gsplat"
 IFS=";" read -ra SIZES <<< "${STEP_SIZES:-7000 128;35000 512}"   # "N size;N size"

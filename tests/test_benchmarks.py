@@ -114,6 +114,13 @@ def test_device_script_trains_configs_that_compose():
         assert cfg.trainer.accelerator == "gpu" or "paper_scale" in overrides
     assert compose(shlex.split(calls[0])).data.image_scale == 0.5  # the sweep scene: 128 px
     assert compose(shlex.split(calls[2].replace("$MAXT", "00:00:04:00"))).trainer.max_time == "00:00:04:00"
+    # the scenes built while the gpu tests run are the ones the sweep and paper_scale trainings read
+    built = re.findall(r'SCENES\+=\("([^"]+)"\)', text)
+    assert len(built) == 2, built
+    scene = ("root", "sequence", "build_preset", "build_sequence", "build_seed", "build_overrides")
+    for pre, train in zip(built, (calls[0], calls[2])):
+        a, b = compose(pre.split()).data, compose(shlex.split(train.replace("$MAXT", "00:00:04:00"))).data
+        assert [a.get(k) for k in scene] == [b.get(k) for k in scene], (pre, train)
 
 
 def test_step_benchmark_on_the_cpu_counts_and_profiles(tmp_path, monkeypatch, capsys):
