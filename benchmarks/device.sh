@@ -8,7 +8,8 @@
 # call). SWEEP=1 trains the sweep preset (1,000 steps at 128 px; the baseline's too with BASELINE) and reports its
 # seconds per step; PAPER_SCALE=<seconds> trains `+experiment=paper_scale` for at most that long (15,000 steps if it
 # gets there) and evaluates it; their scenes are built while the gpu tests run. A 15-minute device session fits one
-# call: e.g. SWEEP=1 BASELINE=<tree> PAPER_SCALE=240.
+# call of at most 10 minutes, e.g. SWEEP=1 BASELINE=<tree> STEP_SIZES="7000 128", then a second on the warm machine
+# (scenes and kernels kept under outputs/) with GPU_TESTS=0 STEP_SIZES="" PAPER_SCALE=<s> for the time left.
 #
 # Wheels (Python 3.12, x86_64; on a machine with pip and network):
 #   python3 -m pip download --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
@@ -19,10 +20,12 @@
 #   python3 -m pip wheel --no-deps -w .whl antlr4-python3-runtime==4.9.3
 set -u
 OUT=$(realpath -m "${OUT:-outputs/device}"); mkdir -p "$OUT"
-export REALITYAVATAR_SCENES=${REALITYAVATAR_SCENES:-/tmp/scenes}  # one scene build for this commit and the baseline
+# Scenes and gsplat's kernels under outputs/ (ignored): one build for this commit and the baseline, and a later call on
+# the warm machine finds them (the device keeps ignored outputs in the tree between calls).
+export REALITYAVATAR_SCENES=${REALITYAVATAR_SCENES:-$PWD/outputs/scenes}
 T0=$(date +%s); el() { echo "[$(( $(date +%s) - T0 ))s] $*"; }
 python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 3
-export PYTHONPATH=/tmp/site:$PWD/src PYTHONUNBUFFERED=1 TORCH_EXTENSIONS_DIR=/tmp/torch_ext MAX_JOBS=16 \
+export PYTHONPATH=/tmp/site:$PWD/src PYTHONUNBUFFERED=1 TORCH_EXTENSIONS_DIR=${TORCH_EXTENSIONS_DIR:-$PWD/outputs/torch_ext} MAX_JOBS=16 \
   TORCH_CUDA_ARCH_LIST=${TORCH_CUDA_ARCH_LIST:-9.0}
 el installed; nvidia-smi -L; python3 -c "import torch; print('torch', torch.__version__, 'cuda', torch.version.cuda)"
 timeout 240 python3 -c "
@@ -43,24 +46,26 @@ for overrides in sys.argv[1:]:
 PY
   SCENES_PID=$!
 fi
-el "gpu tests"
-timeout ${PYTEST_TIMEOUT:-200} python3 -m pytest -q -m gpu -p no:cacheprovider > "$OUT/pytest_gpu.log" 2>&1; echo "pytest rc $?"
-grep -E "passed|failed|^FAILED|^E " "$OUT/pytest_gpu.log" | tail -8
+if [ "${GPU_TESTS:-1}" != 0 ]; then  # GPU_TESTS=0: a later call on the warm machine skips them
+  el "gpu tests"
+  timeout ${PYTEST_TIMEOUT:-200} python3 -m pytest -q -m gpu -p no:cacheprovider > "$OUT/pytest_gpu.log" 2>&1
+  echo "pytest rc $?"; grep -E "passed|failed|^FAILED|^E " "$OUT/pytest_gpu.log" | tail -8
+fi
 if [ -n "${SCENES_PID:-}" ]; then wait "$SCENES_PID"; el "scenes built (rc $?; $OUT/scenes.log)"; fi
-el "step profile"
 STEP="benchmarks/step.py --device cuda --backends gsplat"
-IFS=";" read -ra SIZES <<< "${STEP_SIZES:-7000 128;35000 512}"   # "N size;N size"
+IFS=";" read -ra SIZES <<< "${STEP_SIZES-7000 128;35000 512}"   # "N size;N size"; STEP_SIZES="" profiles nothing
 for NS in "${SIZES[@]}"; do set -- $NS
+  el "step profile ($1 / $2)"
   timeout 150 python3 $STEP --n $1 --size $2 --views ${STEP_VIEWS:-1 4} --profile 15 --out "$OUT/step_cuda_$1_$2.json" \
     2>&1 | grep -E "^  gsplat|ms  x" | cut -c1-500
 done
 for MODE in ${STEP_COMPILE:-}; do  # e.g. STEP_COMPILE="default reduce-overhead" (CUDA graphs): the networks compiled
-  set -- ${SIZES[0]}
+  set -- ${SIZES[0]:-7000 128}
   el "step profile, torch.compile $MODE ($1 / $2; first_step_s includes compiling)"
   timeout 240 python3 $STEP --n $1 --size $2 --compile $MODE --out "$OUT/step_cuda_$1_$2_compile_$MODE.json" 2>&1 \
     | grep -E "^  gsplat" | cut -c1-500
 done
-if [ -n "${BASELINE:-}" ]; then
+if [ -n "${BASELINE:-}" ] && [ ${#SIZES[@]} -gt 0 ]; then
   el "baseline step profile ($BASELINE, 7000 / 128)"
   (cd "$BASELINE" && PYTHONPATH=/tmp/site:$PWD/src timeout 120 python3 $STEP --n 7000 --size 128 \
     --out "$OUT/step_cuda_baseline_7000_128.json" 2>&1 | grep -E "^  gsplat" | cut -c1-400)
