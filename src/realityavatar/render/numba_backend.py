@@ -319,8 +319,8 @@ def _forward(parallel, means2d, conics, opac, colors, prep, starts, ids, C, widt
     n = C * ((width + ts - 1) // ts) * ((height + ts - 1) // ts)
     if parallel:
         for t in prange(n):  # prange's index is uint64: as int64, one compiled _forward_tile serves both branches
-            _forward_tile(np.int64(t), means2d, conics, opac, colors, prep, starts, ids, C, width, height, ts, alpha_max, img,
-                          alpha_out, t_final, last)
+            _forward_tile(np.int64(t), means2d, conics, opac, colors, prep, starts, ids, C, width, height, ts,
+                          alpha_max, img, alpha_out, t_final, last)
     else:  # one thread: not through numba's parallel layer, whose every launch took ~0.1 ms here
         for t in range(n):
             _forward_tile(t, means2d, conics, opac, colors, prep, starts, ids, C, width, height, ts, alpha_max, img,
@@ -413,8 +413,8 @@ def _backward(parallel, means2d, conics, opac, colors, prep, starts, ids, C, wid
     n = C * ((width + ts - 1) // ts) * ((height + ts - 1) // ts)
     if parallel:
         for t in prange(n):  # as in _forward
-            _backward_tile(np.int64(t), means2d, conics, opac, colors, prep, starts, ids, C, width, height, ts, alpha_max,
-                           t_final, last, g_img, g_alpha, pair_grad)
+            _backward_tile(np.int64(t), means2d, conics, opac, colors, prep, starts, ids, C, width, height, ts,
+                           alpha_max, t_final, last, g_img, g_alpha, pair_grad)
     else:  # one thread: not through numba's parallel layer, whose every launch took ~0.1 ms here
         for t in range(n):
             _backward_tile(t, means2d, conics, opac, colors, prep, starts, ids, C, width, height, ts, alpha_max,
