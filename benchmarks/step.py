@@ -11,8 +11,9 @@ backward = decoder, skinning, colour, encoder): the module's own forward path (A
 configured loss terms (losses.total_loss over module.losses: every term the run trains with), then
 data -> networks fwd -> render fwd -> losses fwd -> losses bwd -> render bwd -> networks bwd -> optimizer -> density.
 The body grids are built as training builds them (skinning weights, shading normals: ~171k voxels for the
-mannequin). Data is a synthetic batch (random pose window, one camera framing the body, random target image) built the way the
-DataModule collates one. --views V adds the whole step of a batch of V images (data.views_per_step=V): the same pose
+mannequin). Data is a synthetic batch (one of 4 random pose windows with their pose inputs, one camera framing the
+body, a random target image: each made once, as the dataset caches them) built the way the DataModule collates one.
+--views V adds the whole step of a batch of V images (data.views_per_step=V): the same pose
 window seen by V cameras around the body, the networks run once for them; its parts are not split out.
 --device cuda runs the module and its batches on the GPU (backends `gsplat torch` there); every clock reading waits
 for the GPU first (torch.cuda.synchronize), and each row also records the GPU kernels' own time per step
@@ -123,20 +124,21 @@ def make_batch_fn(module, size: int, window: int, views: int = 1):
     images = [torch.rand(views, size, size, 3, generator=g) for _ in range(4)]
     masks = [(torch.rand(views, size, size, 1, generator=g) > 0.5).float() for _ in images]
     dists = [torch.stack([mask_distance(m[..., 0]) for m in ms]) for ms in masks]
+    from realityavatar.model.avatar import pose_inputs
+
     body = module.body.host_copy()  # the dataset's copy, on the host
+    windows = []  # pose windows and their pose inputs, made once per frame as the dataset makes them
+    for _ in images:
+        poses = (torch.randn(1, window, 24, 3, generator=g) * 0.1).expand(views, -1, -1, -1).clone()
+        transl = torch.zeros(views, window, 3)
+        windows.append({"poses": poses, "transl": transl, **pose_inputs(body, poses, transl)})
 
     def make():
-        """Per sample, as AvatarDataset.__getitem__: a pose window and its pose inputs; a cached image."""
-        from realityavatar.model.avatar import pose_inputs
-
+        """Per sample, as AvatarDataset.__getitem__: a frame's cached pose window and inputs, a cached image."""
         V = views
         k = int(torch.randint(len(images), (), generator=g))
-        poses = (torch.randn(1, window, 24, 3, generator=g) * 0.1).expand(V, -1, -1, -1).clone()
-        transl = torch.zeros(V, window, 3)
         batch = {
-            "poses": poses,
-            "transl": transl,
-            **pose_inputs(body, poses, transl),
+            **{name: x.clone() for name, x in windows[k].items()},  # collation copies them
             "frame_idx": torch.full((V,), 3),
             "viewmat": vm.clone(),
             "K": K[None].repeat(V, 1, 1),
