@@ -140,6 +140,20 @@ def test_step_benchmark_on_the_cpu_counts_and_profiles(tmp_path, monkeypatch, ca
     assert "ms  x" in capsys.readouterr().out
 
 
+def test_step_benchmark_times_one_model_state():
+    """The timed steps do not train: learning rates 0, so every row and repeat sees the initial model (steps towards
+    random targets drifted it, and a later row's rasterizer had more to draw)."""
+    step = benchmark("step")
+    cfg, module, opt, sched = step.build(500, "numba", ["skinning.voxel_size=0.1", "shading.voxel_size=0.1"])
+    make = step.make_batch_fn(module, 32, int(cfg.data.window_len))
+    s = max(int(cfg.schedule.deform_start), 1) + 1
+    step._stub_trainer_hooks(module, opt, sched, s)
+    before = {k: v.clone() for k, v in module.state_dict().items()}
+    for _ in range(3):
+        step.step_whole(module, opt, sched, make, s)
+    assert all(torch.equal(before[k], v) for k, v in module.state_dict().items() if k in before)
+
+
 def test_step_benchmark_profiles_the_compiled_networks(tmp_path, monkeypatch):
     """--compile: the profiled steps run the compiled networks (a TorchDispatchMode count before them made dynamo run
     them eagerly from then on), and no eager count is reported as theirs. Dynamo with the aot_eager backend (no C++
