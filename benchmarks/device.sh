@@ -8,8 +8,8 @@
 # call). SWEEP=1 trains the sweep preset (1,000 steps at 128 px; the baseline's too with BASELINE) and reports its
 # seconds per step; PAPER_SCALE=<seconds> trains `+experiment=paper_scale` for at most that long (15,000 steps if it
 # gets there) and evaluates it; their scenes are built while the gpu tests run. A 15-minute device session fits one
-# call of at most 10 minutes, e.g. SWEEP=1 BASELINE=<tree> STEP_SIZES="7000 128", then a second on the warm machine
-# (scenes and kernels kept under outputs/) with GPU_TESTS=0 STEP_SIZES="" PAPER_SCALE=<s> for the time left.
+# call of at most 10 minutes, e.g. SWEEP=1 PAPER_SCENE=1 BASELINE=<tree> STEP_SIZES="7000 128", then a second on the
+# warm machine (scenes and kernels kept under outputs/) with GPU_TESTS=0 STEP_SIZES="" PAPER_SCALE=<s>.
 #
 # Wheels (Python 3.12, x86_64; on a machine with pip and network):
 #   python3 -m pip download --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
@@ -35,7 +35,7 @@ print('gsplat_status:', gsplat_status()[-1500:], '| build_s', round(time.time() 
 # The scenes the trainings below read, built by their own data configs while the gpu tests run (ray casting on every
 # core; after gsplat's build, which has its own time limit). The step profile waits for them: no timing shares the CPU.
 SCENES=(); [ -n "${SWEEP:-}" ] && SCENES+=("+preset=sweep data=synthetic_sweep")
-[ -n "${PAPER_SCALE:-}" ] && SCENES+=("+experiment=paper_scale")
+[ -n "${PAPER_SCALE:-}${PAPER_SCENE:-}" ] && SCENES+=("+experiment=paper_scale")  # PAPER_SCENE=1: for a later call
 if [ ${#SCENES[@]} -gt 0 ]; then
   python3 - "${SCENES[@]}" > "$OUT/scenes.log" 2>&1 <<'PY' &
 import sys
