@@ -300,13 +300,13 @@ def run_config(n: int, size: int, backend: str, repeats: int, overrides: list[st
     top = top_ops(prof, profile_top) if profile_top else []
     gpu_kernel_s, cuda_calls = None, {}
     if _device != "cpu":
-        n = PROFILED_STEPS
+        steps = PROFILED_STEPS  # not `n`: that is the row's number of Gaussians
         kernels = [e for e in prof.events() if str(getattr(e, "device_type", "")).endswith("CUDA")]
-        gpu_kernel_s = sum(e.time_range.elapsed_us() for e in kernels) / (n * 1e6)
+        gpu_kernel_s = sum(e.time_range.elapsed_us() for e in kernels) / (steps * 1e6)
         names = [e.name for e in prof.events()]
-        cuda_calls = {"kernel_launches_per_step": sum("LaunchKernel" in k for k in names) / n,
-                      "stream_syncs_per_step": sum("Synchronize" in k for k in names) / n,
-                      "device_to_host_copies_per_step": sum(k.startswith("Memcpy DtoH") for k in names) / n}
+        cuda_calls = {"kernel_launches_per_step": sum("LaunchKernel" in k for k in names) / steps,
+                      "stream_syncs_per_step": sum("Synchronize" in k for k in names) / steps,
+                      "device_to_host_copies_per_step": sum(k.startswith("Memcpy DtoH") for k in names) / steps}
     multi = {}
     for V in views:
         if V == 1:

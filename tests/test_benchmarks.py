@@ -57,6 +57,7 @@ def test_step_benchmark_on_cuda(tmp_path):
     assert {r["backend"] for r in rows} == {"gsplat", "torch"}
     for r in rows:
         assert r["device"] == "cuda" and r["step_s"] > 0 and r["gpu_kernel_s"] > 0
+        assert r["n"] == 2000 and r["size"] == 64  # the row's own settings, not the profiled step count
 
 
 def test_lpips_check_needs_the_lpips_package(capsys):
