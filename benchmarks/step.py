@@ -268,6 +268,13 @@ def top_ops(prof, k: int) -> list[dict]:
              "ms_per_step": getattr(e, key) / 1e3 / n} for e in rows]
 
 
+def timed_step(cfg) -> int:
+    """The global step every timed step runs as: the motion-trend decoder on, not a densification step, nor a log
+    step (module.training_step reads the device on those only)."""
+    step = max(int(cfg.schedule.deform_start), 1) + 1
+    return step + ((step + 1) % LOG_EVERY == 0)
+
+
 def run_config(n: int, size: int, backend: str, repeats: int, overrides: list[str], views=(1,),
                compile_mode: str = "none", profile_top: int = 0) -> dict:
     torch.manual_seed(0)
@@ -276,8 +283,7 @@ def run_config(n: int, size: int, backend: str, repeats: int, overrides: list[st
         for net in (module.encoder, module.temporal, module.deformer, module.color, module.shading):
             net.compile(mode=None if compile_mode == "default" else compile_mode)  # automatic dynamic shapes: N changes
     make_batch = make_batch_fn(module, size, int(cfg.data.window_len))
-    step = max(int(cfg.schedule.deform_start), 1) + 1  # motion-trend decoder on; not a densification step
-    step += (step + 1) % LOG_EVERY == 0  # nor a log step (module.training_step reads the device on those only)
+    step = timed_step(cfg)
     _stub_trainer_hooks(module, opt, sched, step)
     t0 = _clock()
     step_parts(module, opt, sched, make_batch, step)  # warm-up: numba's cache load, torch.compile's compilation

@@ -147,7 +147,7 @@ def test_step_benchmark_times_one_model_state():
     step = benchmark("step")
     cfg, module, opt, sched = step.build(500, "numba", ["skinning.voxel_size=0.1", "shading.voxel_size=0.1"])
     make = step.make_batch_fn(module, 32, int(cfg.data.window_len))
-    s = max(int(cfg.schedule.deform_start), 1) + 1
+    s = step.timed_step(cfg)
     step._stub_trainer_hooks(module, opt, sched, s)
     before = {k: v.clone() for k, v in module.state_dict().items()}
     for _ in range(3):
