@@ -19,25 +19,28 @@
 #     gsplat==1.5.3
 #   python3 -m pip wheel --no-deps -w .whl antlr4-python3-runtime==4.9.3
 set -u
-OUT=$(realpath -m "${OUT:-outputs/device}"); mkdir -p "$OUT"
+# Everything is written under $WORK (ignored, kept on a warm machine) and packed into $OUT/device.tgz at the end (the
+# device returns at most 8 files from $OUT; checkpoints and videos stay behind). DEADLINE=<s>: the script ends by then
+# (the call's own limit kills without packing); paper_scale's training time is cut to fit it.
+OUT=$(realpath -m "${OUT:-outputs/device_out}"); mkdir -p "$OUT"
+WORK=$(realpath -m "${WORK:-outputs/device}"); mkdir -p "$WORK"
+DEADLINE=${DEADLINE:-580}
+pack() { tar czf "$OUT/device.tgz" --exclude='*.ckpt' --exclude='*.mp4' --exclude='*.png' -C "$WORK" . 2>/dev/null
+  ls -la "$OUT"; }
+trap pack EXIT
 # Scenes and gsplat's kernels under outputs/ (ignored): one build for this commit and the baseline, and a later call on
 # the warm machine finds them (the device keeps ignored outputs in the tree between calls).
 export REALITYAVATAR_SCENES=${REALITYAVATAR_SCENES:-$PWD/outputs/scenes}
-T0=$(date +%s); el() { echo "[$(( $(date +%s) - T0 ))s] $*"; }
+T0=$(date +%s); el() { echo "[$(( $(date +%s) - T0 ))s] $*"; }; left() { echo $(( DEADLINE - $(date +%s) + T0 )); }
 python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 3
 export PYTHONPATH=/tmp/site:$PWD/src PYTHONUNBUFFERED=1 TORCH_EXTENSIONS_DIR=${TORCH_EXTENSIONS_DIR:-$PWD/outputs/torch_ext} MAX_JOBS=16 \
   TORCH_CUDA_ARCH_LIST=${TORCH_CUDA_ARCH_LIST:-9.0}
-el installed; nvidia-smi -L; python3 -c "import torch; print('torch', torch.__version__, 'cuda', torch.version.cuda)"
-timeout 240 python3 -c "
-import time; t = time.time()
-from realityavatar.render.splat import gsplat_status
-print('gsplat_status:', gsplat_status()[-1500:], '| build_s', round(time.time() - t, 1))" 2>&1 | tail -2
 # The scenes the trainings below read, built by their own data configs while the gpu tests run (ray casting on every
-# core; after gsplat's build, which has its own time limit). The step profile waits for them: no timing shares the CPU.
-SCENES=(); [ -n "${SWEEP:-}" ] && SCENES+=("+preset=sweep data=synthetic_sweep")
-[ -n "${PAPER_SCALE:-}${PAPER_SCENE:-}" ] && SCENES+=("+experiment=paper_scale")  # PAPER_SCENE=1: for a later call
+# core, beside gsplat's build). The step profile waits for them: no timing shares the CPU.
+SCENES=(); [ -n "${PAPER_SCALE:-}${PAPER_SCENE:-}" ] && SCENES+=("+experiment=paper_scale")  # *_SCENE=1: for a later call
+[ -n "${SWEEP:-}${SWEEP_SCENE:-}" ] && SCENES+=("+preset=sweep data=synthetic_sweep")
 if [ ${#SCENES[@]} -gt 0 ]; then
-  python3 - "${SCENES[@]}" > "$OUT/scenes.log" 2>&1 <<'PY' &
+  python3 - "${SCENES[@]}" > "$WORK/scenes.log" 2>&1 <<'PY' &
 import sys
 from hydra.utils import instantiate
 from realityavatar.config import compose
@@ -46,34 +49,40 @@ for overrides in sys.argv[1:]:
 PY
   SCENES_PID=$!
 fi
+el installed; nvidia-smi -L; python3 -c "import torch; print('torch', torch.__version__, 'cuda', torch.version.cuda)"
+timeout 240 python3 -c "
+import time; t = time.time()
+from realityavatar.render.splat import gsplat_status
+print('gsplat_status:', gsplat_status()[-1500:], '| build_s', round(time.time() - t, 1))" 2>&1 | tail -2
 if [ "${GPU_TESTS:-1}" != 0 ]; then  # GPU_TESTS=0: a later call on the warm machine skips them
   el "gpu tests"
-  timeout ${PYTEST_TIMEOUT:-200} python3 -m pytest -q -m gpu -p no:cacheprovider > "$OUT/pytest_gpu.log" 2>&1
-  echo "pytest rc $?"; grep -E "passed|failed|^FAILED|^E " "$OUT/pytest_gpu.log" | tail -8
+  timeout ${PYTEST_TIMEOUT:-200} python3 -m pytest -q -m gpu -p no:cacheprovider ${GPU_TESTS_K:+-k "$GPU_TESTS_K"} \
+    > "$WORK/pytest_gpu.log" 2>&1
+  echo "pytest rc $?"; grep -E "passed|failed|^FAILED|^E " "$WORK/pytest_gpu.log" | tail -8
 fi
-if [ -n "${SCENES_PID:-}" ]; then wait "$SCENES_PID"; el "scenes built (rc $?; $OUT/scenes.log)"; fi
+if [ -n "${SCENES_PID:-}" ]; then wait "$SCENES_PID"; el "scenes built (rc $?; $WORK/scenes.log)"; fi
 STEP="benchmarks/step.py --device cuda --backends gsplat"
 IFS=";" read -ra SIZES <<< "${STEP_SIZES-7000 128;35000 512}"   # "N size;N size"; STEP_SIZES="" profiles nothing
 for NS in "${SIZES[@]}"; do set -- $NS
   el "step profile ($1 / $2)"
-  timeout 150 python3 $STEP --n $1 --size $2 --views ${STEP_VIEWS:-1 4} --profile 15 --out "$OUT/step_cuda_$1_$2.json" \
+  timeout 150 python3 $STEP --n $1 --size $2 --views ${STEP_VIEWS:-1 4} --profile 15 --out "$WORK/step_cuda_$1_$2.json" \
     2>&1 | grep -E "^  gsplat|ms  x" | cut -c1-500
 done
 for MODE in ${STEP_COMPILE:-}; do  # e.g. STEP_COMPILE="default reduce-overhead" (CUDA graphs): the networks compiled
   set -- ${SIZES[0]:-7000 128}
   el "step profile, torch.compile $MODE ($1 / $2; first_step_s includes compiling)"
-  timeout 240 python3 $STEP --n $1 --size $2 --compile $MODE --out "$OUT/step_cuda_$1_$2_compile_$MODE.json" 2>&1 \
+  timeout 240 python3 $STEP --n $1 --size $2 --compile $MODE --out "$WORK/step_cuda_$1_$2_compile_$MODE.json" 2>&1 \
     | grep -E "^  gsplat" | cut -c1-500
 done
 if [ -n "${BASELINE:-}" ] && [ ${#SIZES[@]} -gt 0 ]; then
   el "baseline step profile ($BASELINE, 7000 / 128)"
   (cd "$BASELINE" && PYTHONPATH=/tmp/site:$PWD/src timeout 120 python3 $STEP --n 7000 --size 128 \
-    --out "$OUT/step_cuda_baseline_7000_128.json" 2>&1 | grep -E "^  gsplat" | cut -c1-400)
+    --out "$WORK/step_cuda_baseline_7000_128.json" 2>&1 | grep -E "^  gsplat" | cut -c1-400)
 fi
 run_train() {  # <tree> <run dir> <timeout s> <overrides...>: train (+ evaluate) and print the step rate and metrics
   local tree=$1 dir=$2 limit=$3; shift 3
   (cd "$tree" && PYTHONPATH=/tmp/site:$PWD/src timeout "$limit" python3 -m realityavatar.train "$@" \
-    hydra.run.dir="$dir" > "$dir.log" 2>&1); echo "train rc $? ($dir)"
+    hydra.run.dir="$dir" > "$dir.log" 2>&1); echo "train rc $? ($dir)"; grep -E "Error|error:" "$dir.log" | tail -3
   python3 - "$dir" <<'PY'
 import json, sys
 from pathlib import Path
@@ -88,17 +97,24 @@ PY
 }
 if [ -n "${SWEEP:-}" ]; then
   el "sweep preset, 1000 steps (this commit)"
-  run_train "$PWD" "$OUT/sweep" 300 +preset=sweep data=synthetic_sweep trainer=gpu render.backend=gsplat
+  run_train "$PWD" "$WORK/sweep" 300 +preset=sweep data=synthetic_sweep trainer=gpu render.backend=gsplat
   if [ -n "${BASELINE:-}" ]; then
     el "sweep preset, 1000 steps ($BASELINE)"
-    run_train "$BASELINE" "$OUT/sweep_baseline" 300 +preset=sweep data=synthetic_sweep trainer=gpu render.backend=gsplat
+    run_train "$BASELINE" "$WORK/sweep_baseline" 300 +preset=sweep data=synthetic_sweep trainer=gpu render.backend=gsplat
   fi
 fi
 if [ -n "${PAPER_SCALE:-}" ]; then
   # Lightning's max_time stops training after PAPER_SCALE seconds (metrics.json's iterations: the steps reached), then
   # the run is evaluated; the hard limit leaves 240 s for set-up and evaluation.
+  S=$(( $(left) - ${PAPER_RESERVE:-150} )); [ "$S" -lt "$PAPER_SCALE" ] && PAPER_SCALE=$S  # set-up + evaluation
   MAXT=$(printf '00:%02d:%02d:%02d' $((PAPER_SCALE / 3600)) $((PAPER_SCALE % 3600 / 60)) $((PAPER_SCALE % 60)))
   el "+experiment=paper_scale (training stops after ${PAPER_SCALE}s: $MAXT)"
-  run_train "$PWD" "$OUT/paper_scale" $((PAPER_SCALE+240)) +experiment=paper_scale +trainer.max_time=$MAXT
+  run_train "$PWD" "$WORK/paper_scale" $(( $(left) - 5 )) +experiment=paper_scale +trainer.max_time=$MAXT
+fi
+if [ -n "${PAPER_SCALE:-}" ] && [ -f "$WORK/paper_scale/metrics.json" ] && [ "$(left)" -gt 40 ]; then
+  # The per-phase probe of the held-out cameras (rest / spin / after the stop), and the novel-pose spin's phases.
+  el "probe of paper_scale (held-out cameras)"
+  timeout $(( $(left) - 5 )) python3 -m realityavatar.analysis.probe "$WORK/paper_scale" --heldout-only \
+    --out "$WORK/probe" > "$WORK/probe.log" 2>&1; echo "probe rc $?"; tail -12 "$WORK/probe.log" | cut -c1-300
 fi
 el done
