@@ -84,3 +84,25 @@ def test_probe_garment_shape_change_ignores_the_turn(tmp_path):
     assert c[0][2] < 1e-9 and c[1][2] < 1e-6  # same shape, turned 115 degrees and moved
     assert abs(c[2][2] - 0.3) < 1e-6
     assert garment_curves(tmp_path / "g.npz", settled_frame=2)[2][2] < 1e-9
+
+
+def test_probe_renders_on_the_runs_device(trained_run, monkeypatch):
+    """The probe renders a run on the device its training used (build.run_device: a GPU run on its GPU, where gsplat
+    needs CUDA tensors; it fell back to the torch backend on the CPU before). Here the run is a CPU run: the device
+    is asked for once, and every held-out image is probed."""
+    import numpy as np
+    import torch
+
+    import realityavatar.analysis.probe as probe
+
+    asked = []
+
+    def device_of(cfg, override=None):
+        asked.append(str(cfg.trainer.accelerator))
+        return torch.device("cpu")
+
+    monkeypatch.setattr(probe, "run_device", device_of)
+    rows, summary = probe.probe_run(trained_run[0], kinds=("heldout",))
+    assert asked == ["cpu"]
+    assert rows and all(r["kind"] == "heldout" and np.isfinite(r["psnr"]) for r in rows)
+    assert "heldout/all/psnr" in summary

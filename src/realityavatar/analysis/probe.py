@@ -28,9 +28,10 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from pytorch_lightning.utilities import move_data_to_device
 from torch.utils.data import default_collate
 
-from realityavatar.build import build_data, load_run
+from realityavatar.build import build_data, load_run, run_device
 from realityavatar.data.i3d import read_mesh_infos, split_folder
 from realityavatar.metrics import psnr, silhouette_iou
 
@@ -132,6 +133,8 @@ def probe_run(run_dir: Path, threads: int = 1, kinds: tuple[str, ...] = ("train"
     torch.set_num_threads(threads)
     cfg, module, _ = load_run(run_dir)
     dm = build_data(cfg, module.body)
+    device = run_device(cfg)  # a GPU run renders with its own backend (gsplat needs CUDA tensors)
+    module.to(device)
     meta = dm.scene.meta or {}
     events = meta.get("motion", {}).get("events", {})
     fps = float(meta.get("fps", meta.get("preset", {}).get("fps", 25.0)))
@@ -145,15 +148,15 @@ def probe_run(run_dir: Path, threads: int = 1, kinds: tuple[str, ...] = ("train"
         if ds is None or kind not in kinds:
             continue
         for i, rec in enumerate(ds.records):
-            batch = default_collate([ds[i]])
+            batch = move_data_to_device(default_collate([ds[i]]), device)
             rgb, alpha, _, posed = module.render_batch(batch)
             if rec.frame not in offsets:
                 n = module.gaussians.num_points  # the free Gaussians (a garment sheet's follow after them)
                 dx = (posed["x_e"][0][:n] - module.gaussians.means).norm(dim=-1)
-                q = torch.quantile(dx, torch.tensor([0.5, 0.99], dtype=dx.dtype))
+                q = torch.quantile(dx, torch.tensor([0.5, 0.99], dtype=dx.dtype, device=dx.device))
                 offsets[rec.frame] = (float(q[0]), float(q[1]), float(dx.max()))
                 if tracker is not None and int(rec.frame) in tracker.frames:
-                    located[int(rec.frame)] = tracker.locate(int(rec.frame), posed["means"][0].numpy())
+                    located[int(rec.frame)] = tracker.locate(int(rec.frame), posed["means"][0].cpu().numpy())
             rows.append({
                 "frame": int(rec.frame), "view": int(rec.view), "kind": kind,
                 "phase": phase_of(int(rec.frame), events, fps),
