@@ -93,7 +93,7 @@ def test_probe_renders_on_the_runs_device(trained_run, monkeypatch):
     import numpy as np
     import torch
 
-    import realityavatar.analysis.probe as probe
+    from realityavatar.analysis import probe
 
     asked = []
 
