@@ -88,6 +88,9 @@ run_train() {  # <tree> <run dir> <timeout s> <overrides...>: train (+ evaluate)
   local tree=$1 dir=$2 limit=$3; shift 3
   (cd "$tree" && PYTHONPATH=$SITE:$PWD/src timeout "$limit" python3 -m realityavatar.train "$@" \
     hydra.run.dir="$dir" > "$dir.log" 2>&1); echo "train rc $? ($dir)"; grep -E "Error|error:" "$dir.log" | tail -3
+  # Lightning's simple profiler (+trainer.profiler=simple below): host seconds per hook, e.g. the loader's next batch
+  grep -E "^\|  (run_training_batch|\[Strategy\]SingleDeviceStrategy\.(training_step|batch_to_device)|\[_TrainingEpochLoop\]\.train_dataloader_next|\[Callback\][A-Za-z]+.*on_train_batch_end)" \
+    "$dir.log" | sed -E 's/\{[^}]*\}//; s/ {3,}/  /g' | cut -c1-160
   python3 - "$dir" <<'PY'
 import json, sys
 from pathlib import Path
@@ -102,7 +105,8 @@ PY
 }
 if [ -n "${SWEEP:-}" ]; then
   el "sweep preset, 1000 steps (this commit)"
-  run_train "$PWD" "$WORK/sweep" 300 +preset=sweep data=synthetic_sweep trainer=gpu render.backend=gsplat
+  run_train "$PWD" "$WORK/sweep" 300 +preset=sweep data=synthetic_sweep trainer=gpu render.backend=gsplat \
+    +trainer.profiler=simple
   if [ -n "${BASELINE:-}" ]; then
     el "sweep preset, 1000 steps ($BASELINE)"
     run_train "$BASELINE" "$WORK/sweep_baseline" 300 +preset=sweep data=synthetic_sweep trainer=gpu render.backend=gsplat
@@ -114,7 +118,8 @@ if [ -n "${PAPER_SCALE:-}" ]; then
   S=$(( $(left) - ${PAPER_RESERVE:-90} )); [ "$S" -lt "$PAPER_SCALE" ] && PAPER_SCALE=$S  # set-up + evaluation
   MAXT=$(printf '00:%02d:%02d:%02d' $((PAPER_SCALE / 3600)) $((PAPER_SCALE % 3600 / 60)) $((PAPER_SCALE % 60)))
   el "+experiment=paper_scale (training stops after ${PAPER_SCALE}s: $MAXT)"
-  run_train "$PWD" "$WORK/paper_scale" $(( $(left) - 5 )) +experiment=paper_scale +trainer.max_time=$MAXT
+  run_train "$PWD" "$WORK/paper_scale" $(( $(left) - 5 )) +experiment=paper_scale +trainer.max_time=$MAXT \
+    +trainer.profiler=simple
 fi
 if [ -n "${PAPER_SCALE:-}" ] && [ -f "$WORK/paper_scale/metrics.json" ] && [ "$(left)" -gt 40 ]; then
   # The per-phase probe of the held-out cameras (rest / spin / after the stop), and the novel-pose spin's phases.
