@@ -39,6 +39,7 @@ import torch
 
 _clock_base = time.perf_counter  # --clock cpu: time.process_time
 _device = "cpu"
+_graphs = False  # --compile reduce-overhead: the networks replay CUDA graphs; each step marks a new iteration
 
 
 def _clock() -> float:
@@ -167,6 +168,8 @@ def step_parts(module, opt, sched, make_batch, step: int) -> dict:
 
     t = {}
     c = _clock
+    if _graphs:  # outputs of the previous step's graph replays may be overwritten from here on
+        torch.compiler.cudagraph_mark_step_begin()
     t0 = c()
     batch = make_batch()
     t["data"] = c() - t0
@@ -213,6 +216,8 @@ def step_parts(module, opt, sched, make_batch, step: int) -> dict:
 def step_whole(module, opt, sched, make_batch, step: int) -> float:
     """module.training_step itself (one backward), with the trainer's hooks stubbed: optimizers, logging."""
     t0 = _clock()
+    if _graphs:
+        torch.compiler.cudagraph_mark_step_begin()
     module.training_step(make_batch(), 0)
     return _clock() - t0
 
@@ -279,6 +284,8 @@ def run_config(n: int, size: int, backend: str, repeats: int, overrides: list[st
                compile_mode: str = "none", profile_top: int = 0) -> dict:
     torch.manual_seed(0)
     cfg, module, opt, sched = build(n, backend, overrides)
+    global _graphs
+    _graphs = compile_mode == "reduce-overhead"
     if compile_mode != "none":  # the per-Gaussian networks (skinning, LBS, the rasterizer and losses stay eager)
         for net in (module.encoder, module.temporal, module.deformer, module.color, module.shading):
             net.compile(mode=None if compile_mode == "default" else compile_mode)  # automatic dynamic shapes: N changes
