@@ -107,8 +107,8 @@ def test_device_script_trains_configs_that_compose():
 
     from realityavatar.config import compose
 
-    text = (ROOT / "benchmarks" / "device.sh").read_text()
-    calls = re.findall(r'^\s*run_train "\$\w+" "\$OUT/\w+" \S+ (.+)$', text, re.MULTILINE)
+    text = (ROOT / "benchmarks" / "device.sh").read_text().replace("\\\n", " ")  # continuation lines joined
+    calls = re.findall(r'^\s*run_train "\$\w+" "\$WORK/\w+" (?:\$\(\(.*?\)\)|\S+) (.+)$', text, re.MULTILINE)
     assert len(calls) == 3, calls
     for overrides in calls:
         cfg = compose(shlex.split(overrides.replace("$MAXT", "00:00:04:00")))
@@ -119,7 +119,7 @@ def test_device_script_trains_configs_that_compose():
     built = re.findall(r'SCENES\+=\("([^"]+)"\)', text)
     assert len(built) == 2, built
     scene = ("root", "sequence", "build_preset", "build_sequence", "build_seed", "build_overrides")
-    for pre, train in zip(built, (calls[0], calls[2])):
+    for pre, train in zip(sorted(built, key=lambda b: "sweep" not in b), (calls[0], calls[2])):
         a, b = compose(pre.split()).data, compose(shlex.split(train.replace("$MAXT", "00:00:04:00"))).data
         assert [a.get(k) for k in scene] == [b.get(k) for k in scene], (pre, train)
 
