@@ -169,3 +169,14 @@ def test_step_benchmark_profiles_the_compiled_networks(tmp_path, monkeypatch):
     (row,) = json.loads(out.read_text())["results"]
     assert any("CompiledFunction" in t["op"] for t in row["top_ops_time"]), [t["op"] for t in row["top_ops_time"]]
     assert row["ops_per_step"] is None
+
+
+def test_loader_benchmark_times_the_main_process(scenes_root, tmp_path):
+    """benchmarks/loader.py: per loader-worker count, the training process's time per batch after one epoch."""
+    out = tmp_path / "loader.json"
+    assert benchmark("loader").main(["data=synthetic_ci", "--workers", "0", "--batches", "3", "--pause", "0",
+                                     "--out", str(out)]) == 0
+    res = json.loads(out.read_text())
+    assert [r["workers"] for r in res["results"]] == [0]
+    assert res["results"][0]["batches"] == 3 and 0 < res["results"][0]["median_ms"] < 1000
+    assert res["meta"]["overrides"] == "data=synthetic_ci" and "--workers 0" in res["meta"]["command"]
