@@ -355,7 +355,14 @@ def main() -> None:
     ap.add_argument("--out", default=None, help="JSON (default results/step_cpu.json, step_cuda.json with --device cuda)")
     ap.add_argument("--no-tune-malloc", action="store_true",
                     help="leave glibc malloc as it is (training tunes it: realityavatar.runtime.tune_malloc)")
+    ap.add_argument("--torch-kernels", action="store_true",
+                    help="D-SSIM and the polar rotation on their torch paths, as on a GPU, instead of Numba: on the "
+                         "CPU the counts are then a GPU step's, the rasterizer's aside")
     a = ap.parse_args()
+    if a.torch_kernels:
+        from realityavatar import kernels
+
+        kernels.NUMBA_ERROR = "--torch-kernels"
     global _device
     _device = a.device
     if _device != "cpu" and not torch.cuda.is_available():

@@ -3,7 +3,8 @@
 - `dssim(x, y)`: D-SSIM = mean(clamp((1 - SSIM)/2, 0, 1)) with kornia's conventions (11-tap Gaussian window of
   sigma 1.5, separable, 'reflect' padding, c1 = 0.01^2, c2 = 0.03^2, eps 1e-12 in the denominator). On the CPU with
   Numba the map, the mean and the gradient with respect to x come from one pass over each image plane (the
-  gradient is formed in the forward when x needs one, so the backward is a scale). Elsewhere: kornia itself.
+  gradient is formed in the forward when x needs one, so the backward is a scale). Elsewhere (a GPU): kornia's
+  formula with its five Gaussian blurs stacked into one pair of depthwise convolutions.
   Eager kornia costs ~20 ms forward+backward at 3x256x256 on one core; the fused pass ~2.6 ms.
 - `polar_rotation(M)`: the rotation factor R of the polar decomposition M = R S of [...,3,3] matrices, with the
   exact closed-form gradient (R is computed without a graph; the backward solves a 3x3 system per matrix) instead
@@ -214,25 +215,47 @@ class _DSSIMNumba(torch.autograd.Function):
 
 
 _TAPS = _gauss_taps()
+_TAPS_T = torch.from_numpy(_TAPS)  # the torch path's copy, moved to each device once
+
+
+def _dssim_torch(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """kornia's D-SSIM with its five blurs as one: x, y, x^2, y^2, xy stacked on the channel axis and blurred
+    separably (reflect borders) by one pair of depthwise convolutions; ~35 fewer operations (GPU launches) forward."""
+    C, r = x.shape[1], SSIM_WINDOW // 2
+    s = torch.cat([x, y, x * x, y * y, x * y], 1)  # [B,5C,H,W]
+    w = constant(_TAPS_T, s)
+    k = s.shape[1]
+    s = torch.nn.functional.conv2d(torch.nn.functional.pad(s, (r, r, 0, 0), mode="reflect"),
+                                   w.view(1, 1, 1, -1).expand(k, 1, 1, -1), groups=k)
+    s = torch.nn.functional.conv2d(torch.nn.functional.pad(s, (0, 0, r, r), mode="reflect"),
+                                   w.view(1, 1, -1, 1).expand(k, 1, -1, 1), groups=k)
+    mu1, mu2, e11, e22, e12 = s.split(C, 1)
+    mu1_sq, mu2_sq, mu1_mu2 = mu1 * mu1, mu2 * mu2, mu1 * mu2
+    num = (2.0 * mu1_mu2 + _C1) * (2.0 * (e12 - mu1_mu2) + _C2)
+    den = (mu1_sq + mu2_sq + _C1) * ((e11 - mu1_sq) + (e22 - mu2_sq) + _C2)
+    return torch.clamp((1.0 - num / (den + _EPS)) / 2, min=0, max=1).mean()
 
 
 def dssim(x: torch.Tensor, y: torch.Tensor, backend: str = "auto") -> torch.Tensor:
     """D-SSIM of x against y ([B,C,H,W], values in [0,1]); equals kornia.losses.ssim_loss(x, y, 11).
 
-    backend: "auto" (fused Numba kernel for float CPU tensors when y needs no gradient, else kornia),
-    "numba" (fused kernel; raises where it cannot run) or "kornia".
+    backend: "auto" (fused Numba kernel for float CPU tensors when y needs no gradient, else "torch"), "numba"
+    (fused kernel; raises where it cannot run), "torch" (one stacked blur: the GPU's path) or "kornia" (kornia
+    itself, the reference).
     """
-    if backend not in ("auto", "numba", "kornia"):
-        raise ValueError(f"dssim backend: expected 'auto', 'numba' or 'kornia', got {backend!r}")
+    if backend not in ("auto", "numba", "torch", "kornia"):
+        raise ValueError(f"dssim backend: expected 'auto', 'numba', 'torch' or 'kornia', got {backend!r}")
     fused_ok = (x.device.type == "cpu" and NUMBA_ERROR is None and x.ndim == 4 and x.shape == y.shape
                 and not y.requires_grad and x.shape[-1] > SSIM_WINDOW // 2 and x.shape[-2] > SSIM_WINDOW // 2)
     if backend == "numba" and not fused_ok:
         raise RuntimeError(f"dssim backend=numba needs CPU tensors of equal shape [B,C,H,W], y without grad and "
                            f"numba ({NUMBA_ERROR or 'available'}); got {tuple(x.shape)} on {x.device}")
-    if backend == "kornia" or not fused_ok:
+    if backend == "kornia":
         from kornia.losses import ssim_loss
 
         return ssim_loss(x, y, window_size=SSIM_WINDOW)
+    if backend == "torch" or not fused_ok:
+        return _dssim_torch(x, y)
     return _DSSIMNumba.apply(x, y)
 
 
@@ -273,18 +296,18 @@ def _polar_newton(M, R, iters):
 
 
 def _cofactor_det(X: torch.Tensor, floor: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """Cofactor matrix (= det * X^-T) of X [...,3,3] and its determinant [...], the determinant's magnitude floored."""
-    r0, r1, r2 = X[..., 0, :], X[..., 1, :], X[..., 2, :]
-    cof = torch.stack([torch.linalg.cross(r1, r2), torch.linalg.cross(r2, r0), torch.linalg.cross(r0, r1)], -2)
-    det = (r0 * cof[..., 0, :]).sum(-1)
-    return cof, torch.where(det.abs() < floor, torch.full_like(det, floor), det)
+    """Cofactor matrix (= det * X^-T) of X [...,3,3] and its determinant [...], the determinant's magnitude floored.
+    Its rows r1 x r2, r2 x r0, r0 x r1 are one cross product of the rows rolled by one and by two."""
+    cof = torch.linalg.cross(X.roll(-1, -2), X.roll(-2, -2))
+    det = (X[..., 0, :] * cof[..., 0, :]).sum(-1)
+    return cof, torch.where(det.abs() < floor, floor, det)
 
 
 def _polar_newton_torch(M: torch.Tensor, iters: int) -> torch.Tensor:
     X = M
     for _ in range(iters):
         cof, det = _cofactor_det(X, 1e-8)
-        X = 0.5 * (X + cof / det[..., None, None])
+        X = 0.5 * torch.addcdiv(X, cof, det[..., None, None])  # (X + X^-T) / 2
     return X
 
 
