@@ -106,3 +106,24 @@ def test_probe_renders_on_the_runs_device(trained_run, monkeypatch):
     assert asked == ["cpu"]
     assert rows and all(r["kind"] == "heldout" and np.isfinite(r["psnr"]) for r in rows)
     assert "heldout/all/psnr" in summary
+
+
+def test_frames_renders_on_the_runs_device(trained_run, monkeypatch, tmp_path):
+    """analysis.frames renders a run on its training device, as the probe does; here a CPU run, asked once."""
+    import torch
+
+    from realityavatar.analysis import frames
+    from realityavatar.build import build_data, load_run
+
+    asked = []
+
+    def device_of(cfg, override=None):
+        asked.append(str(cfg.trainer.accelerator))
+        return torch.device("cpu")
+
+    monkeypatch.setattr(frames, "run_device", device_of)
+    cfg, module, _ = load_run(trained_run[0])
+    first = build_data(cfg, module.body).datasets["novel_view"].records[0].frame
+    out = tmp_path / "frames.png"
+    assert frames.main([str(trained_run[0]), "--frames", str(first), "--out", str(out)]) == 0
+    assert asked == ["cpu"] and out.is_file()
