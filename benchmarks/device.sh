@@ -113,8 +113,8 @@ if [ -n "${SWEEP:-}" ]; then
   fi
 fi
 if [ -n "${PAPER_SCALE:-}" ]; then
-  # Lightning's max_time stops training after PAPER_SCALE seconds (metrics.json's iterations: the steps reached), then
-  # the run is evaluated; the hard limit leaves 240 s for set-up and evaluation.
+  # Lightning's max_time stops training after PAPER_SCALE seconds, cut to what DEADLINE leaves after PAPER_RESERVE
+  # seconds for set-up and evaluation (metrics.json's iterations: the steps reached); the hard limit is the deadline.
   S=$(( $(left) - ${PAPER_RESERVE:-90} )); [ "$S" -lt "$PAPER_SCALE" ] && PAPER_SCALE=$S  # set-up + evaluation
   MAXT=$(printf '00:%02d:%02d:%02d' $((PAPER_SCALE / 3600)) $((PAPER_SCALE % 3600 / 60)) $((PAPER_SCALE % 60)))
   el "+experiment=paper_scale (training stops after ${PAPER_SCALE}s: $MAXT)"

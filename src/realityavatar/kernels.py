@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 
 from realityavatar.geometry import skew
 from realityavatar.render.numba_backend import NUMBA_ERROR, njit, prange
@@ -225,10 +226,8 @@ def _dssim_torch(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     s = torch.cat([x, y, x * x, y * y, x * y], 1)  # [B,5C,H,W]
     w = constant(_TAPS_T, s)
     k = s.shape[1]
-    s = torch.nn.functional.conv2d(torch.nn.functional.pad(s, (r, r, 0, 0), mode="reflect"),
-                                   w.view(1, 1, 1, -1).expand(k, 1, 1, -1), groups=k)
-    s = torch.nn.functional.conv2d(torch.nn.functional.pad(s, (0, 0, r, r), mode="reflect"),
-                                   w.view(1, 1, -1, 1).expand(k, 1, -1, 1), groups=k)
+    s = F.conv2d(F.pad(s, (r, r, 0, 0), mode="reflect"), w.view(1, 1, 1, -1).expand(k, 1, 1, -1), groups=k)
+    s = F.conv2d(F.pad(s, (0, 0, r, r), mode="reflect"), w.view(1, 1, -1, 1).expand(k, 1, -1, 1), groups=k)
     mu1, mu2, e11, e22, e12 = s.split(C, 1)
     mu1_sq, mu2_sq, mu1_mu2 = mu1 * mu1, mu2 * mu2, mu1 * mu2
     num = (2.0 * mu1_mu2 + _C1) * (2.0 * (e12 - mu1_mu2) + _C2)
@@ -319,7 +318,7 @@ def _polar_newton_torch(M: torch.Tensor, iters: int) -> torch.Tensor:
 
 
 POLAR_ITERS = 8  # Newton converges quadratically; blends of bone rotations are within a few steps of a rotation
-POLAR_ITERS_TORCH = 6  # the scaled iteration's (torch path, a GPU's): 20 fewer operations per step
+POLAR_ITERS_TORCH = 6  # the scaled iteration's (torch path, a GPU's): 17 fewer operations per step
 
 
 _EYE3 = torch.eye(3)
