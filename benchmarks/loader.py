@@ -4,8 +4,9 @@ python benchmarks/loader.py "+experiment=paper_scale" --workers 0 4 [--batches 6
 
 For each loader-worker count, one epoch is drawn first (images and distance fields cached, as after the first epoch
 of a training), then `--batches` batches are timed in the main process with `--pause` seconds between them (a
-training step's place: caches cool and workers get ahead). Prints median and 90th percentile per count and writes
-JSON (default benchmarks/results/loader_cpu.json).
+training step's place: caches cool and workers get ahead). Prints median and 90th percentile per count, and the
+median time of `composite` (the image over its background: after the transfer, on the device on a GPU; on the host
+in a CPU run), and writes JSON (default benchmarks/results/loader_cpu.json).
 """
 from __future__ import annotations
 
@@ -23,9 +24,12 @@ import torch
 from hydra.utils import instantiate
 
 
-def fetch_times(overrides: list[str], workers: int, batches: int, pause: float) -> list[float]:
+def fetch_times(overrides: list[str], workers: int, batches: int, pause: float) -> tuple[list[float], list[float]]:
+    """Seconds per batch in the main process: the loader's, and `composite`'s (done where the batch is after its
+    transfer: on the device on a GPU, here on the host as in a CPU run)."""
     from realityavatar.build import build_data
     from realityavatar.config import compose
+    from realityavatar.data.datamodule import composite
 
     cfg = compose([*overrides, f"data.num_workers={workers}"])
     dm = build_data(cfg, instantiate(cfg.body))
@@ -33,17 +37,20 @@ def fetch_times(overrides: list[str], workers: int, batches: int, pause: float) 
     it = iter(loader)
     for _ in range(len(loader)):  # one epoch: every sample's image and distance field cached
         next(it)
-    it, times = iter(loader), []
+    it, times, comp = iter(loader), [], []
     for _ in range(batches):
         time.sleep(pause)
         t0 = time.perf_counter()
         try:
-            next(it)
+            batch = next(it)
         except StopIteration:
             it = iter(loader)
-            next(it)
-        times.append(time.perf_counter() - t0)
-    return times
+            batch = next(it)
+        t1 = time.perf_counter()
+        composite(batch)
+        times.append(t1 - t0)
+        comp.append(time.perf_counter() - t1)
+    return times, comp
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -58,11 +65,13 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(args.threads)
     rows = []
     for w in args.workers:
-        t = sorted(fetch_times(shlex.split(args.overrides), w, args.batches, args.pause))
+        t, c = fetch_times(shlex.split(args.overrides), w, args.batches, args.pause)
+        t = sorted(t)
         rows.append({"workers": w, "median_ms": 1e3 * statistics.median(t), "p90_ms": 1e3 * t[int(0.9 * (len(t) - 1))],
-                     "batches": len(t)})
+                     "composite_host_ms": 1e3 * statistics.median(c), "batches": len(t)})
         print(f"workers {w}: main process {rows[-1]['median_ms']:.2f} ms per batch (median), "
-              f"p90 {rows[-1]['p90_ms']:.2f} ms, {len(t)} batches")
+              f"p90 {rows[-1]['p90_ms']:.2f} ms, {len(t)} batches; composite on the host "
+              f"{rows[-1]['composite_host_ms']:.2f} ms (on a GPU: on the device)")
     from realityavatar.build import git_commit
 
     used = sys.argv[1:] if argv is None else argv

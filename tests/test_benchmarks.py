@@ -179,4 +179,5 @@ def test_loader_benchmark_times_the_main_process(scenes_root, tmp_path):
     res = json.loads(out.read_text())
     assert [r["workers"] for r in res["results"]] == [0]
     assert res["results"][0]["batches"] == 3 and 0 < res["results"][0]["median_ms"] < 1000
+    assert 0 < res["results"][0]["composite_host_ms"] < 1000
     assert res["meta"]["overrides"] == "data=synthetic_ci" and "--workers 0" in res["meta"]["command"]

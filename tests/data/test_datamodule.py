@@ -10,14 +10,15 @@ import torch
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 from omegaconf import OmegaConf, open_dict
+from torch.utils.data import default_collate
 
-from realityavatar.data.datamodule import AvatarDataModule
+from realityavatar.data.datamodule import AvatarDataModule, composite
 from realityavatar.data.poses import PoseTable
 from tests.fixtures_data import SIZE, RandomBody, project, write_i3d, write_zju
 from tests.helpers import CONF
 
-KEYS = {"image", "mask", "mask_dist", "K", "viewmat", "width", "height", "poses", "transl", "pose_features",
-        "bone_transforms", "index", "frame", "frame_idx", "view", "split"}
+KEYS = {"pixels", "inside", "background", "mask_dist", "K", "viewmat", "width", "height", "poses", "transl",
+        "pose_features", "bone_transforms", "index", "frame", "frame_idx", "view", "split"}
 
 
 @pytest.fixture(scope="module")
@@ -53,8 +54,12 @@ def test_sample_dict_follows_the_contract(scene_root, body):
     assert dm.test_split_names == ["novel_view", "novel_pose"]
     s = dm.datasets["train"][0]
     assert set(s) == KEYS
-    assert s["image"].shape == (SIZE, SIZE, 3) and s["image"].dtype == torch.float32
-    assert s["mask"].shape == (SIZE, SIZE, 1) and set(s["mask"].unique().tolist()) <= {0.0, 1.0}
+    assert s["pixels"].shape == (SIZE, SIZE, 3) and s["pixels"].dtype == torch.uint8
+    assert s["inside"].shape == (SIZE, SIZE, 1) and s["inside"].dtype == torch.bool and s["inside"].any()
+    c = composite(default_collate([s]))  # what the model reads, made after the transfer
+    assert c["image"].shape == (1, SIZE, SIZE, 3) and c["image"].dtype == torch.float32
+    assert c["mask"].shape == (1, SIZE, SIZE, 1) and set(c["mask"].unique().tolist()) == {0.0, 1.0}
+    assert not {"pixels", "inside", "background"} & set(c)
     assert s["poses"].shape == (3, 24, 3) and s["transl"].shape == (3, 3)
     # the model's pose inputs, made by the dataset from the sample's own window with the body
     from realityavatar.model.encoders import pose_features
@@ -62,7 +67,7 @@ def test_sample_dict_follows_the_contract(scene_root, body):
     torch.testing.assert_close(s["pose_features"], pose_features(s["poses"][None], s["transl"][None])[0])
     torch.testing.assert_close(s["bone_transforms"], body.canonical_transforms(s["poses"][-1], s["transl"][-1]))
     b = next(iter(dm.train_dataloader()))
-    assert b["image"].shape == (2, SIZE, SIZE, 3) and b["poses"].shape == (2, 3, 24, 3)
+    assert b["pixels"].shape == (2, SIZE, SIZE, 3) and b["poses"].shape == (2, 3, 24, 3)
     assert b["K"].shape == (2, 3, 3) and b["viewmat"].shape == (2, 4, 4) and b["frame_idx"].shape == (2,)
     nv, npose = dm.test_dataloader()
     assert all(set(x["split"]) == {"novel_view"} and torch.equal(x["frame_idx"], x["frame"]) for x in nv)
@@ -115,15 +120,22 @@ def test_joint_projects_inside_mask_in_samples(scene_root, body):
             s = ds[i]
             pelvis = body.joints(s["poses"][-1], s["transl"][-1])[0].double().numpy()
             u, v = project(s["K"].double().numpy(), s["viewmat"].double().numpy(), pelvis)
-            assert s["mask"][int(v), int(u), 0] == 1, (split, s["frame"], s["view"])
+            assert s["inside"][int(v), int(u), 0], (split, s["frame"], s["view"])
 
 
 def test_background_is_composited(scene_root, body):
+    """`composite` puts the pixels over data.background outside the mask: the values of image * mask + bg * (1 -
+    mask), bit for bit, made in float32 for a float64 module too."""
     dm = make(scene_root, body, background=[1.0, 0.5, 0.0])
     s = dm.datasets["train"][0]
-    outside = s["mask"][..., 0] == 0
-    assert torch.allclose(s["image"][outside], torch.tensor([1.0, 0.5, 0.0]))
-    assert not torch.allclose(s["image"][~outside].mean(0), torch.tensor([1.0, 0.5, 0.0]))
+    c = composite(default_collate([s]))
+    outside = c["mask"][0, ..., 0] == 0
+    assert torch.allclose(c["image"][0][outside], torch.tensor([1.0, 0.5, 0.0]))
+    assert not torch.allclose(c["image"][0][~outside].mean(0), torch.tensor([1.0, 0.5, 0.0]))
+    m = s["inside"].float()
+    assert torch.equal(c["image"][0], s["pixels"].float() / 255.0 * m + torch.tensor([1.0, 0.5, 0.0]) * (1 - m))
+    c64 = composite(default_collate([s]), torch.float64)
+    assert c64["image"].dtype == c64["mask"].dtype == torch.float64 and torch.equal(c64["image"], c["image"].double())
 
 
 def test_view_and_frame_selection(scene_root, body):
@@ -173,9 +185,9 @@ def test_cache_images_keeps_decoded_images(tmp_path, body):
     dm.setup()
     dm2 = AvatarDataModule(str(tmp_path), "c", body=body, cache_images=False)
     dm2.setup()
-    first = dm.datasets["train"][0]["image"]
+    first = dm.datasets["train"][0]["pixels"]
     dm.datasets["train"].records[0].image_path.unlink()
-    torch.testing.assert_close(dm.datasets["train"][0]["image"], first)  # served from memory
+    torch.testing.assert_close(dm.datasets["train"][0]["pixels"], first)  # served from memory
     with pytest.raises(FileNotFoundError, match="frame_000000_view_00.png not found"):
         dm2.datasets["train"][0]
 
@@ -242,7 +254,8 @@ def test_zju_datamodule(tmp_path, body):
     assert dm.train_frame_ids == [0, 1, 2, 3] and dm.image_size == (SIZE // 2, SIZE // 2)
     s = dm.datasets["novel_pose"][0]
     assert s["frame"] == 4 and s["frame_idx"] == -1 and s["view"] == 2
-    assert torch.allclose(s["image"][s["mask"][..., 0] == 0], torch.ones(3))  # the jpg's background is replaced
+    c = composite(default_collate([s]))
+    assert torch.allclose(c["image"][0][c["mask"][0, ..., 0] == 0], torch.ones(3))  # the jpg's background is replaced
 
 
 def _datasets(pattern: str) -> list[Path]:
@@ -333,7 +346,7 @@ def test_synthetic_ci_scene_joints_inside_masks(scenes_root):
             J = body.joints(s["poses"][-1], s["transl"][-1]).double().numpy()
             for j in (0, 3, 6, 9, 12, 15):
                 u, v = project(s["K"].double().numpy(), s["viewmat"].double().numpy(), J[j])
-                assert s["mask"][int(v), int(u), 0] == 1
+                assert s["inside"][int(v), int(u), 0]
     assert np.isfinite(dm.scene_extent)
 
 

@@ -12,7 +12,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from pytorch_lightning.utilities import move_data_to_device
 from torch.utils.data import default_collate
 
 from realityavatar.build import build_data, load_run, run_device
@@ -31,8 +30,7 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(1)
     cfg, module, _ = load_run(Path(a.run))
     ds = build_data(cfg, module.body).datasets[a.split]
-    device = run_device(cfg)  # a GPU run renders with its own backend (gsplat needs CUDA tensors)
-    module.to(device)
+    module.to(run_device(cfg))  # a GPU run renders with its own backend (gsplat needs CUDA tensors)
     views = sorted({r.view for r in ds.records})
     view = views[0] if a.view is None else a.view
     if view not in views:
@@ -44,9 +42,9 @@ def main(argv: list[str] | None = None) -> int:
         if not idx:
             print(f"--frames: frame {f} is not in split {a.split}", file=sys.stderr)
             return 2
-        batch = default_collate([ds[idx[0]]])
-        rgb = module.render_batch(move_data_to_device(batch, device))[0][0].clamp(0, 1).cpu().numpy()
-        gt = batch["image"][0].numpy()
+        batch = module.device_batch(default_collate([ds[idx[0]]]))
+        rgb = module.render_batch(batch)[0][0].clamp(0, 1).cpu().numpy()
+        gt = batch["image"][0].cpu().numpy()
         rows.append(np.concatenate([rgb, gt, np.clip(4 * np.abs(rgb - gt), 0, 1)], 1))
     import matplotlib.pyplot as plt
 

@@ -28,7 +28,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from pytorch_lightning.utilities import move_data_to_device
 from torch.utils.data import default_collate
 
 from realityavatar.build import build_data, load_run, run_device
@@ -133,8 +132,7 @@ def probe_run(run_dir: Path, threads: int = 1, kinds: tuple[str, ...] = ("train"
     torch.set_num_threads(threads)
     cfg, module, _ = load_run(run_dir)
     dm = build_data(cfg, module.body)
-    device = run_device(cfg)  # a GPU run renders with its own backend (gsplat needs CUDA tensors)
-    module.to(device)
+    module.to(run_device(cfg))  # a GPU run renders with its own backend (gsplat needs CUDA tensors)
     meta = dm.scene.meta or {}
     events = meta.get("motion", {}).get("events", {})
     fps = float(meta.get("fps", meta.get("preset", {}).get("fps", 25.0)))
@@ -148,7 +146,7 @@ def probe_run(run_dir: Path, threads: int = 1, kinds: tuple[str, ...] = ("train"
         if ds is None or kind not in kinds:
             continue
         for i, rec in enumerate(ds.records):
-            batch = move_data_to_device(default_collate([ds[i]]), device)
+            batch = module.device_batch(default_collate([ds[i]]))
             rgb, alpha, _, posed = module.render_batch(batch)
             if rec.frame not in offsets:
                 n = module.gaussians.num_points  # the free Gaussians (a garment sheet's follow after them)

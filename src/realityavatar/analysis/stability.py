@@ -57,7 +57,7 @@ def stop_frames(dm) -> list[int]:
 def render_items(module, ds, indices) -> tuple[torch.Tensor, torch.Tensor]:
     preds, gts = [], []
     for i in indices:
-        batch = default_collate([ds[i]])
+        batch = module.device_batch(default_collate([ds[i]]))
         rgb, _, _, _ = module.render_batch(batch)
         preds.append(rgb[0].clamp(0, 1))
         gts.append(batch["image"][0])
@@ -171,8 +171,8 @@ def pose_noise(module, dm, view: int | None, sigmas=NOISE_SIGMAS, seed: int = 0)
         g = torch.Generator().manual_seed(seed)
         vals = []
         for i in idx:
-            batch = default_collate([ds[i]])
-            noisy = batch["poses"] + sigma * torch.randn(batch["poses"].shape, generator=g)
+            batch = module.device_batch(default_collate([ds[i]]))
+            noisy = batch["poses"] + sigma * torch.randn(batch["poses"].shape, generator=g).to(batch["poses"])
             batch.update(module.pose_inputs(noisy, batch["transl"]))  # what the model reads of the poses
             rgb, _, _, _ = module.render_batch(batch)
             vals.append(float(psnr(rgb[0].clamp(0, 1), batch["image"][0])))

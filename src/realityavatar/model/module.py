@@ -9,9 +9,11 @@ from typing import Any
 
 import pytorch_lightning as pl
 import torch
+from pytorch_lightning.utilities import move_data_to_device
 from torch import nn
 
 from realityavatar.body.base import BodyModel
+from realityavatar.data.datamodule import composite
 from realityavatar.losses import TrainingRender, total_loss
 from realityavatar.model.avatar import Avatar
 
@@ -109,8 +111,16 @@ class AvatarModule(Avatar, pl.LightningModule):
         self.log_every = max(int(self.trainer.log_every_n_steps), 1)
 
     def on_after_batch_transfer(self, batch: Any, dataloader_idx: int) -> Any:
-        """Floating-point batch tensors take the module's dtype (float32 images feed a float64 module)."""
+        """A dataset batch on the module's device -> the batch the model reads: the image over its background and the
+        mask made there (data.datamodule.composite); floating-point tensors in the module's dtype (float32 images
+        feed a float64 module)."""
+        batch = composite(batch, self.dtype)
         return {k: v.to(self.dtype) if torch.is_tensor(v) and v.is_floating_point() else v for k, v in batch.items()}
+
+    def device_batch(self, batch: dict) -> dict:
+        """A collated dataset batch as a training or test step reads it (outside a Trainer: the probes, `measure_fps`):
+        moved to the module's device, then `on_after_batch_transfer`."""
+        return self.on_after_batch_transfer(move_data_to_device(batch, self.device), 0)
 
     def on_fit_start(self) -> None:
         self.run_info["device"] = str(self.device)  # Lightning's teardown moves the module back to the CPU
@@ -276,7 +286,7 @@ class AvatarModule(Avatar, pl.LightningModule):
     def measure_fps(self, batch: dict, warmup: int = 3, repeats: int = 20) -> float:
         """Frames per second of the full path (encoder .. rasterize) for one camera, synchronised on CUDA."""
         one = {k: (v[:1] if torch.is_tensor(v) else v[:1] if isinstance(v, list) else v) for k, v in batch.items()}
-        one = self.on_after_batch_transfer({k: v.to(self.device) if torch.is_tensor(v) else v for k, v in one.items()}, 0)
+        one = self.device_batch(one)
         _, _, metas, _ = self.render_batch(one)
         self.run_info["fps"] = {"backend": metas[0]["backend"], "device": str(self.device)}
         for _ in range(warmup):
