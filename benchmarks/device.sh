@@ -9,7 +9,8 @@
 # seconds per step; PAPER_SCALE=<seconds> trains `+experiment=paper_scale` for at most that long (15,000 steps if it
 # gets there) and evaluates it; their scenes are built while the gpu tests run. A 15-minute device session fits one
 # call of at most 10 minutes, e.g. SWEEP=1 PAPER_SCENE=1 BASELINE=<tree> STEP_SIZES="7000 128", then a second on the
-# warm machine (scenes and kernels kept under outputs/) with GPU_TESTS=0 STEP_SIZES="" PAPER_SCALE=<s>.
+# warm machine (scenes and kernels kept under outputs/) with GPU_TESTS=0 STEP_SIZES="" PAPER_SCALE=<s>; a third with
+# PAPER_RESUME=1 continues that run (resume=true) towards its 15,000 steps.
 #
 # Wheels (Python 3.12, x86_64; on a machine with pip and network):
 #   python3 -m pip download --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
@@ -115,11 +116,17 @@ fi
 if [ -n "${PAPER_SCALE:-}" ]; then
   # Lightning's max_time stops training after PAPER_SCALE seconds, cut to what DEADLINE leaves after PAPER_RESERVE
   # seconds for set-up and evaluation (metrics.json's iterations: the steps reached); the hard limit is the deadline.
+  # PAPER_RESUME=1 (a later call on the warm machine): the run in $WORK/paper_scale goes on (resume=true) for
+  # PAPER_SCALE more seconds; Lightning's limit counts the earlier part's training time, so it is raised by that.
   S=$(( $(left) - ${PAPER_RESERVE:-90} )); [ "$S" -lt "$PAPER_SCALE" ] && PAPER_SCALE=$S  # set-up + evaluation
-  MAXT=$(printf '00:%02d:%02d:%02d' $((PAPER_SCALE / 3600)) $((PAPER_SCALE % 3600 / 60)) $((PAPER_SCALE % 60)))
-  el "+experiment=paper_scale (training stops after ${PAPER_SCALE}s: $MAXT)"
+  RESUME=(); T=$PAPER_SCALE
+  if [ -n "${PAPER_RESUME:-}" ] && [ -f "$WORK/paper_scale/last.ckpt" ]; then
+    RESUME=(resume=true); T=$(( T + $(python3 -c "import json; print(int(json.load(open('$WORK/paper_scale/metrics.json'))['train_seconds']))") ))
+  fi
+  MAXT=$(printf '00:%02d:%02d:%02d' $((T / 3600)) $((T % 3600 / 60)) $((T % 60)))
+  el "+experiment=paper_scale ${RESUME[*]} (training stops after ${PAPER_SCALE}s more: max_time $MAXT)"
   run_train "$PWD" "$WORK/paper_scale" $(( $(left) - 5 )) +experiment=paper_scale +trainer.max_time=$MAXT \
-    +trainer.profiler=simple
+    +trainer.profiler=simple "${RESUME[@]}"
 fi
 if [ -n "${PAPER_SCALE:-}" ] && [ -f "$WORK/paper_scale/metrics.json" ] && [ "$(left)" -gt 40 ]; then
   # The per-phase probe of the held-out cameras (rest / spin / after the stop), and the novel-pose spin's phases.

@@ -22,9 +22,10 @@ CKPT_NAME = "last.ckpt"
 RUN_MARKERS = (CKPT_NAME, "metrics.json")
 RUN_OUTPUTS = (*RUN_MARKERS, "config.yaml", "per_frame.csv", "logs", "images", "videos", "eval", "animations", "export")
 LOG_CSV = Path("logs") / "csv" / "metrics.csv"
-# Keys a resume may change: the run length (values interpolated from it are compared at the saved length), where
-# the run and its data live, threads, evaluation settings.
-RESUMABLE_CHANGES = ("iterations", "trainer.enable_progress_bar", "trainer.default_root_dir", "data.root", "ckpt_path",
+# Keys a resume may change: the run length (values interpolated from it are compared at the saved length) and its
+# time limit (a job's wall time: trainer.max_time counts the time of the runs before), where the run and its data
+# live, threads, profiling, evaluation settings.
+RESUMABLE_CHANGES = ("iterations", "trainer.max_time", "trainer.profiler", "trainer.enable_progress_bar", "trainer.default_root_dir", "data.root", "ckpt_path",
                      "resume", "overwrite", "out_dir", "_overrides", "_choices", "threads", "test_after_fit", "eval.",
                      "metrics.")
 

@@ -118,6 +118,21 @@ def test_interrupted_and_resumed_equals_uninterrupted(scenes_root, tmp_path, mon
     assert len(steps) == len(set(steps)) and min(steps) < 6 and max(steps) > 6, steps
 
 
+def test_a_run_stopped_by_its_time_limit_resumes_with_a_longer_one(scenes_root, tmp_path, monkeypatch):
+    """trainer.max_time (a job's wall time) stops a run with a checkpoint; resume=true may raise the limit (it counts
+    the earlier parts' time) and the run goes on to its iterations. Lightning's timer reads a clock that advances 1 s
+    per reading here, so the first part stops after a few steps on any machine."""
+    from pytorch_lightning.callbacks import timer
+
+    ticks = iter(range(10**6))
+    monkeypatch.setattr(timer, "time", type("Clock", (), {"monotonic": staticmethod(lambda: float(next(ticks)))}))
+    out = tmp_path / "r"
+    first = _run(out, "iterations=6", "+trainer.max_time=00:00:00:03", "test_after_fit=false")
+    assert 0 < first["iterations"] < 6
+    metrics = _run(out, "iterations=6", "+trainer.max_time=00:00:10:00", "resume=true", "test_after_fit=false")
+    assert metrics["iterations"] == 6 and metrics["resumed_from"]["step"] == first["iterations"]
+
+
 def test_second_run_into_a_run_folder_refuses(trained_run, tmp_path):
     out, _ = trained_run
     folder = tmp_path / "f"
