@@ -160,8 +160,8 @@ def test_step_benchmark_profiles_the_compiled_networks(tmp_path, monkeypatch):
     """--compile: the profiled steps run the compiled networks (a TorchDispatchMode count before them made dynamo run
     them eagerly from then on), and no eager count is reported as theirs. Dynamo with the aot_eager backend (no C++
     compiler, seconds) stands in for inductor: the same graphs, which the profile shows as CompiledFunction."""
-    compile_ = torch.nn.Module.compile
-    monkeypatch.setattr(torch.nn.Module, "compile", lambda self, mode=None: compile_(self, backend="aot_eager"))
+    compile_ = torch.compile
+    monkeypatch.setattr(torch, "compile", lambda f, mode=None: compile_(f, backend="aot_eager"))
     out = tmp_path / "step.json"
     monkeypatch.setattr(sys, "argv", ["step.py", "--backends", "numba", "--profile", "300", "--n", "500", "--size", "32",
                                       "--repeats", "1", "--no-tune-malloc", "--out", str(out), "--compile", "default",

@@ -176,3 +176,24 @@ def test_decoder_condition_as_first_layer_bias_equals_the_concatenated_input():
     o = dec.out(dec.hidden(z))
     torch.testing.assert_close(out["dx"], o[..., :3])
     torch.testing.assert_close(out["f_mt"], o[..., 10:])
+
+
+def test_the_networks_path_compiles_whole_around_the_lstm():
+    """torch.compile of Avatar.deform and .shade (benchmarks/step.py --compile, the GPU's lever against its launch
+    count): dynamo breaks the graph only at the LSTM, which it runs eagerly. The polar rotation's numba call and the
+    device-constant cache (runtime.constant) each broke it before; a break costs a graph and a round of launches."""
+    from tests.helpers import benchmark
+
+    step = benchmark("step")
+    cfg, module, _, _ = step.build(300, "numba", ["skinning.voxel_size=0.1", "shading.voxel_size=0.1"])
+    batch = step.make_batch_fn(module, 32, int(cfg.data.window_len))()
+
+    def networks(b):
+        posed = module.deform(b)
+        return module.shade(posed, b["viewmat"], b["frame_idx"]), posed["means"]
+
+    torch._dynamo.reset()
+    ex = torch._dynamo.explain(networks)(batch)
+    reasons = [str(r.reason).splitlines()[0] for r in ex.break_reasons]
+    assert reasons and all("LSTM" in r for r in reasons), reasons
+    assert ex.graph_count <= 3, (ex.graph_count, reasons)

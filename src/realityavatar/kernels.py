@@ -337,7 +337,7 @@ class _PolarRotation(torch.autograd.Function):
     @staticmethod
     def forward(ctx, M: torch.Tensor) -> torch.Tensor:
         with torch.no_grad():
-            if M.device.type == "cpu" and NUMBA_ERROR is None:
+            if M.device.type == "cpu" and NUMBA_ERROR is None and not torch.compiler.is_compiling():  # traced: torch
                 flat = M.detach().reshape(-1, 3, 3).double().contiguous().numpy()
                 out = np.empty_like(flat)
                 _polar_newton(flat, out, 2 * POLAR_ITERS)
