@@ -163,7 +163,7 @@ def make_batch_fn(module, size: int, window: int, views: int = 1):
 
 def step_parts(module, opt, sched, make_batch, step: int) -> dict:
     """One training step with detach points; seconds per part."""
-    from realityavatar.losses import TrainingRender, total_loss
+    from realityavatar.losses import TrainingRender
     from realityavatar.model.module import CLIPPED
 
     t = {}
@@ -189,7 +189,7 @@ def step_parts(module, opt, sched, make_batch, step: int) -> dict:
     img_l, alpha_l = img.detach().requires_grad_(), alpha.detach().requires_grad_()
     t0 = c()
     one = {k: v[:1] for k, v in batch.items()}  # the sample rendered above (as training_step: no device reads)
-    total, _ = total_loss(module.losses, TrainingRender(img_l, alpha_l, one, p, module, step))
+    total, _ = module.loss(TrainingRender(img_l, alpha_l, one, p, module, step))
     t["losses_fwd"] = c() - t0
     t0 = c()
     total.backward()
@@ -286,11 +286,13 @@ def run_config(n: int, size: int, backend: str, repeats: int, overrides: list[st
     cfg, module, opt, sched = build(n, backend, overrides)
     global _graphs
     _graphs = compile_mode == "reduce-overhead"
-    if compile_mode != "none":  # the networks' whole path: Avatar.deform and .shade (rasterizer and losses eager)
+    if compile_mode != "none":  # the networks' whole path (Avatar.deform, .shade) and the losses; the rasterizer eager
         # One graph each side of the LSTM (dynamo runs it eagerly): encoder, decoder, skinning, LBS, polar rotation,
-        # colour, shading. Automatic dynamic shapes: the Gaussian count changes with density control.
+        # colour, shading; one graph of every loss term (AvatarModule.loss). Automatic dynamic shapes: the Gaussian
+        # count changes with density control.
         mode = None if compile_mode == "default" else compile_mode
-        module.deform, module.shade = (torch.compile(f, mode=mode) for f in (module.deform, module.shade))
+        module.deform, module.shade, module.loss = (torch.compile(f, mode=mode)
+                                                    for f in (module.deform, module.shade, module.loss))
     make_batch = make_batch_fn(module, size, int(cfg.data.window_len))
     step = timed_step(cfg)
     _stub_trainer_hooks(module, opt, sched, step)
@@ -351,8 +353,8 @@ def main() -> None:
                     help="also time the whole step with V cameras of one pose window per batch (data.batch_size=V)")
     ap.add_argument("--device", default="cpu", help="cpu or cuda[:i] (the module and batches there)")
     ap.add_argument("--compile", default="none", choices=["none", "default", "reduce-overhead", "max-autotune"],
-                    help="torch.compile mode for the networks' path, Avatar.deform and .shade (first_step_s includes "
-                         "compiling)")
+                    help="torch.compile mode for the networks' path (Avatar.deform, .shade) and the losses "
+                         "(AvatarModule.loss); first_step_s includes compiling")
     ap.add_argument("--profile", type=int, default=0, metavar="K",
                     help="also list the K operations (by input shapes) that take the most time per step")
     ap.add_argument("--out", default=None, help="JSON (default results/step_cpu.json, step_cuda.json with --device cuda)")

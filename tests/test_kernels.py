@@ -178,10 +178,12 @@ def test_decoder_condition_as_first_layer_bias_equals_the_concatenated_input():
     torch.testing.assert_close(out["f_mt"], o[..., 10:])
 
 
-def test_the_networks_path_compiles_whole_around_the_lstm():
-    """torch.compile of Avatar.deform and .shade (benchmarks/step.py --compile, the GPU's lever against its launch
-    count): dynamo breaks the graph only at the LSTM, which it runs eagerly. The polar rotation's numba call and the
-    device-constant cache (runtime.constant) each broke it before; a break costs a graph and a round of launches."""
+def test_the_networks_and_losses_compile_whole():
+    """torch.compile of Avatar.deform and .shade and of the losses (benchmarks/step.py --compile, the GPU's lever
+    against its launch count): dynamo breaks the networks' graph only at the LSTM, which it runs eagerly, and traces
+    every loss term as one graph. The polar rotation's numba call, the device-constant cache (runtime.constant), the
+    D-SSIM's numba call and the silhouette's k-d tree each broke them before; a break costs a graph and a round of
+    launches."""
     from tests.helpers import benchmark
 
     step = benchmark("step")
@@ -197,3 +199,12 @@ def test_the_networks_path_compiles_whole_around_the_lstm():
     reasons = [str(r.reason).splitlines()[0] for r in ex.break_reasons]
     assert reasons and all("LSTM" in r for r in reasons), reasons
     assert ex.graph_count <= 3, (ex.graph_count, reasons)
+
+    from realityavatar.losses import TrainingRender
+
+    step_ = step.timed_step(cfg)
+    rgb, alpha, _, posed = module.render_batch(batch)
+    out = TrainingRender(rgb, alpha, batch, posed, module, step_)
+    module.loss(out)  # the first call samples the skinning term's surface pool once (host code)
+    ex = torch._dynamo.explain(module.loss)(out)
+    assert ex.graph_count == 1 and not ex.break_reasons, [str(r.reason).splitlines()[0] for r in ex.break_reasons]

@@ -244,7 +244,8 @@ def dssim(x: torch.Tensor, y: torch.Tensor, backend: str = "auto") -> torch.Tens
     """
     if backend not in ("auto", "numba", "torch", "kornia"):
         raise ValueError(f"dssim backend: expected 'auto', 'numba', 'torch' or 'kornia', got {backend!r}")
-    fused_ok = (x.device.type == "cpu" and NUMBA_ERROR is None and x.ndim == 4 and x.shape == y.shape
+    fused_ok = (x.device.type == "cpu" and NUMBA_ERROR is None and not torch.compiler.is_compiling()  # traced: torch
+                and x.ndim == 4 and x.shape == y.shape
                 and not y.requires_grad and x.shape[-1] > SSIM_WINDOW // 2 and x.shape[-2] > SSIM_WINDOW // 2)
     if backend == "numba" and not fused_ok:
         raise RuntimeError(f"dssim backend=numba needs CPU tensors of equal shape [B,C,H,W], y without grad and "

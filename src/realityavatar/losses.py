@@ -199,7 +199,7 @@ def nearest_index(queries: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
     """Index into points [N,2] of the nearest point to each query [P,2] (no gradient). On the CPU a k-d tree
     (O((N + P) log N); the dense [P,N] distance matrix was most of the silhouette term's cost at 10k Gaussians),
     on a GPU the dense argmin."""
-    if queries.device.type != "cpu":
+    if queries.device.type != "cpu" or torch.compiler.is_compiling():  # traced by torch.compile: no numpy
         return torch.cdist(queries, points).argmin(1)
     _, idx = kd_tree(points.detach().double().numpy()).query(queries.detach().double().numpy(), k=1)
     return torch.from_numpy(idx).long()

@@ -150,8 +150,13 @@ class AvatarModule(Avatar, pl.LightningModule):
         self.set_progress(step)
         rgb, alpha, metas, posed = self.render_batch(batch, deform=self.schedule.deform_on(step), check_finite=check)
         out = TrainingRender(rgb, alpha, batch, posed, self, step)
-        total, terms = total_loss(self.losses, out)
+        total, terms = self.loss(out)
         return total, terms, out, metas
+
+    def loss(self, out: TrainingRender) -> tuple[torch.Tensor, dict]:
+        """The run's loss terms summed over a render (losses.total_loss): one graph for torch.compile (numpy and numba
+        paths step aside while it traces)."""
+        return total_loss(self.losses, out)
 
     def training_step(self, batch, batch_idx):
         """One step without a read of the device, except every `log_every` steps (logging, the finiteness checks):
