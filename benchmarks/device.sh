@@ -10,7 +10,8 @@
 # gets there) and evaluates it; their scenes are built while the gpu tests run. A 15-minute device session fits one
 # call of at most 10 minutes, e.g. SWEEP=1 PAPER_SCENE=1 BASELINE=<tree> STEP_SIZES="7000 128", then a second on the
 # warm machine (scenes and kernels kept under outputs/) with GPU_TESTS=0 STEP_SIZES="" PAPER_SCALE=<s>; a third with
-# PAPER_RESUME=1 continues that run (resume=true) towards its 15,000 steps.
+# PAPER_RESUME=1 continues that run (resume=true) towards its 15,000 steps. COMPILE=<mode> trains this commit's sweep
+# and paper_scale runs with compile=<mode> (torch.compile of the networks' path and the losses).
 #
 # Wheels (Python 3.12, x86_64; on a machine with pip and network):
 #   python3 -m pip download --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
@@ -107,7 +108,7 @@ PY
 if [ -n "${SWEEP:-}" ]; then
   el "sweep preset, 1000 steps (this commit)"
   run_train "$PWD" "$WORK/sweep" 300 +preset=sweep data=synthetic_sweep trainer=gpu render.backend=gsplat \
-    +trainer.profiler=simple
+    +trainer.profiler=simple compile=${COMPILE:-none}
   if [ -n "${BASELINE:-}" ]; then
     el "sweep preset, 1000 steps ($BASELINE)"
     run_train "$BASELINE" "$WORK/sweep_baseline" 300 +preset=sweep data=synthetic_sweep trainer=gpu render.backend=gsplat
@@ -126,7 +127,7 @@ if [ -n "${PAPER_SCALE:-}" ]; then
   MAXT=$(printf '00:%02d:%02d:%02d' $((T / 3600)) $((T % 3600 / 60)) $((T % 60)))
   el "+experiment=paper_scale ${RESUME[*]} (training stops after ${PAPER_SCALE}s more: max_time $MAXT)"
   run_train "$PWD" "$WORK/paper_scale" $(( $(left) - 5 )) +experiment=paper_scale +trainer.max_time=$MAXT \
-    +trainer.profiler=simple "${RESUME[@]}"
+    +trainer.profiler=simple compile=${COMPILE:-none} "${RESUME[@]}"
 fi
 if [ -n "${PAPER_SCALE:-}" ] && [ -f "$WORK/paper_scale/metrics.json" ] && [ "$(left)" -gt 40 ]; then
   # The per-phase probe of the held-out cameras (rest / spin / after the stop), and the novel-pose spin's phases.

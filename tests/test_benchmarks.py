@@ -108,7 +108,7 @@ def test_device_script_trains_configs_that_compose():
     from realityavatar.config import compose
 
     text = (ROOT / "benchmarks" / "device.sh").read_text().replace("\\\n", " ")  # continuation lines joined
-    text = text.replace('"${RESUME[@]}"', "resume=true")  # PAPER_RESUME=1's
+    text = text.replace('"${RESUME[@]}"', "resume=true").replace("${COMPILE:-none}", "reduce-overhead")
     calls = re.findall(r'^\s*run_train "\$\w+" "\$WORK/\w+" (?:\$\(\(.*?\)\)|\S+) (.+)$', text, re.MULTILINE)
     assert len(calls) == 3, calls
     for overrides in calls:

@@ -24,10 +24,10 @@ RUN_OUTPUTS = (*RUN_MARKERS, "config.yaml", "per_frame.csv", "logs", "images", "
 LOG_CSV = Path("logs") / "csv" / "metrics.csv"
 # Keys a resume may change: the run length (values interpolated from it are compared at the saved length) and its
 # time limit (a job's wall time: trainer.max_time counts the time of the runs before), where the run and its data
-# live, threads, profiling, evaluation settings.
-RESUMABLE_CHANGES = ("iterations", "trainer.max_time", "trainer.profiler", "trainer.enable_progress_bar", "trainer.default_root_dir", "data.root", "ckpt_path",
-                     "resume", "overwrite", "out_dir", "_overrides", "_choices", "threads", "test_after_fit", "eval.",
-                     "metrics.")
+# live, threads, profiling, compiling, evaluation settings.
+RESUMABLE_CHANGES = ("iterations", "trainer.max_time", "trainer.profiler", "compile", "trainer.enable_progress_bar",
+                     "trainer.default_root_dir", "data.root", "ckpt_path", "resume", "overwrite", "out_dir",
+                     "_overrides", "_choices", "threads", "test_after_fit", "eval.", "metrics.")
 
 
 def read_checkpoint(path: str | Path) -> dict:

@@ -71,6 +71,7 @@ def _run(cfg: DictConfig, choices: dict | None, out_dir: Path, resume_from: Path
     body = instantiate(cfg.body)
     dm = build_data(cfg, body)  # checks every image and mask of the selected splits
     module = build_module(cfg, body, dm.num_train_frames, dm.scene_extent, data=dm)
+    module.compile_path(str(cfg.get("compile", "none")))
     module.run_info.update(num_train_frames=dm.num_train_frames, train_frame_ids=list(map(int, dm.train_frame_ids)))
     # The run is valid: take the folder. The resolved config beside the checkpoint is what evaluate/animate/export
     # rebuild the run from.

@@ -351,3 +351,27 @@ def test_a_run_folder_of_an_older_version_names_its_config_and_the_commit(traine
     (run / "metrics.json").write_text(json.dumps({"commit": "3b9168b-dirty"}))
     with pytest.raises(ValueError, match=r"(?s)old/config\.yaml does not build.*use_fmt.*git checkout 3b9168b$"):
         load_run(run)
+
+
+def test_compile_trains_through_the_compiled_path(scenes_root, tmp_path, monkeypatch):
+    """compile=default trains and evaluates through torch.compile'd deform, shade and loss, across density control's
+    changes of the Gaussian count; an unknown mode names the key before the run folder is taken. Dynamo with the
+    aot_eager backend stands in for inductor (the same graphs, no C++ compile)."""
+    compile_, calls = torch.compile, []
+
+    def traced(f, **kw):
+        g = compile_(f, backend="aot_eager")
+
+        def wrapper(*a, **k):
+            calls.append(f.__name__)
+            return g(*a, **k)
+        return wrapper
+
+    monkeypatch.setattr(torch, "compile", traced)
+    with pytest.raises(ValueError, match="compile: expected one of none, default"):
+        _run(tmp_path / "bad", "compile=fast")
+    assert not (tmp_path / "bad" / "config.yaml").exists()
+    m = _run(tmp_path / "r", "compile=default", "iterations=8", "density.refine_every=3",
+             "test_after_fit=false")
+    assert m["iterations"] == 8 and {"deform", "shade", "loss"} <= set(calls), set(calls)
+    assert calls.count("loss") == 8  # every training step's losses ran compiled

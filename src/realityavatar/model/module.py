@@ -19,6 +19,8 @@ from realityavatar.model.avatar import Avatar
 
 # Networks whose gradient norm optim.grad_clip bounds (not the Gaussians', nor the sheet's), in this order.
 CLIPPED = ("encoder", "temporal", "deformer", "skinning", "color", "shading")
+# torch.compile modes of the `compile` setting (AvatarModule.compile_path); "none": eager.
+COMPILE_MODES = ("none", "default", "reduce-overhead", "max-autotune")
 # The sheet's optimizer groups take the free Gaussians' rates of the same name, its motion basis the decoder's.
 SHEET_RATES = {"sheet_normal_offset": "means", "sheet_basis": "deformer", "sheet_coeff": "deformer"}
 
@@ -158,9 +160,27 @@ class AvatarModule(Avatar, pl.LightningModule):
         paths step aside while it traces)."""
         return total_loss(self.losses, out)
 
+    def compile_path(self, mode: str) -> None:
+        """torch.compile (`mode`, one of COMPILE_MODES) the networks' path, `deform` and `shade`, and the losses,
+        `loss`: one graph on each side of the LSTM, which dynamo runs eagerly, and one of every loss term; the
+        rasterizer and the optimizer stay eager. "none" leaves them eager. reduce-overhead replays the graphs as CUDA
+        graphs: each training step then marks a new iteration of them."""
+        if mode not in COMPILE_MODES:
+            raise ValueError(f"compile: expected one of {', '.join(COMPILE_MODES)}, got {mode!r}")
+        if mode == "none":
+            return
+        kw = {} if mode == "default" else {"mode": mode}
+        self.deform, self.shade, self.loss = (torch.compile(f, **kw) for f in (self.deform, self.shade, self.loss))
+        if mode == "reduce-overhead":
+            self.mark_step = torch.compiler.cudagraph_mark_step_begin
+
+    def mark_step(self) -> None:
+        """A new training iteration begins (compile=reduce-overhead: of the CUDA graphs; eager: nothing)."""
+
     def training_step(self, batch, batch_idx):
         """One step without a read of the device, except every `log_every` steps (logging, the finiteness checks):
         on a GPU each read waits for every kernel queued before it."""
+        self.mark_step()
         step = self.global_step
         log_now = (step + 1) % self.log_every == 0  # the steps Lightning writes the logs of
         if log_now:
