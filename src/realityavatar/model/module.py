@@ -169,6 +169,9 @@ class AvatarModule(Avatar, pl.LightningModule):
             raise ValueError(f"compile: expected one of {', '.join(COMPILE_MODES)}, got {mode!r}")
         if mode == "none":
             return
+        # Density control replaces the Gaussians' parameters with more or fewer rows: their first dimension must be
+        # allowed to vary, or every refinement would recompile until dynamo's cache limit turned the path eager.
+        torch._dynamo.config.force_parameter_static_shapes = False
         kw = {} if mode == "default" else {"mode": mode}
         self.deform, self.shade, self.loss = (torch.compile(f, **kw) for f in (self.deform, self.shade, self.loss))
         if mode == "reduce-overhead":
