@@ -1,8 +1,8 @@
 """The LightningDataModule over the scene readers (I3D-Human/synthetic layout, ZJU-MoCap) and its sample Dataset.
 
 Samples follow docs/CONTRACTS.md ("Samples"): pixels, inside, background (`composite` makes image and mask of them),
-mask_dist, K, viewmat, width, height, poses [T,24,3],
-transl [T,3], pose_features [T,D], bone_transforms [24,4,4], frame, frame_idx, view, split.
+mask_dist, K, viewmat, width, height, poses [T,24,3], transl [T,3], pose_features [T,D], bone_transforms [24,4,4],
+frame, frame_idx, view, split.
 """
 
 from __future__ import annotations
