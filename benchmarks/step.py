@@ -286,13 +286,8 @@ def run_config(n: int, size: int, backend: str, repeats: int, overrides: list[st
     cfg, module, opt, sched = build(n, backend, overrides)
     global _graphs
     _graphs = compile_mode == "reduce-overhead"
-    if compile_mode != "none":  # the networks' whole path (Avatar.deform, .shade) and the losses; the rasterizer eager
-        # One graph each side of the LSTM (dynamo runs it eagerly): encoder, decoder, skinning, LBS, polar rotation,
-        # colour, shading; one graph of every loss term (AvatarModule.loss). Automatic dynamic shapes: the Gaussian
-        # count changes with density control.
-        mode = None if compile_mode == "default" else compile_mode
-        module.deform, module.shade, module.loss = (torch.compile(f, mode=mode)
-                                                    for f in (module.deform, module.shade, module.loss))
+    # as training compiles (compile=MODE): the networks' path (Avatar.deform, .shade) and the losses, one graph each
+    module.compile_path(compile_mode)
     make_batch = make_batch_fn(module, size, int(cfg.data.window_len))
     step = timed_step(cfg)
     _stub_trainer_hooks(module, opt, sched, step)

@@ -180,8 +180,8 @@ def test_decoder_condition_as_first_layer_bias_equals_the_concatenated_input():
 
 def test_the_networks_and_losses_compile_whole():
     """torch.compile of Avatar.deform and .shade and of the losses (benchmarks/step.py --compile, the GPU's lever
-    against its launch count): dynamo breaks the networks' graph only at the LSTM, which it runs eagerly, and traces
-    every loss term as one graph. The polar rotation's numba call, the device-constant cache (runtime.constant), the
+    against its launch count): dynamo breaks the networks' graph only at the LSTM, which it runs eagerly by default
+    (with compile_path's settings it traces the LSTM too: one graph), and traces every loss term as one graph. The polar rotation's numba call, the device-constant cache (runtime.constant), the
     D-SSIM's numba call and the silhouette's k-d tree each broke them before; a break costs a graph and a round of
     launches."""
     from tests.helpers import benchmark
@@ -194,11 +194,17 @@ def test_the_networks_and_losses_compile_whole():
         posed = module.deform(b)
         return module.shade(posed, b["viewmat"], b["frame_idx"]), posed["means"]
 
+    from realityavatar.model.module import DYNAMO_CONFIG
+
     torch._dynamo.reset()
     ex = torch._dynamo.explain(networks)(batch)
     reasons = [str(r.reason).splitlines()[0] for r in ex.break_reasons]
-    assert reasons and all("LSTM" in r for r in reasons), reasons
+    assert reasons and all("LSTM" in r for r in reasons), reasons  # dynamo's default: the LSTM eager
     assert ex.graph_count <= 3, (ex.graph_count, reasons)
+    torch._dynamo.reset()
+    with torch._dynamo.config.patch(**DYNAMO_CONFIG):  # compile_path's settings: the LSTM traced too
+        ex = torch._dynamo.explain(networks)(batch)
+    assert ex.graph_count == 1 and not ex.break_reasons, [str(r.reason).splitlines()[0] for r in ex.break_reasons]
 
     from realityavatar.losses import TrainingRender
 

@@ -21,6 +21,13 @@ from realityavatar.model.avatar import Avatar
 CLIPPED = ("encoder", "temporal", "deformer", "skinning", "color", "shading")
 # torch.compile modes of the `compile` setting (AvatarModule.compile_path); "none": eager.
 COMPILE_MODES = ("none", "default", "reduce-overhead", "max-autotune")
+# Dynamo's settings for it. Density control replaces the Gaussians' parameters with more or fewer rows, so their first
+# dimension must be allowed to vary (else every refinement recompiles until dynamo's cache limit turns the path
+# eager); the LSTM is traced too (experimental in dynamo; without it the networks are 3 graphs around an eager LSTM,
+# with it one: values and gradients equal eager to 1e-9 on the CPU). A training run makes up to 6 versions of `deform`
+# (the decoder's window closed, opening and open, the first change of the Gaussian count, evaluation's grad mode and
+# inference tensors: ci, TORCH_LOGS=recompiles); dynamo's limit of 8 is raised so that a version more stays compiled.
+DYNAMO_CONFIG = {"force_parameter_static_shapes": False, "allow_rnn": True, "recompile_limit": 16}
 # The sheet's optimizer groups take the free Gaussians' rates of the same name, its motion basis the decoder's.
 SHEET_RATES = {"sheet_normal_offset": "means", "sheet_basis": "deformer", "sheet_coeff": "deformer"}
 
@@ -162,16 +169,14 @@ class AvatarModule(Avatar, pl.LightningModule):
 
     def compile_path(self, mode: str) -> None:
         """torch.compile (`mode`, one of COMPILE_MODES) the networks' path, `deform` and `shade`, and the losses,
-        `loss`: one graph on each side of the LSTM, which dynamo runs eagerly, and one of every loss term; the
-        rasterizer and the optimizer stay eager. "none" leaves them eager. reduce-overhead replays the graphs as CUDA
+        `loss`: one graph each (DYNAMO_CONFIG); the rasterizer and the optimizer stay eager. "none" leaves them eager. reduce-overhead replays the graphs as CUDA
         graphs: each training step then marks a new iteration of them."""
         if mode not in COMPILE_MODES:
             raise ValueError(f"compile: expected one of {', '.join(COMPILE_MODES)}, got {mode!r}")
         if mode == "none":
             return
-        # Density control replaces the Gaussians' parameters with more or fewer rows: their first dimension must be
-        # allowed to vary, or every refinement would recompile until dynamo's cache limit turned the path eager.
-        torch._dynamo.config.force_parameter_static_shapes = False
+        for key, value in DYNAMO_CONFIG.items():
+            setattr(torch._dynamo.config, key, value)
         kw = {} if mode == "default" else {"mode": mode}
         self.deform, self.shade, self.loss = (torch.compile(f, **kw) for f in (self.deform, self.shade, self.loss))
         if mode == "reduce-overhead":
