@@ -162,11 +162,15 @@ def test_step_benchmark_profiles_the_compiled_networks(tmp_path, monkeypatch):
     compiler, seconds) stands in for inductor: the same graphs, which the profile shows as CompiledFunction."""
     compile_ = torch.compile
     monkeypatch.setattr(torch, "compile", lambda f, mode=None: compile_(f, backend="aot_eager"))
+    from realityavatar.model.module import DYNAMO_CONFIG
+
+    saved = {k: getattr(torch._dynamo.config, k) for k in DYNAMO_CONFIG}  # compile_path sets them process-wide
     out = tmp_path / "step.json"
     monkeypatch.setattr(sys, "argv", ["step.py", "--backends", "numba", "--profile", "300", "--n", "500", "--size", "32",
                                       "--repeats", "1", "--no-tune-malloc", "--out", str(out), "--compile", "default",
                                       "--override", "skinning.voxel_size=0.1", "shading.voxel_size=0.1"])
-    benchmark("step").main()
+    with torch._dynamo.config.patch(**saved):  # put back after the run
+        benchmark("step").main()
     (row,) = json.loads(out.read_text())["results"]
     assert any("CompiledFunction" in t["op"] for t in row["top_ops_time"]), [t["op"] for t in row["top_ops_time"]]
     assert row["ops_per_step"] is None

@@ -368,10 +368,13 @@ def test_compile_trains_through_the_compiled_path(scenes_root, tmp_path, monkeyp
         return wrapper
 
     monkeypatch.setattr(torch, "compile", traced)
+    from realityavatar.model.module import DYNAMO_CONFIG
+
     with pytest.raises(ValueError, match="compile: expected one of none, default"):
         _run(tmp_path / "bad", "compile=fast")
     assert not (tmp_path / "bad" / "config.yaml").exists()
-    m = _run(tmp_path / "r", "compile=default", "iterations=8", "density.refine_every=3",
-             "test_after_fit=false")
+    # compile_path sets dynamo's process-wide settings: put back after the run
+    with torch._dynamo.config.patch(**{k: getattr(torch._dynamo.config, k) for k in DYNAMO_CONFIG}):
+        m = _run(tmp_path / "r", "compile=default", "iterations=8", "density.refine_every=3", "test_after_fit=false")
     assert m["iterations"] == 8 and {"deform", "shade", "loss"} <= set(calls), set(calls)
     assert calls.count("loss") == 8  # every training step's losses ran compiled
