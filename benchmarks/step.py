@@ -39,7 +39,6 @@ import torch
 
 _clock_base = time.perf_counter  # --clock cpu: time.process_time
 _device = "cpu"
-_graphs = False  # --compile reduce-overhead: the networks replay CUDA graphs; each step marks a new iteration
 
 
 def _clock() -> float:
@@ -168,8 +167,7 @@ def step_parts(module, opt, sched, make_batch, step: int) -> dict:
 
     t = {}
     c = _clock
-    if _graphs:  # outputs of the previous step's graph replays may be overwritten from here on
-        torch.compiler.cudagraph_mark_step_begin()
+    module.mark_step()  # as training_step does (compile=reduce-overhead: a new iteration of the CUDA graphs)
     t0 = c()
     batch = make_batch()
     t["data"] = c() - t0
@@ -216,8 +214,6 @@ def step_parts(module, opt, sched, make_batch, step: int) -> dict:
 def step_whole(module, opt, sched, make_batch, step: int) -> float:
     """module.training_step itself (one backward), with the trainer's hooks stubbed: optimizers, logging."""
     t0 = _clock()
-    if _graphs:
-        torch.compiler.cudagraph_mark_step_begin()
     module.training_step(make_batch(), 0)
     return _clock() - t0
 
@@ -284,8 +280,6 @@ def run_config(n: int, size: int, backend: str, repeats: int, overrides: list[st
                compile_mode: str = "none", profile_top: int = 0) -> dict:
     torch.manual_seed(0)
     cfg, module, opt, sched = build(n, backend, overrides)
-    global _graphs
-    _graphs = compile_mode == "reduce-overhead"
     # as training compiles (compile=MODE): the networks' path (Avatar.deform, .shade) and the losses, one graph each
     module.compile_path(compile_mode)
     make_batch = make_batch_fn(module, size, int(cfg.data.window_len))
@@ -335,6 +329,8 @@ def run_config(n: int, size: int, backend: str, repeats: int, overrides: list[st
 
 
 def main() -> None:
+    from realityavatar.model.module import COMPILE_MODES
+
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--n", type=int, nargs="+", default=[10000, 35000])
     ap.add_argument("--size", type=int, nargs="+", default=[128, 256, 512])
@@ -347,7 +343,7 @@ def main() -> None:
     ap.add_argument("--views", type=int, nargs="+", default=[1],
                     help="also time the whole step with V cameras of one pose window per batch (data.batch_size=V)")
     ap.add_argument("--device", default="cpu", help="cpu or cuda[:i] (the module and batches there)")
-    ap.add_argument("--compile", default="none", choices=["none", "default", "reduce-overhead", "max-autotune"],
+    ap.add_argument("--compile", default="none", choices=COMPILE_MODES,
                     help="torch.compile mode for the networks' path (Avatar.deform, .shade) and the losses "
                          "(AvatarModule.loss); first_step_s includes compiling")
     ap.add_argument("--profile", type=int, default=0, metavar="K",

@@ -20,7 +20,7 @@ import torch.nn.functional as F
 
 from realityavatar.geometry import skew
 from realityavatar.render.numba_backend import NUMBA_ERROR, njit, prange
-from realityavatar.runtime import constant
+from realityavatar.runtime import constant, host_path
 
 # ----------------------------------------------------------------------------------------------------------- D-SSIM
 SSIM_WINDOW = 11
@@ -244,8 +244,7 @@ def dssim(x: torch.Tensor, y: torch.Tensor, backend: str = "auto") -> torch.Tens
     """
     if backend not in ("auto", "numba", "torch", "kornia"):
         raise ValueError(f"dssim backend: expected 'auto', 'numba', 'torch' or 'kornia', got {backend!r}")
-    fused_ok = (x.device.type == "cpu" and NUMBA_ERROR is None and not torch.compiler.is_compiling()  # traced: torch
-                and x.ndim == 4 and x.shape == y.shape
+    fused_ok = (host_path(x) and NUMBA_ERROR is None and x.ndim == 4 and x.shape == y.shape
                 and not y.requires_grad and x.shape[-1] > SSIM_WINDOW // 2 and x.shape[-2] > SSIM_WINDOW // 2)
     if backend == "numba" and not fused_ok:
         raise RuntimeError(f"dssim backend=numba needs CPU tensors of equal shape [B,C,H,W], y without grad and "
@@ -338,7 +337,7 @@ class _PolarRotation(torch.autograd.Function):
     @staticmethod
     def forward(ctx, M: torch.Tensor) -> torch.Tensor:
         with torch.no_grad():
-            if M.device.type == "cpu" and NUMBA_ERROR is None and not torch.compiler.is_compiling():  # traced: torch
+            if host_path(M) and NUMBA_ERROR is None:
                 flat = M.detach().reshape(-1, 3, 3).double().contiguous().numpy()
                 out = np.empty_like(flat)
                 _polar_newton(flat, out, 2 * POLAR_ITERS)

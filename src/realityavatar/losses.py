@@ -17,7 +17,7 @@ from realityavatar.geometry import kd_tree, sample_surface
 from realityavatar.kernels import dssim
 from realityavatar.metrics import load_features_state, vgg_features
 from realityavatar.model.skinning import skinning_loss
-from realityavatar.runtime import constant
+from realityavatar.runtime import constant, host_path
 
 _VGG19_TAPS = (1, 6, 11, 20, 29)  # relu1_1 .. relu5_1
 _VGG19_WEIGHTS = (1 / 32, 1 / 16, 1 / 8, 1 / 4, 1.0)  # pix2pixHD's per-layer weights (deeper = more semantic)
@@ -199,7 +199,7 @@ def nearest_index(queries: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
     """Index into points [N,2] of the nearest point to each query [P,2] (no gradient). On the CPU a k-d tree
     (O((N + P) log N); the dense [P,N] distance matrix was most of the silhouette term's cost at 10k Gaussians),
     on a GPU the dense argmin."""
-    if queries.device.type != "cpu" or torch.compiler.is_compiling():  # traced by torch.compile: no numpy
+    if not host_path(queries):
         return torch.cdist(queries, points).argmin(1)
     _, idx = kd_tree(points.detach().double().numpy()).query(queries.detach().double().numpy(), k=1)
     return torch.from_numpy(idx).long()

@@ -87,6 +87,12 @@ class OpCount(TorchDispatchMode):
 _CONSTANTS: dict[tuple, torch.Tensor] = {}
 
 
+def host_path(t: torch.Tensor) -> bool:
+    """Whether a numpy or numba path may take tensor t: a CPU tensor, outside torch.compile's tracing (dynamo cannot
+    trace those calls; while it traces, the torch path runs and becomes part of the graph)."""
+    return t.device.type == "cpu" and not torch.compiler.is_compiling()
+
+
 def constant(t: torch.Tensor | tuple[float, ...], like: torch.Tensor) -> torch.Tensor:
     """A constant in `like`'s device and dtype, copied there once: a module-level tensor `t`, or a tuple of numbers
     (e.g. an image's size). A `t.to(like)` or `like.new_tensor(values)` in the training step would copy it from the

@@ -169,8 +169,8 @@ class AvatarModule(Avatar, pl.LightningModule):
 
     def compile_path(self, mode: str) -> None:
         """torch.compile (`mode`, one of COMPILE_MODES) the networks' path, `deform` and `shade`, and the losses,
-        `loss`: one graph each (DYNAMO_CONFIG); the rasterizer and the optimizer stay eager. "none" leaves them eager. reduce-overhead replays the graphs as CUDA
-        graphs: each training step then marks a new iteration of them."""
+        `loss`: one graph each (DYNAMO_CONFIG); the rasterizer and the optimizer stay eager. "none" leaves them eager.
+        reduce-overhead replays the graphs as CUDA graphs: each training step then marks a new iteration of them."""
         if mode not in COMPILE_MODES:
             raise ValueError(f"compile: expected one of {', '.join(COMPILE_MODES)}, got {mode!r}")
         if mode == "none":
