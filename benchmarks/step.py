@@ -224,7 +224,9 @@ def _stub_trainer_hooks(module, opt, sched, step: int) -> None:
     module.manual_backward = lambda loss: loss.backward()
     module.log = lambda *args, **kwargs: None
     module.log_every = LOG_EVERY
-    type(module).global_step = property(lambda self: step)  # no trainer: the step the schedule sees
+    # No trainer: the step the schedule sees, on a subclass of this module's own (setting it on AvatarModule itself
+    # pinned every later module's global_step in the process, and a training run there never reached its stop step).
+    module.__class__ = type(type(module).__name__, (type(module),), {"global_step": property(lambda self: step)})
 
 
 LOG_EVERY = 25  # conf/trainer: log_every_n_steps; the timed and counted step is not a log step
