@@ -153,7 +153,8 @@ def make_batch_fn(module, size: int, window: int, views: int = 1):
             "mask": masks[k],
             "mask_dist": dists[k],
         }
-        batch = {k: v.to(_device) for k, v in batch.items()}
+        if _device != "cpu":  # as the training loader does for a GPU: pinned memory, copies that wait for no kernel
+            batch = {k: v.pin_memory().to(_device, non_blocking=True) for k, v in batch.items()}
         # host ints and the views of one frame (AvatarDataModule.on_before_batch_transfer, data.views_per_step=V)
         return {**batch, "width": [size] * V, "height": [size] * V, **({"views_per_frame": V} if V > 1 else {})}
 

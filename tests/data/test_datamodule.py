@@ -426,3 +426,16 @@ def test_missing_scene_folder_is_named(tmp_path, body):
     with pytest.raises(FileNotFoundError, match="nowhere"):
         dm.prepare_data()
         dm.setup("fit")
+
+
+def test_batches_are_pinned_when_the_trainer_runs_on_a_gpu(scene_root, body):
+    """Every loader pins its batches when the trainer's device is a GPU (their copies then wait for no kernel), not
+    on a CPU or without a trainer."""
+    from types import SimpleNamespace
+
+    dm = make(scene_root, body)
+    assert not dm.train_dataloader().pin_memory
+    for device, pinned in (("cpu", False), ("cuda", True)):
+        dm.trainer = SimpleNamespace(strategy=SimpleNamespace(root_device=torch.device(device)), training=True)
+        loaders = [dm.train_dataloader(), dm.val_dataloader(), *dm.test_dataloader()]
+        assert [loader.pin_memory for loader in loaders] == [pinned] * len(loaders)

@@ -168,3 +168,58 @@ def test_training_command_runs_on_fixture_dataset(tmp_path):
     metrics = json.loads((run / "metrics.json").read_text())
     assert metrics["config"]["data"] == "capture" and metrics["iterations"] == 3
     assert np.isfinite(metrics["test/novel_view/psnr"]) and np.isfinite(metrics["test/novel_pose/psnr"])
+
+
+@pytest.mark.gpu
+def test_training_on_a_gpu_synchronises_only_on_log_steps(scenes_root, tmp_path):
+    """Lightning's whole loop on CUDA (the loader, the batches' copies, the step, logging, the progress bar, the
+    sampler's feedback) under torch.cuda.set_sync_debug_mode("warn"): a synchronising call only in the steps that
+    log (every trainer.log_every_n_steps) and inside gsplat's rasterizer. Each step's span runs from its
+    on_train_batch_start to the next one's, so it holds the next batch's copies too."""
+    import pytorch_lightning as pl
+    from hydra.utils import instantiate
+
+    from realityavatar.build import build_data, build_module
+    from realityavatar.data.datamodule import SamplerFeedback
+    from realityavatar.render.splat import gsplat_status
+
+    if not torch.cuda.is_available() or gsplat_status() != "ok":
+        pytest.skip("needs CUDA and gsplat")
+    log_every, steps = 4, 12
+    overrides = [o for o in TINY if not o.startswith("trainer=")]
+    cfg, _ = _prepare(compose([*overrides, "trainer=gpu", "render.backend=gsplat", f"iterations={steps}",
+                               f"trainer.log_every_n_steps={log_every}", "density=off", "schedule.deform_start=0"]),
+                      tmp_path)
+    body = instantiate(cfg.body)
+    dm = build_data(cfg, body)
+    module = build_module(cfg, body, dm.num_train_frames, dm.scene_extent)
+    events: list = []  # ("step", global step) at each step's start and ("sync", where) for each warning, in order
+
+    class Spans(pl.Callback):
+        def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+            if trainer.global_step == 2:  # after the warm-up steps' one-time set-up (caches, kernels)
+                torch.cuda.set_sync_debug_mode("warn")
+            events.append(("step", trainer.global_step))
+
+        def on_train_end(self, trainer, pl_module):
+            torch.cuda.set_sync_debug_mode("default")
+
+    trainer = instantiate(cfg.trainer, logger=False, enable_checkpointing=False, enable_progress_bar=True,
+                          callbacks=[Spans(), SamplerFeedback()])
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("always")
+            warnings.showwarning = lambda message, category, filename, lineno, *args: events.append(
+                ("sync", f"{filename}:{lineno}: {message}"))
+            trainer.fit(module, datamodule=dm)
+    finally:
+        torch.cuda.set_sync_debug_mode("default")
+    assert trainer.global_step == steps and module.run_info["render"]["backend"] == "gsplat"
+    step, bad = None, []
+    for kind, what in events:
+        if kind == "step":
+            step = what
+        elif ("synchroniz" in what.lower() and "gsplat" not in what.split(":")[0]
+              and (step + 1) % log_every != 0):  # training_step's log_now
+            bad.append(f"step {step}: {what}")
+    assert not bad, bad

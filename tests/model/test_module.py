@@ -233,9 +233,15 @@ def test_a_training_step_reads_the_device_only_on_log_steps(body, monkeypatch):
                                                                         "boolean_mask_index")}
     module._test_step = 4  # a log step ((step + 1) % log_every == 0): logging and the input checks read the device
     batch = make_batch()
+    logged = {}
+    module.log = lambda name, value, **kwargs: logged.update({name: (value, kwargs.get("prog_bar", False))})
     with OpCount() as c:
         module.training_step(batch, 0)
     assert c.reads > 0
+    # Logged as host tensors: Lightning reads the progress bar's values after every step, and turns a number into a
+    # tensor on the module's device.
+    assert {"train/loss", "train/num_gaussians"} <= {k for k, (_, bar) in logged.items() if bar}
+    assert all(torch.is_tensor(v) and v.device.type == "cpu" and v.dim() == 0 for v, _ in logged.values()), logged
     with torch.no_grad():
         module.gaussians.features[0, 0] = float("nan")
     module._test_step = 5

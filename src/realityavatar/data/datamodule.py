@@ -589,9 +589,16 @@ class AvatarDataModule(pl.LightningDataModule):
             self.train_sampler = sampler
             return ResumableLoader(ds, batch_size=self.batch_size * self.views_per_step, sampler=sampler,
                                    num_workers=self.num_workers, persistent_workers=self.num_workers > 0,
-                                   drop_last=False, generator=gen)
+                                   drop_last=False, generator=gen, pin_memory=self._pinned())
         return DataLoader(ds, batch_size=self.batch_size, shuffle=False, num_workers=self.num_workers,
-                          persistent_workers=self.num_workers > 0, drop_last=False, generator=gen)
+                          persistent_workers=self.num_workers > 0, drop_last=False, generator=gen,
+                          pin_memory=self._pinned())
+
+    def _pinned(self) -> bool:
+        """Batches in pinned host memory when the trainer moves them to a GPU: a copy from pageable memory first
+        waits for every kernel queued before it (CUDA's stream sync, once per tensor of the batch); a copy from pinned
+        memory is queued like a kernel."""
+        return self.trainer is not None and self.trainer.strategy.root_device.type == "cuda"
 
     def _require(self, split: str) -> AvatarDataset:
         if not self.datasets:

@@ -198,12 +198,13 @@ class AvatarModule(Avatar, pl.LightningModule):
         total, terms, out, metas = self.training_loss(batch, step, check=log_now)
         # A non-finite loss is remembered on the device and raised on the next log step (ModelCheckpoint saves
         # after this hook: no checkpoint is written between a non-finite step and the error).
-        if self._loss_sum is None:
-            self._loss_sum, self._loss_sum_since = total.detach(), step
+        if self._loss_sum is None:  # a copy: with compile=reduce-overhead `total` is a CUDA graph's output, which
+            self._loss_sum, self._loss_sum_since = total.detach().clone(), step  # the next step's replay overwrites
         else:
             self._loss_sum = self._loss_sum + total.detach()
-        if log_now:
-            self._check_finite(step, f": {terms}")  # before this step's update
+        if log_now:  # the logged values, read from the device in one copy (host tensors: see below)
+            logged = dict(zip(["loss", *terms], torch.stack([total.detach(), *terms.values()]).cpu()))
+            self._check_finite(step, f": {logged}")  # before this step's update
         self.manual_backward(total)
         if self.grad_clip:
             nets = [p for n in CLIPPED for p in self.components()[n].parameters() if p.grad is not None]
@@ -216,16 +217,18 @@ class AvatarModule(Avatar, pl.LightningModule):
         self.run_info["render"] = {"backend": metas[0]["backend"], "device": str(rgb.device), "dtype": str(rgb.dtype)}
         raw = getattr(opt, "optimizer", opt)  # the torch optimizer under Lightning's wrapper
         stats = self.density.step_post_backward(self.gaussians, raw, metas, step, (W, H))
+        # Logged values are host tensors: Lightning turns progress-bar values into numbers after every step (a read of a
+        # GPU tensor waits for the GPU), and a number it is given becomes a tensor on the module's device (a copy that
+        # waits too).
+        bs = rgb.shape[0]
         if log_now:
-            bs = rgb.shape[0]
-            self.log("train/loss", total.detach(), prog_bar=True, batch_size=bs)
-            for k, v in terms.items():
-                self.log(f"train/{k}", v, batch_size=bs)
-            self.log("train/num_gaussians", float(self.gaussians.num_points), prog_bar=True, batch_size=bs)
+            for name, v in logged.items():
+                self.log(f"train/{name}", v, prog_bar=name == "loss", batch_size=bs)
+            self.log("train/num_gaussians", torch.tensor(float(self.gaussians.num_points)), prog_bar=True, batch_size=bs)
         # Density control's counts are host ints: a refinement's (cloned / split / pruned / reset) is logged at its step.
         for k, v in stats.items():
             if isinstance(v, (int, float)) and (log_now or k != "num_points"):
-                self.log(f"train/density_{k}", float(v), batch_size=rgb.shape[0])
+                self.log(f"train/density_{k}", torch.tensor(float(v)), batch_size=bs)
         # Per-image error for samplers that draw hard frames more often (data.sampler=hard_frames, SamplerFeedback):
         # colour L1 plus the mask disagreement, both means over the image.
         with torch.no_grad():
