@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+
 import pytest
 import torch
 
@@ -249,6 +251,51 @@ def test_a_training_step_reads_the_device_only_on_log_steps(body, monkeypatch):
     module._test_step = 9
     with pytest.raises(FloatingPointError, match="non-finite between steps 5 and 8"):
         module.training_step(make_batch(), 0)
+
+
+def test_no_step_reads_an_output_of_the_compiled_functions_of_an_earlier_step(body, monkeypatch):
+    """compile=reduce-overhead replays `deform`, `shade` and `loss` as CUDA graphs, each replay over the memory of the
+    last one's outputs, and reading an overwritten output raises. So no step reads what they returned in an earlier
+    step: every tensor operation of steps 5 to 7 is checked against the storages they returned in steps 4 (a log
+    step: log_every 5) and 5 (the loss sum once kept step 5's loss and added step 6's to it). Outputs that alias a
+    parameter or the batch are not the graphs' memory and are left out."""
+    from torch.multiprocessing.reductions import StorageWeakRef
+    from torch.utils._python_dispatch import TorchDispatchMode
+    from torch.utils._pytree import tree_leaves
+
+    module, make_batch = _stepping_module(body, monkeypatch)
+    static = {StorageWeakRef(t.untyped_storage()) for t in (*module.parameters(), *module.buffers())}
+    batches = {s: make_batch() for s in range(1, 8)}
+    static |= {StorageWeakRef(t.untyped_storage()) for b in batches.values() for t in b.values() if torch.is_tensor(t)}
+    returned: dict = {}  # storage -> the step that returned it
+
+    def recorded(f):
+        def call(*args, **kwargs):
+            out = f(*args, **kwargs)
+            if module._test_step in (4, 5):
+                returned.update({StorageWeakRef(t.untyped_storage()): module._test_step
+                                 for t in tree_leaves(out) if torch.is_tensor(t)})
+            return out
+        return call
+
+    for name in ("deform", "shade", "loss"):  # where compile_path puts the compiled functions
+        setattr(module, name, recorded(getattr(module, name)))
+    reads: list = []
+
+    class Reads(TorchDispatchMode):
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            for t in tree_leaves((args, kwargs)):
+                if torch.is_tensor(t) and t.device.type != "meta":
+                    ref = StorageWeakRef(t.untyped_storage())
+                    if returned.get(ref, module._test_step) < module._test_step and ref not in static:
+                        reads.append(f"step {module._test_step}: {func}")
+            return func(*args, **(kwargs or {}))
+
+    for s in range(1, 8):
+        module._test_step = s
+        with (Reads() if s > 4 else contextlib.nullcontext()):
+            module.training_step(batches[s], 0)
+    assert len(returned) > 10 and not reads, reads
 
 
 @pytest.mark.gpu
