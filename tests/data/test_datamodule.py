@@ -395,6 +395,30 @@ def test_sampler_feedback_passes_per_image_losses_to_the_sampler():
     assert s.observed == 2 and s.score.tolist() == [2.0, 4.0]
 
 
+def test_sampler_feedback_on_a_gpu_reads_once_per_log_step():
+    """Losses on a GPU wait on the device until a log step, then reach the sampler in step order, in one copy."""
+    from types import SimpleNamespace
+
+    from realityavatar.data.datamodule import HardFrameSampler, SamplerFeedback
+
+    class OnGpu(torch.Tensor):  # reports a GPU device: the callback keeps it until a log step
+        @property
+        def device(self):
+            return torch.device("cuda")
+
+    steps = [([0, 2], [1.0, 3.0]), ([2, 1], [5.0, 2.0]), ([3, 0], [4.0, 6.0])]
+    s, reference = HardFrameSampler([0, 0, 1, 1], seed=0), HardFrameSampler([0, 0, 1, 1], seed=0)
+    feedback = SamplerFeedback()
+    trainer = SimpleNamespace(datamodule=SimpleNamespace(train_sampler=s), log_every_n_steps=3)
+    for step, (index, loss) in enumerate(steps):
+        trainer.global_step = step + 1
+        feedback.on_train_batch_end(trainer, None, {"image_loss": torch.tensor(loss).as_subclass(OnGpu)},
+                                    {"index": torch.tensor(index)}, 0)
+        assert s.observed == (6 if step == 2 else 0)
+        reference.observe(torch.tensor(index), torch.tensor(loss))
+    assert torch.equal(s.score, reference.score)
+
+
 def test_unknown_sampler_option_names_the_field(scene_root, body):
     """The sampler is built from conf/sampler like every other group (_target_ + _partial_, called with the training
     images' frames and the seed): each option gives its class, a value that is not a sampler names data.sampler, an

@@ -313,8 +313,8 @@ class SamplerFeedback(pl.Callback):
         loss = outputs["image_loss"].detach()
         self._pending.append((batch["index"].detach(), loss))
         if loss.device.type == "cpu" or trainer.global_step % max(int(trainer.log_every_n_steps), 1) == 0:
-            for index, value in self._pending:
-                sampler.observe(index.cpu(), value.cpu())
+            index, value = (torch.cat(t).cpu() for t in zip(*self._pending))  # in step order: one copy each
+            sampler.observe(index, value)
             self._pending.clear()
 
 
