@@ -22,7 +22,9 @@ for the GPU first (torch.cuda.synchronize), and each row also records the GPU ke
 kernel launches, not on the GPU, with the kernel launches and stream syncs it counts.
 On any device each row also counts the tensor operations of one whole step and the host syncs among them (scalar
 reads, data-dependent output sizes), with a TorchDispatchMode: the launches and waits a GPU step would make,
-measurable on a CPU.
+measurable on a CPU. On a CPU each row also counts launches per step from a profile (`cpu_launches_per_step`:
+inductor's fused kernels plus the outermost computing ATen operations), which also counts a compiled step: what
+--compile's fusion leaves for a GPU to launch.
 """
 from __future__ import annotations
 
@@ -260,6 +262,27 @@ def profile_steps(module, opt, sched, make_batch, step: int, shapes: bool = Fals
     return prof
 
 
+# ATen operations that launch no kernel: views, metadata, scalar reads (counted apart, as host syncs), allocations
+_NO_LAUNCH = {"view", "as_strided", "reshape", "_reshape_alias", "_unsafe_view", "expand", "expand_as", "view_as",
+              "unsqueeze", "squeeze", "select", "slice", "narrow", "t", "transpose", "permute", "movedim", "unbind",
+              "split", "split_with_sizes", "chunk", "flatten", "unflatten", "detach", "alias", "lift_fresh",
+              "resolve_conj", "resolve_neg", "contiguous", "to", "empty", "empty_strided", "empty_like", "item",
+              "_local_scalar_dense", "is_nonzero", "numpy_T"}
+
+
+def launches_per_step(prof) -> float:
+    """Kernel launches per step that a GPU would make, counted in a CPU profile of PROFILED_STEPS whole steps:
+    inductor's fused C++ kernels (with `torch._inductor.config.cpp.enable_kernel_profile`; each stands for one Triton
+    kernel on a GPU) plus the outermost ATen operations that compute (an operation run inside another is part of that
+    one's launch). It counts eager and compiled steps alike: OpCount cannot count a compiled step (dynamo runs
+    eagerly under a TorchDispatchMode)."""
+    def outermost(e) -> bool:
+        return not (e.cpu_parent is not None and e.cpu_parent.name.startswith("aten::"))
+
+    return sum("cpp_fused" in e.name or (e.name.startswith("aten::") and e.name[6:] not in _NO_LAUNCH and outermost(e))
+               for e in prof.events()) / PROFILED_STEPS
+
+
 def top_ops(prof, k: int) -> list[dict]:
     """The k operations of a `profile_steps(shapes=True)` profile that take the most time (grouped by operation and
     input shapes; on a GPU by the time of their kernels): where a step's time goes, per step."""
@@ -283,7 +306,11 @@ def run_config(n: int, size: int, backend: str, repeats: int, overrides: list[st
                compile_mode: str = "none", profile_top: int = 0) -> dict:
     torch.manual_seed(0)
     cfg, module, opt, sched = build(n, backend, overrides)
-    # as training compiles (compile=MODE): the networks' path (Avatar.deform, .shade) and the losses, one graph each
+    # as training compiles (compile=MODE): the networks' path (Avatar.deform, .shade) and the losses, one graph each;
+    # on a CPU inductor's kernels then show in the profile (launches_per_step)
+    import torch._inductor.config as inductor_config
+
+    inductor_config.cpp.enable_kernel_profile = _device == "cpu"
     module.compile_path(compile_mode)
     make_batch = make_batch_fn(module, size, int(cfg.data.window_len))
     step = timed_step(cfg)
@@ -299,8 +326,7 @@ def run_config(n: int, size: int, backend: str, repeats: int, overrides: list[st
         whole.append(step_whole(module, opt, sched, make_batch, step))
     med = {k: statistics.median(v) for k, v in parts.items()}
     # one profiled run for the GPU's kernel time and calls and for --profile's list
-    prof = (profile_steps(module, opt, sched, make_batch, step, shapes=bool(profile_top))
-            if profile_top or _device != "cpu" else None)
+    prof = profile_steps(module, opt, sched, make_batch, step, shapes=bool(profile_top))
     # Counted last and for eager rows only: under a TorchDispatchMode dynamo runs the compiled networks eagerly, and
     # keeps doing so after it (a profile taken after the count saw eager kernels): a compiled row's launches are the
     # profile's kernel_launches_per_step.
@@ -327,7 +353,7 @@ def run_config(n: int, size: int, backend: str, repeats: int, overrides: list[st
             "first_step_s": first_step_s,
             "num_gaussians": int(module.gaussians.num_points), "step_s": statistics.median(whole),
             "sum_of_parts_s": sum(med.values()), "parts_s": med, "views_step_s": multi, "gpu_kernel_s": gpu_kernel_s,
-            "top_ops_time": top,
+            "top_ops_time": top, **({"cpu_launches_per_step": launches_per_step(prof)} if _device == "cpu" else {}),
             **counts, **cuda_calls}
 
 
@@ -393,6 +419,8 @@ def main() -> None:
                       + ("tensor ops not counted (compiled)" if r["ops_per_step"] is None else
                          f"{r['ops_per_step']:.0f} tensor ops, {r['scalar_reads_per_step']:.0f} scalar reads, "
                          f"{r['data_dependent_per_step']:.0f} data-dependent shapes per step")
+                      + (f"; {r['cpu_launches_per_step']:.0f} launches per step (CPU profile)"
+                         if "cpu_launches_per_step" in r else "")
                       + "".join(f"; {V} views {t:.3f}s = {t / u:.2f} units ({t / r['step_s']:.2f}x)"
                                 for V, t in r["views_step_s"].items()), flush=True)
                 for t in r["top_ops_time"]:

@@ -136,6 +136,8 @@ def test_step_benchmark_on_the_cpu_counts_and_profiles(tmp_path, monkeypatch, ca
     (row,) = json.loads(out.read_text())["results"]
     assert row["step_s"] > 0 and set(row["parts_s"]) >= {"networks_fwd", "render_bwd", "optimizer"}
     assert row["ops_per_step"] > 100 and row["scalar_reads_per_step"] == 0 and row["data_dependent_per_step"] == 0
+    # the profile's launch count of an eager step: OpCount's operations, less those run inside another (~5 %)
+    assert 0.8 * row["ops_per_step"] < row["cpu_launches_per_step"] <= row["ops_per_step"]
     top = row["top_ops_time"]
     assert len(top) == 5 and all(t["ms_per_step"] > 0 and t["calls_per_step"] > 0 for t in top)
     assert [t["ms_per_step"] for t in top] == sorted((t["ms_per_step"] for t in top), reverse=True)
@@ -173,7 +175,7 @@ def test_step_benchmark_profiles_the_compiled_networks(tmp_path, monkeypatch):
         benchmark("step").main()
     (row,) = json.loads(out.read_text())["results"]
     assert any("CompiledFunction" in t["op"] for t in row["top_ops_time"]), [t["op"] for t in row["top_ops_time"]]
-    assert row["ops_per_step"] is None
+    assert row["ops_per_step"] is None and row["cpu_launches_per_step"] > 100  # the profile counts it
 
 
 def test_loader_benchmark_times_the_main_process(scenes_root, tmp_path):
