@@ -190,6 +190,14 @@ def test_cache_images_keeps_decoded_images(tmp_path, body):
     torch.testing.assert_close(dm.datasets["train"][0]["pixels"], first)  # served from memory
     with pytest.raises(FileNotFoundError, match="frame_000000_view_00.png not found"):
         dm2.datasets["train"][0]
+    # the image check also made every cached mask's distance field (in threads), the values a sample would make
+    from realityavatar.data.records import mask_distance
+
+    for ds in dm.datasets.values():
+        assert sorted(ds._dist_cache) == list(range(len(ds)))
+        for i in range(len(ds)):
+            torch.testing.assert_close(ds._dist_cache[i], mask_distance(ds._decoded(i)[1]), rtol=0, atol=0)
+    assert not dm2.datasets["train"]._dist_cache  # not cached: made when a sample is read
 
 
 def test_pose_inputs_are_made_once_per_frame(scene_root, body, monkeypatch):

@@ -537,17 +537,30 @@ class AvatarDataModule(pl.LightningDataModule):
         """Decode every image and mask of the selected splits before training (kept in memory with cache_images),
         so a corrupt, missing or wrongly sized file stops the run before step 0; all problems are listed together."""
         import time
+        from concurrent.futures import ThreadPoolExecutor
+
+        def decode(ds: AvatarDataset, i: int):
+            """Record i decoded (and with cache_images, its mask's distance field made), or the error."""
+            try:
+                img, mask, _ = ds._decoded(i)
+                if ds.cache_images:
+                    ds._distance(i, mask)
+                return img
+            except (OSError, ValueError) as e:
+                return e
 
         t0 = time.perf_counter()
         problems: list[str] = []
         sizes: dict[int, tuple[tuple[int, int], Path]] = {}  # camera -> decoded (H, W) and the first file
         n = 0
+        # decoding (PIL) and the distance fields (scipy) release the GIL: as many threads as torch's
+        with ThreadPoolExecutor(max(1, torch.get_num_threads())) as pool:
+            decoded = {split: list(pool.map(lambda i, ds=ds: decode(ds, i), range(len(ds.records))))
+                       for split, ds in self.datasets.items()}
         for split, ds in self.datasets.items():
-            for i, rec in enumerate(ds.records):
-                try:
-                    img, _, _ = ds._decoded(i)
-                except (OSError, ValueError) as e:
-                    problems.append(f"{split}: {e}")
+            for rec, img in zip(ds.records, decoded[split]):
+                if isinstance(img, Exception):
+                    problems.append(f"{split}: {img}")
                     continue
                 n += 1
                 hw = tuple(img.shape[:2])
