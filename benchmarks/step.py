@@ -262,12 +262,12 @@ def profile_steps(module, opt, sched, make_batch, step: int, shapes: bool = Fals
     return prof
 
 
-# ATen operations that launch no kernel: views, metadata, scalar reads (counted apart, as host syncs), allocations
-_NO_LAUNCH = {"view", "as_strided", "reshape", "_reshape_alias", "_unsafe_view", "expand", "expand_as", "view_as",
-              "unsqueeze", "squeeze", "select", "slice", "narrow", "t", "transpose", "permute", "movedim", "unbind",
-              "split", "split_with_sizes", "chunk", "flatten", "unflatten", "detach", "alias", "lift_fresh",
-              "resolve_conj", "resolve_neg", "contiguous", "to", "empty", "empty_strided", "empty_like", "item",
-              "_local_scalar_dense", "is_nonzero", "numpy_T"}
+# ATen operations that launch no kernel: views, metadata (OpCount's, runtime._METADATA), scalar reads (counted apart,
+# as host syncs), allocations. By name: a profile records no `is_view`, which OpCount uses.
+_NO_LAUNCH = {"view", "as_strided", "reshape", "_reshape_alias", "expand", "expand_as", "view_as", "unsqueeze",
+              "squeeze", "select", "slice", "narrow", "t", "transpose", "permute", "movedim", "unbind", "split",
+              "split_with_sizes", "chunk", "flatten", "unflatten", "resolve_conj", "resolve_neg", "contiguous", "to",
+              "empty", "empty_strided", "empty_like", "item", "_local_scalar_dense", "is_nonzero", "numpy_T"}
 
 
 def launches_per_step(prof) -> float:
@@ -276,10 +276,14 @@ def launches_per_step(prof) -> float:
     kernel on a GPU) plus the outermost ATen operations that compute (an operation run inside another is part of that
     one's launch). It counts eager and compiled steps alike: OpCount cannot count a compiled step (dynamo runs
     eagerly under a TorchDispatchMode)."""
+    from realityavatar.runtime import _METADATA
+
+    no_launch = _NO_LAUNCH | set(_METADATA)
+
     def outermost(e) -> bool:
         return not (e.cpu_parent is not None and e.cpu_parent.name.startswith("aten::"))
 
-    return sum("cpp_fused" in e.name or (e.name.startswith("aten::") and e.name[6:] not in _NO_LAUNCH and outermost(e))
+    return sum("cpp_fused" in e.name or (e.name.startswith("aten::") and e.name[6:] not in no_launch and outermost(e))
                for e in prof.events()) / PROFILED_STEPS
 
 
@@ -306,11 +310,7 @@ def run_config(n: int, size: int, backend: str, repeats: int, overrides: list[st
                compile_mode: str = "none", profile_top: int = 0) -> dict:
     torch.manual_seed(0)
     cfg, module, opt, sched = build(n, backend, overrides)
-    # as training compiles (compile=MODE): the networks' path (Avatar.deform, .shade) and the losses, one graph each;
-    # on a CPU inductor's kernels then show in the profile (launches_per_step)
-    import torch._inductor.config as inductor_config
-
-    inductor_config.cpp.enable_kernel_profile = _device == "cpu"
+    # as training compiles (compile=MODE): the networks' path (Avatar.deform, .shade) and the losses, one graph each
     module.compile_path(compile_mode)
     make_batch = make_batch_fn(module, size, int(cfg.data.window_len))
     step = timed_step(cfg)
@@ -390,6 +390,10 @@ def main() -> None:
         kernels.NUMBA_ERROR = "--torch-kernels"
     global _device
     _device = a.device
+    if _device == "cpu":  # inductor's C++ kernels show in the profile (launches_per_step)
+        import torch._inductor.config as inductor_config
+
+        inductor_config.cpp.enable_kernel_profile = True
     if _device != "cpu" and not torch.cuda.is_available():
         raise SystemExit(f"--device {_device}: CUDA is not available to this torch ({torch.__version__})")
     a.out = a.out or str(Path(__file__).parent / "results" / f"step_{'cpu' if _device == 'cpu' else 'cuda'}.json")

@@ -97,9 +97,12 @@ def constant(t: torch.Tensor | tuple[float, ...], like: torch.Tensor) -> torch.T
     """A constant in `like`'s device and dtype, copied there once: a module-level tensor `t`, or a tuple of numbers
     (e.g. an image's size). A `t.to(like)` or `like.new_tensor(values)` in the training step would copy it from the
     host at every step on a GPU (and wait for the copy)."""
-    if torch.compiler.is_compiling():  # traced by torch.compile: a constant of the graph (the cache is a side effect)
+    def make() -> torch.Tensor:
         return torch.tensor(t, dtype=like.dtype, device=like.device) if isinstance(t, tuple) else t.to(like)
+
+    if torch.compiler.is_compiling():  # traced by torch.compile: a constant of the graph (the cache is a side effect)
+        return make()
     key = (t if isinstance(t, tuple) else id(t), like.device, like.dtype)
     if key not in _CONSTANTS:
-        _CONSTANTS[key] = torch.tensor(t, dtype=like.dtype, device=like.device) if isinstance(t, tuple) else t.to(like)
+        _CONSTANTS[key] = make()
     return _CONSTANTS[key]

@@ -538,6 +538,7 @@ class AvatarDataModule(pl.LightningDataModule):
         so a corrupt, missing or wrongly sized file stops the run before step 0; all problems are listed together."""
         import time
         from concurrent.futures import ThreadPoolExecutor
+        from functools import partial
 
         def decode(ds: AvatarDataset, i: int):
             """Record i decoded (and with cache_images, its mask's distance field made), or the error."""
@@ -555,7 +556,7 @@ class AvatarDataModule(pl.LightningDataModule):
         n = 0
         # decoding (PIL) and the distance fields (scipy) release the GIL: as many threads as torch's
         with ThreadPoolExecutor(max(1, torch.get_num_threads())) as pool:
-            decoded = {split: list(pool.map(lambda i, ds=ds: decode(ds, i), range(len(ds.records))))
+            decoded = {split: list(pool.map(partial(decode, ds), range(len(ds.records))))
                        for split, ds in self.datasets.items()}
         for split, ds in self.datasets.items():
             for rec, img in zip(ds.records, decoded[split]):
