@@ -50,7 +50,8 @@ print('gsplat_status:', gsplat_status()[-1500:], '| build_s', round(time.time() 
 # core, after gsplat's build: beside it, nvcc took 225 s instead of 85 s on an H100). The step profile waits for
 # them: no timing shares the CPU.
 SCENES=(); [ -n "${PAPER_SCALE:-}${PAPER_SCENE:-}" ] && SCENES+=("+experiment=paper_scale")  # *_SCENE=1: for a later call
-[ -n "${SWEEP:-}${SWEEP_SCENE:-}" ] && SCENES+=("+preset=sweep data=synthetic_sweep")
+# the sweep scene: the sweep preset's, and the one paper_scale is evaluated on beside it (below)
+[ -n "${SWEEP:-}${SWEEP_SCENE:-}${PAPER_SCALE:-}${PAPER_SCENE:-}" ] && SCENES+=("+preset=sweep data=synthetic_sweep")
 if [ ${#SCENES[@]} -gt 0 ]; then
   python3 - "${SCENES[@]}" > "$WORK/scenes.log" 2>&1 <<'PY' &
 import sys
@@ -130,9 +131,18 @@ if [ -n "${PAPER_SCALE:-}" ]; then
     +trainer.profiler=simple compile=${COMPILE:-none} "${RESUME[@]}"
 fi
 if [ -n "${PAPER_SCALE:-}" ] && [ -f "$WORK/paper_scale/metrics.json" ] && [ "$(left)" -gt 40 ]; then
-  # The per-phase probe of the held-out cameras (rest / spin / after the stop), and the novel-pose spin's phases.
-  el "probe of paper_scale (held-out cameras)"
+  # Beside the CPU sweep preset on equal terms: the 512 px model on the sweep scene (the same sequence and cameras at
+  # 128 px, every 2nd frame), each image rendered at 512 px and averaged over 4 x 4 pixels (eval.supersample; rendered
+  # at 128 px directly, its sub-pixel Gaussians would be widened by the rasterizer's filter), -> paper_scale/eval/;
+  # then the per-phase probe of the held-out cameras (rest / spin / after the stop) and the novel-pose spin's phases.
+  AT128=(data.sequence=skirt_spin_demo data.build_overrides=null data.image_scale=0.5 data.frame_subsample=2
+         eval.supersample=4)
+  el "paper_scale on the sweep scene (128 px, 4x supersampled)"
+  timeout $(( $(left) - 5 )) python3 -m realityavatar.evaluate run_dir="$WORK/paper_scale" eval.save_video=false \
+    "${AT128[@]}" > "$WORK/eval128.log" 2>&1; echo "evaluate rc $?"; tail -7 "$WORK/eval128.log" | cut -c1-300
+  el "probe of paper_scale (held-out cameras, 128 px, 4x supersampled)"
   timeout $(( $(left) - 5 )) python3 -m realityavatar.analysis.probe "$WORK/paper_scale" --heldout-only \
-    --out "$WORK/probe" > "$WORK/probe.log" 2>&1; echo "probe rc $?"; tail -12 "$WORK/probe.log" | cut -c1-300
+    --override "${AT128[@]}" --out "$WORK/probe" > "$WORK/probe.log" 2>&1; echo "probe rc $?"
+  tail -12 "$WORK/probe.log" | cut -c1-300
 fi
 el done

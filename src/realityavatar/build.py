@@ -62,6 +62,7 @@ def build_module(cfg: DictConfig, body, num_train_frames: int, scene_extent: flo
         max_steps=int(cfg.iterations),
         scene_extent=scene_extent,
         lpips=lpips,
+        eval_supersample=int((cfg.get("eval") or {}).get("supersample", 1)),  # run folders from before it: 1
     )
     module.lpips_status = lpips_status  # "computed (<weights' source>)" or why not, recorded in metrics.json
     module.perceptual_weights = vgg19_from  # where the perceptual loss's VGG19 came from (None: not used)

@@ -117,6 +117,7 @@ SETTINGS = {
     "render.backend": (lambda v: v in RENDER_BACKENDS, f"one of {', '.join(RENDER_BACKENDS)} (conf/render/default.yaml)"),
     "schedule.skin_pretrain_steps": (lambda v: _is_int(v) and v >= 0, "a whole number >= 0"),
     "eval.max_frames_per_split": (lambda v: v is None or (_is_int(v) and v >= 1), "null (every frame) or a whole number >= 1"),
+    "eval.supersample": (lambda v: _is_int(v) and v >= 1, "a whole number >= 1 (1 = render at the images' size)"),
     "eval.save_images": (lambda v: _is_int(v) and v >= 0, "a whole number >= 0 (0 = no image grids)"),
     "eval.save_video": (lambda v: isinstance(v, bool), "true or false"),
     "eval.fps_warmup": (lambda v: _is_int(v) and v >= 0, "a whole number >= 0"),

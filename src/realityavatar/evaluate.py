@@ -107,6 +107,8 @@ def evaluate_module(module, dm, trainer, cfg, out_dir: Path) -> dict:
     metrics = summarise(records)
     if ev.get("max_frames_per_split") is not None:
         metrics["eval_max_frames_per_split"] = int(ev["max_frames_per_split"])
+    if module.eval_supersample > 1:
+        metrics["eval_supersample"] = module.eval_supersample
     try:
         metrics["outputs"] = write_outputs(records, Path(out_dir), ev.get("save_images", 8), ev.get("save_video", True))
     except Exception as e:  # noqa: BLE001

@@ -47,3 +47,26 @@ def test_evaluate_records_where_lpips_weights_came_from(trained_run, tmp_path, m
     assert m["lpips"] == f"computed (weights: lpips package {found['lin']} + torch hub {found['vgg16']})"
     assert m["test/novel_view/lpips"] > 0 and m["test/novel_pose/lpips_masked"] > 0
     assert f"LPIPS {m['lpips']}" in format_table(m)
+
+
+def test_evaluate_and_probe_a_run_below_its_resolution_supersampled(trained_run, monkeypatch):
+    """A run evaluated on its scene at half the size, each image rendered at 2x and averaged (as paper_scale's
+    512 px run on the 128 px sweep scene, docs/gpu.md): metrics.json says so and has the smaller size; the probe, given
+    the same settings, renders the same way and reads its novel-pose phases from that evaluation's per_frame.csv."""
+    from realityavatar.analysis import probe
+    from realityavatar.evaluate import main as evaluate_main
+    from realityavatar.model.module import AvatarModule
+
+    out, full = trained_run
+    settings = ["data.image_scale=0.5", "eval.supersample=2"]
+    assert evaluate_main([f"run_dir={out}", "eval.save_video=false", "eval.max_frames_per_split=2", *settings]) == 0
+    m = json.loads((out / "eval" / "metrics.json").read_text())
+    assert m["eval_supersample"] == 2
+    assert m["render_resolution"] == [s // 2 for s in full["render_resolution"]]
+    render, supersampled, folders = AvatarModule.render_batch, [], []
+    monkeypatch.setattr(AvatarModule, "render_batch",
+                        lambda self, *a, **k: supersampled.append(k.get("supersample", 1)) or render(self, *a, **k))
+    phases = probe.novel_pose_phases
+    monkeypatch.setattr(probe, "novel_pose_phases", lambda folder, mesh: folders.append(folder) or phases(folder, mesh))
+    rows, _ = probe.probe_run(out, kinds=("heldout",), overrides=settings)
+    assert rows and set(supersampled) == {2} and folders == [out / "eval"]

@@ -128,9 +128,13 @@ def cloth_tracking(per_frame: dict[int, tuple[np.ndarray, np.ndarray]], phase: d
 
 
 @torch.no_grad()
-def probe_run(run_dir: Path, threads: int = 1, kinds: tuple[str, ...] = ("train", "heldout")) -> tuple[list[dict], dict]:
+def probe_run(run_dir: Path, threads: int = 1, kinds: tuple[str, ...] = ("train", "heldout"),
+              overrides: list[str] | None = None) -> tuple[list[dict], dict]:
+    """overrides: key=value settings for the run (as realityavatar-evaluate takes them), e.g. another scene of the same
+    sequence at another resolution with eval.supersample; its novel-pose phases then come from the per_frame.csv of
+    `realityavatar-evaluate run_dir=<run> <the same overrides>` (<run>/eval/)."""
     torch.set_num_threads(threads)
-    cfg, module, _ = load_run(run_dir)
+    cfg, module, _ = load_run(run_dir, overrides)
     dm = build_data(cfg, module.body)
     module.to(run_device(cfg))  # a GPU run renders with its own backend (gsplat needs CUDA tensors)
     meta = dm.scene.meta or {}
@@ -147,7 +151,7 @@ def probe_run(run_dir: Path, threads: int = 1, kinds: tuple[str, ...] = ("train"
             continue
         for i, rec in enumerate(ds.records):
             batch = module.device_batch(default_collate([ds[i]]))
-            rgb, alpha, _, posed = module.render_batch(batch)
+            rgb, alpha, _, posed = module.render_batch(batch, supersample=module.eval_supersample)
             if rec.frame not in offsets:
                 n = module.gaussians.num_points  # the free Gaussians (a garment sheet's follow after them)
                 dx = (posed["x_e"][0][:n] - module.gaussians.means).norm(dim=-1)
@@ -187,7 +191,8 @@ def probe_run(run_dir: Path, threads: int = 1, kinds: tuple[str, ...] = ("train"
                 for m in ("cloth_p50", "drift_p50", "drift_p90", "shape_change"):
                     if all(m in r for r in sel):
                         summary[f"{kind}/{ph}/{m}"] = float(np.mean([r[m] for r in sel]))
-    summary.update(novel_pose_phases(run_dir, split_folder(Path(str(cfg.data.root)), cfg.data.sequence, "novel_pose")))
+    novel_pose = split_folder(Path(str(cfg.data.root)), cfg.data.sequence, "novel_pose")
+    summary.update(novel_pose_phases(run_dir / "eval" if overrides else run_dir, novel_pose))
     return rows, summary
 
 
@@ -211,10 +216,10 @@ def heading_stops(split_dir: Path, still_deg: float = 0.5) -> dict[int, str]:
     return phases
 
 
-def novel_pose_phases(run_dir: Path, mesh_dir: Path) -> dict:
-    """Novel-pose PSNR / IoU per phase of the held-out sequence (its own spin and abrupt stop), from the run's
-    per_frame.csv (every camera of the novel-pose split); {} when either file is missing."""
-    table, infos = run_dir / "per_frame.csv", mesh_dir / "mesh_infos.pkl"
+def novel_pose_phases(folder: Path, mesh_dir: Path) -> dict:
+    """Novel-pose PSNR / IoU per phase of the held-out sequence (its own spin and abrupt stop), from the per_frame.csv
+    in `folder` (a run's or its eval/: every camera of the novel-pose split); {} when either file is missing."""
+    table, infos = folder / "per_frame.csv", mesh_dir / "mesh_infos.pkl"
     if not table.is_file() or not infos.is_file():
         return {}
     phases = heading_stops(mesh_dir)
@@ -304,6 +309,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--labels", default=None, help="comma-separated labels, one per run (default: folder names)")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--heldout-only", action="store_true", help="skip the training cameras (3x faster)")
+    ap.add_argument("--override", nargs="+", default=[], metavar="KEY=VALUE",
+                    help="settings for every run, as realityavatar-evaluate takes them: e.g. a 512 px run probed on "
+                         "the 128 px scene (docs/gpu.md); novel-pose phases then from <run>/eval/per_frame.csv")
     a = ap.parse_args(argv)
     if a.scene:
         return scene_report(Path(a.scene))
@@ -319,7 +327,7 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     results, summaries, events = {}, {}, {}
     for label, run in zip(labels, runs):
-        rows, summary = probe_run(run, a.threads, ("heldout",) if a.heldout_only else ("train", "heldout"))
+        rows, summary = probe_run(run, a.threads, ("heldout",) if a.heldout_only else ("train", "heldout"), a.override)
         results[label], summaries[label] = rows, summary
         events = summary["events"]
     with open(out / "probe.csv", "w", newline="") as f:

@@ -18,6 +18,7 @@ garment surface's vertices and its Gaussians follow their cells; NoSheet: no poi
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from realityavatar.body.base import BodyModel
@@ -26,6 +27,7 @@ from realityavatar.model.deform import apply_deformation
 from realityavatar.model.encoders import pose_features
 from realityavatar.model.skinning import lbs_gaussians
 from realityavatar.render import rasterize
+from realityavatar.runtime import constant
 
 # Per-point entries of a posed dict, split between the sources and joined again in source order.
 PER_POINT = ("means", "quats", "scales", "rot", "f_mt", "weights", "x_e")
@@ -164,11 +166,17 @@ class Avatar(nn.Module):
         return rasterize(posed["means"][b], posed["quats"][b], posed["scales"][b], posed["opacities"], rgb,
                          viewmat, K, W, H, backgrounds=bg, check_finite=check_finite, **self.render_cfg)
 
-    def render_batch(self, batch: dict, deform: bool = True, check_finite: bool = True):
+    def render_batch(self, batch: dict, deform: bool = True, check_finite: bool = True, supersample: int = 1):
         """Render every sample of a batch from its own camera. Returns rgb [B,H,W,3], alpha [B,H,W,1], metas, posed.
-        check_finite: the rasterizer's input checks (they read the device)."""
+        check_finite: the rasterizer's input checks (they read the device). supersample k (evaluation, eval.supersample):
+        each image rendered at k times its width and height and averaged over k x k pixels, for a model evaluated
+        below the resolution it was trained at: rendered there directly, its sub-pixel Gaussians are widened by the
+        rasterizer's 2D filter (eps2d: 0.3 px^2), which cost a 128 px model 4.7 dB at 64 px (docs/gpu.md)."""
         viewmats, Ks = batch["viewmat"], batch["K"]
         W, H = int(batch["width"][0]), int(batch["height"][0])  # host ints in training (on_before_batch_transfer)
+        if supersample > 1:  # pixel centres at +0.5: f and c scale with the image
+            Ks = Ks * constant((supersample, supersample, 1.0), Ks)[:, None]
+            W, H = W * supersample, H * supersample
         V = batch.get("views_per_frame", 1)  # data.views_per_step: V cameras of each frame, one pass of the networks
         posed = views_of(self.deform({k: batch[k][::V] for k in POSE_INPUTS}, deform=deform), V)
         rgb = self.shade(posed, viewmats, batch["frame_idx"])  # [B,N,3]
@@ -179,7 +187,10 @@ class Avatar(nn.Module):
             images.append(img)
             alphas.append(alpha)
             metas.append(meta)
-        return torch.cat(images), torch.cat(alphas), metas, posed
+        rgb, alpha = torch.cat(images), torch.cat(alphas)
+        if supersample > 1:
+            rgb, alpha = (F.avg_pool2d(x.permute(0, 3, 1, 2), supersample).permute(0, 2, 3, 1) for x in (rgb, alpha))
+        return rgb, alpha, metas, posed
 
 
 def views_of(posed: dict, V: int) -> dict:

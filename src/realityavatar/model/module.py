@@ -81,6 +81,7 @@ class AvatarModule(Avatar, pl.LightningModule):
         max_steps: int = 1000,
         scene_extent: float = 1.0,
         lpips: nn.Module | None = None,
+        eval_supersample: int = 1,
     ):
         super().__init__(body, gaussians, encoder, temporal, deformer, skinning, color, shading, sheet, render)
         self.automatic_optimization = False  # density control edits parameters between optimizer steps
@@ -94,6 +95,7 @@ class AvatarModule(Avatar, pl.LightningModule):
         self.max_steps = max(int(max_steps), 1)
         self.scene_extent = float(scene_extent)
         self.lpips = lpips
+        self.eval_supersample = int(eval_supersample)  # eval.supersample: test images rendered at k x, averaged
         self.lpips_status = "computed" if lpips is not None else "not computed"  # build_module sets the reason
         self.test_records: list[dict] = []
         self.log_every = 1  # the trainer's log_every_n_steps (set in setup)
@@ -295,7 +297,7 @@ class AvatarModule(Avatar, pl.LightningModule):
 
         split = batch["split"][0]
         with torch.no_grad():
-            rgb, alpha, _, _ = self.render_batch(batch)
+            rgb, alpha, _, _ = self.render_batch(batch, supersample=self.eval_supersample)
         rgb = rgb.clamp(0, 1)
         for b in range(rgb.shape[0]):
             pred, gt, mask = rgb[b], batch["image"][b], batch["mask"][b]
