@@ -11,7 +11,8 @@ from hydra.errors import InstantiationException
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from realityavatar.config import RAW_CONFIG_NAME  # importing config also registers the resolvers
+# importing config also registers the resolvers
+from realityavatar.config import RAW_CONFIG_NAME, check_settings
 from realityavatar.metrics import build_lpips, hub_checkpoint
 from realityavatar.model.module import AvatarModule, Schedule
 from realityavatar.runs import CKPT_NAME, read_checkpoint
@@ -124,6 +125,8 @@ def load_run(run_dir: str | Path, overrides: list[str] | None = None, ckpt: str 
         cfg = OmegaConf.load(cfg_path)
         if overrides:  # a run folder from before config_unresolved.yaml existed
             cfg.merge_with_dotlist(list(overrides))
+    if overrides:
+        check_settings(cfg)  # a bad value names its key before anything is built from it
     ckpt = Path(ckpt) if ckpt else run_dir / CKPT_NAME
     if not ckpt.is_file():
         raise FileNotFoundError(f"checkpoint {ckpt} not found in run folder {run_dir}")

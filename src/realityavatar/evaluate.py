@@ -154,16 +154,13 @@ def format_table(metrics: dict) -> str:
 def main(argv: list[str] | None = None) -> int:
     import pytorch_lightning as pl
 
-    from realityavatar.config import check_settings
-
     args = list(sys.argv[1:] if argv is None else argv)
     run_dir = next((a.split("=", 1)[1] for a in args if a.startswith("run_dir=")), None)
     if run_dir is None:
         print("usage: realityavatar-evaluate run_dir=<run folder> [key=value overrides]", file=sys.stderr)
         return 2
     overrides = [a for a in args if not a.startswith("run_dir=")]
-    cfg, module, info = load_run(run_dir, overrides)
-    check_settings(cfg, prefix="eval.")
+    cfg, module, info = load_run(run_dir, overrides)  # checks the settings it is given
     dm = build_data(cfg, module.body)
     # The run's device: its GPU when it trained on one and CUDA is here, else the CPU (a GPU run evaluates anywhere).
     trainer = pl.Trainer(accelerator=run_device(cfg).type.replace("cuda", "gpu"), devices=1, logger=False,

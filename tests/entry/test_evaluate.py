@@ -70,3 +70,21 @@ def test_evaluate_and_probe_a_run_below_its_resolution_supersampled(trained_run,
     monkeypatch.setattr(probe, "novel_pose_phases", lambda folder, mesh: folders.append(folder) or phases(folder, mesh))
     rows, _ = probe.probe_run(out, kinds=("heldout",), overrides=settings)
     assert rows and set(supersampled) == {2} and folders == [out / "eval"]
+
+
+def test_a_bad_setting_given_to_evaluate_or_the_probe_names_its_key(trained_run):
+    """Settings given to a run folder are checked before anything is built from them (`int('abc')` in the module's
+    construction said nothing of the key); the run's earlier evaluation stays as it was."""
+    import pytest
+
+    from realityavatar.analysis import probe
+    from realityavatar.evaluate import main as evaluate_main
+
+    out, _ = trained_run
+    before = {p: p.read_bytes() for p in (out / "eval").glob("*.*")} if (out / "eval").is_dir() else {}
+    for value in ("abc", "0", "1.5"):
+        with pytest.raises(ValueError, match=rf"^eval\.supersample={value!r}|^eval\.supersample={value}:"):
+            evaluate_main([f"run_dir={out}", f"eval.supersample={value}"])
+    with pytest.raises(ValueError, match=r"^data\.image_scale"):
+        probe.probe_run(out, kinds=("heldout",), overrides=["data.image_scale=-1"])
+    assert {p: p.read_bytes() for p in before} == before
