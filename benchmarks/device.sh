@@ -10,8 +10,10 @@
 # gets there) and evaluates it; their scenes are built while the gpu tests run. A 15-minute device session fits one
 # call of at most 10 minutes, e.g. SWEEP=1 PAPER_SCENE=1 BASELINE=<tree> STEP_SIZES="7000 128", then a second on the
 # warm machine (scenes and kernels kept under outputs/) with GPU_TESTS=0 STEP_SIZES="" PAPER_SCALE=<s>; a third with
-# PAPER_RESUME=1 continues that run (resume=true) towards its 15,000 steps. COMPILE=<mode> trains this commit's sweep
-# and paper_scale runs with compile=<mode> (torch.compile of the networks' path and the losses).
+# PAPER_RESUME=1 continues that run (resume=true) towards its 15,000 steps. After training, paper_scale is evaluated
+# and probed on the 128 px sweep scene, 4x supersampled (beside the CPU sweep preset); PAPER_EVAL=1 does only that, for
+# a run an earlier call on the warm machine trained. COMPILE=<mode> trains this commit's sweep and paper_scale runs
+# with compile=<mode> (torch.compile of the networks' path and the losses).
 #
 # Wheels (Python 3.12, x86_64; on a machine with pip and network):
 #   python3 -m pip download --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
@@ -130,7 +132,7 @@ if [ -n "${PAPER_SCALE:-}" ]; then
   run_train "$PWD" "$WORK/paper_scale" $(( $(left) - 5 )) +experiment=paper_scale +trainer.max_time=$MAXT \
     +trainer.profiler=simple compile=${COMPILE:-none} "${RESUME[@]}"
 fi
-if [ -n "${PAPER_SCALE:-}" ] && [ -f "$WORK/paper_scale/metrics.json" ] && [ "$(left)" -gt 40 ]; then
+if [ -n "${PAPER_SCALE:-}${PAPER_EVAL:-}" ] && [ -f "$WORK/paper_scale/metrics.json" ] && [ "$(left)" -gt 40 ]; then
   # Beside the CPU sweep preset on equal terms: the 512 px model on the sweep scene (the same sequence and cameras at
   # 128 px, every 2nd frame), each image rendered at 512 px and averaged over 4 x 4 pixels (eval.supersample; rendered
   # at 128 px directly, its sub-pixel Gaussians would be widened by the rasterizer's filter), -> paper_scale/eval/;
