@@ -51,11 +51,6 @@ def _gaussian_1d(size: int = 11, sigma: float = 1.5, device=None) -> torch.Tenso
     return g / g.sum()  # [size] float64
 
 
-def _gaussian_window(size: int = 11, sigma: float = 1.5, device=None) -> torch.Tensor:
-    g = _gaussian_1d(size, sigma, device)
-    return g[:, None] * g[None, :]  # [size,size] float64
-
-
 def ssim(pred: torch.Tensor, gt: torch.Tensor, window: int = 11, sigma: float = 1.5) -> torch.Tensor:
     """Mean SSIM (Wang et al. 2004) with an 11x11 Gaussian window (sigma 1.5), K1=0.01, K2=0.03, data range 1.
 
