@@ -7,10 +7,6 @@ from pathlib import Path
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
 CONFIG_DIR = Path(__file__).resolve().parents[2] / "conf"
-AXES = (
-    "data", "body", "gaussians", "encoder", "temporal", "deformer", "skinning", "color", "shading", "density", "loss",
-    "silhouette", "render", "optim", "trainer", "variant", "ablation",
-)
 
 
 def _register() -> None:
