@@ -128,6 +128,18 @@ def evaluate_module(module, dm, trainer, cfg, out_dir: Path) -> dict:
     return metrics
 
 
+def undersampled(info: dict, supersample: int, width: int) -> str | None:
+    """What to do when a run is rendered below the resolution it trained at (info: its checkpoint's run facts) without
+    enough supersampling: its sub-pixel Gaussians widen under the rasterizer's 2D filter (a 256 px run lost 2.6 dB
+    at 128 px, 7.2 dB at 64 px; docs/gpu.md). None when it is not (or the checkpoint predates the record)."""
+    trained = (info.get("render") or {}).get("resolution")
+    if not trained or trained[0] <= 1.25 * supersample * width:
+        return None
+    return (f"the run trained at {trained[0]} px wide and renders at {supersample * width} for {width} px images: its "
+            f"sub-pixel Gaussians widen; eval.supersample={max(round(trained[0] / width), 1)} renders at the training "
+            f"size and averages (docs/gpu.md)")
+
+
 def format_table(metrics: dict) -> str:
     """A short results table for the terminal."""
     lines = [f"{'split':<12}{'PSNR':>8}{'SSIM':>8}{'IoU':>7}{'LPIPS':>9}{'PSNR(box)':>11}{'SSIM(box)':>11}{'images':>8}"]
@@ -168,6 +180,10 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(run_dir) / "eval"
     metrics = evaluate_module(module, dm, trainer, cfg, out)
     metrics["lpips"] = module.lpips_status
+    note = undersampled(info, module.eval_supersample, (metrics.get("render_resolution") or [0])[0])
+    if note:
+        metrics["eval_undersampled"] = note
+        print(f"realityavatar-evaluate: {note}", file=sys.stderr)
     write_json(out / "metrics.json", {**info.get("metrics_header", {}), **metrics})
     print(format_table({**info.get("metrics_header", {}), **metrics}))
     print(f"wrote {out / 'metrics.json'}")

@@ -51,17 +51,23 @@ def test_evaluate_records_where_lpips_weights_came_from(trained_run, tmp_path, m
 
 def test_evaluate_and_probe_a_run_below_its_resolution_supersampled(trained_run, monkeypatch):
     """A run evaluated on its scene at half the size, each image rendered at 2x and averaged (as paper_scale's
-    512 px run on the 128 px sweep scene, docs/gpu.md): metrics.json says so and has the smaller size; the probe, given
-    the same settings, renders the same way and reads its novel-pose phases from that evaluation's per_frame.csv."""
+    512 px run on the 128 px sweep scene, docs/gpu.md): metrics.json says so and has the smaller size (rendered
+    directly instead, it says which eval.supersample to set); the probe, given the same settings, renders the same way
+    and reads its novel-pose phases from that evaluation's per_frame.csv."""
     from realityavatar.analysis import probe
     from realityavatar.evaluate import main as evaluate_main
     from realityavatar.model.module import AvatarModule
 
     out, full = trained_run
+    # rendered directly at half the size: evaluate says what to set (the checkpoint records the training size)
+    assert evaluate_main([f"run_dir={out}", "eval.save_video=false", "eval.max_frames_per_split=1",
+                          "data.image_scale=0.5"]) == 0
+    m = json.loads((out / "eval" / "metrics.json").read_text())
+    assert "eval.supersample=2" in m["eval_undersampled"]
     settings = ["data.image_scale=0.5", "eval.supersample=2"]
     assert evaluate_main([f"run_dir={out}", "eval.save_video=false", "eval.max_frames_per_split=2", *settings]) == 0
     m = json.loads((out / "eval" / "metrics.json").read_text())
-    assert m["eval_supersample"] == 2
+    assert m["eval_supersample"] == 2 and "eval_undersampled" not in m
     assert m["render_resolution"] == [s // 2 for s in full["render_resolution"]]
     render, supersampled, folders = AvatarModule.render_batch, [], []
     monkeypatch.setattr(AvatarModule, "render_batch",

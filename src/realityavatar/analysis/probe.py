@@ -32,6 +32,7 @@ from torch.utils.data import default_collate
 
 from realityavatar.build import build_data, load_run, run_device
 from realityavatar.data.i3d import read_mesh_infos, split_folder
+from realityavatar.evaluate import undersampled
 from realityavatar.metrics import psnr, silhouette_iou
 
 PHASES = ("rest", "spin", "after", "settled")
@@ -134,7 +135,7 @@ def probe_run(run_dir: Path, threads: int = 1, kinds: tuple[str, ...] = ("train"
     sequence at another resolution with eval.supersample; its novel-pose phases then come from the per_frame.csv of
     `realityavatar-evaluate run_dir=<run> <the same overrides>` (<run>/eval/)."""
     torch.set_num_threads(threads)
-    cfg, module, _ = load_run(run_dir, overrides)
+    cfg, module, info = load_run(run_dir, overrides)
     dm = build_data(cfg, module.body)
     module.to(run_device(cfg))  # a GPU run renders with its own backend (gsplat needs CUDA tensors)
     meta = dm.scene.meta or {}
@@ -151,6 +152,8 @@ def probe_run(run_dir: Path, threads: int = 1, kinds: tuple[str, ...] = ("train"
             continue
         for i, rec in enumerate(ds.records):
             batch = module.device_batch(default_collate([ds[i]]))
+            if not rows and (note := undersampled(info, module.eval_supersample, int(batch["width"][0]))):
+                print(f"probe: {run_dir}: {note}", file=sys.stderr)
             rgb, alpha, _, posed = module.render_batch(batch, supersample=module.eval_supersample)
             if rec.frame not in offsets:
                 n = module.gaussians.num_points  # the free Gaussians (a garment sheet's follow after them)

@@ -216,7 +216,8 @@ class AvatarModule(Avatar, pl.LightningModule):
         rgb, alpha = out.rgb, out.alpha
         H, W = rgb.shape[1:3]
         # What actually rendered (gsplat may have fallen back to torch), reported in metrics.json.
-        self.run_info["render"] = {"backend": metas[0]["backend"], "device": str(rgb.device), "dtype": str(rgb.dtype)}
+        self.run_info["render"] = {"backend": metas[0]["backend"], "device": str(rgb.device), "dtype": str(rgb.dtype),
+                                   "resolution": [W, H]}  # the training images' (evaluate: eval.supersample)
         raw = getattr(opt, "optimizer", opt)  # the torch optimizer under Lightning's wrapper
         stats = self.density.step_post_backward(self.gaussians, raw, metas, step, (W, H))
         # Logged values are host tensors: Lightning turns progress-bar values into numbers after every step (a read of a
