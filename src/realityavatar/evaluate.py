@@ -131,9 +131,10 @@ def evaluate_module(module, dm, trainer, cfg, out_dir: Path) -> dict:
 def undersampled(info: dict, supersample: int, width: int) -> str | None:
     """What to do when a run is rendered below the resolution it trained at (info: its checkpoint's run facts) without
     enough supersampling: its sub-pixel Gaussians widen under the rasterizer's 2D filter (a 256 px run lost 2.6 dB
-    at 128 px, 7.2 dB at 64 px; docs/gpu.md). None when it is not (or the checkpoint predates the record)."""
+    at 128 px, 7.2 dB at 64 px; docs/gpu.md). None when it is not, or either size is unknown (a checkpoint from before
+    the record; width 0: evaluation's FPS stage, which records the rendered size, failed)."""
     trained = (info.get("render") or {}).get("resolution")
-    if not trained or trained[0] <= 1.25 * supersample * width:
+    if not trained or not width or trained[0] <= 1.25 * supersample * width:
         return None
     return (f"the run trained at {trained[0]} px wide and renders at {supersample * width} for {width} px images: its "
             f"sub-pixel Gaussians widen; eval.supersample={max(round(trained[0] / width), 1)} renders at the training "

@@ -56,6 +56,7 @@ def test_evaluate_and_probe_a_run_below_its_resolution_supersampled(trained_run,
     and reads its novel-pose phases from that evaluation's per_frame.csv."""
     from realityavatar.analysis import probe
     from realityavatar.evaluate import main as evaluate_main
+    from realityavatar.evaluate import undersampled
     from realityavatar.model.module import AvatarModule
 
     out, full = trained_run
@@ -64,6 +65,8 @@ def test_evaluate_and_probe_a_run_below_its_resolution_supersampled(trained_run,
                           "data.image_scale=0.5"]) == 0
     m = json.loads((out / "eval" / "metrics.json").read_text())
     assert "eval.supersample=2" in m["eval_undersampled"]
+    # the rendered size unknown (the FPS stage failed): no advice, and no division by it
+    assert undersampled({"render": {"resolution": [64, 64]}}, 1, 0) is None
     settings = ["data.image_scale=0.5", "eval.supersample=2"]
     assert evaluate_main([f"run_dir={out}", "eval.save_video=false", "eval.max_frames_per_split=2", *settings]) == 0
     m = json.loads((out / "eval" / "metrics.json").read_text())
