@@ -14,6 +14,7 @@
 # and probed on the 128 px sweep scene, 4x supersampled (beside the CPU sweep preset); PAPER_EVAL=1 does only that, for
 # a run an earlier call on the warm machine trained. COMPILE=<mode> trains this commit's sweep and paper_scale runs
 # with compile=<mode> (torch.compile of the networks' path and the losses).
+# COMPILE=auto: the STEP_COMPILE mode whose step was fastest in this call if 30 % faster than eager, else none.
 #
 # Wheels (Python 3.12, x86_64; on a machine with pip and network):
 #   python3 -m pip download --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
@@ -81,9 +82,24 @@ done
 for MODE in ${STEP_COMPILE:-}; do  # e.g. STEP_COMPILE="default reduce-overhead" (CUDA graphs): the networks compiled
   set -- ${SIZES[0]:-7000 128}
   el "step profile, torch.compile $MODE ($1 / $2; first_step_s includes compiling)"
-  timeout 240 python3 $STEP --n $1 --size $2 --compile $MODE --out "$WORK/step_cuda_$1_$2_compile_$MODE.json" \
+  timeout ${STEP_COMPILE_TIMEOUT:-240} python3 $STEP --n $1 --size $2 --compile $MODE --out "$WORK/step_cuda_$1_$2_compile_$MODE.json" \
     > "$WORK/step_compile_$MODE.log" 2>&1; echo "rc $?"; grep -E "^  gsplat|Error" "$WORK/step_compile_$MODE.log" | cut -c1-500
 done
+if [ "${COMPILE:-}" = auto ]; then  # the mode whose step was fastest above (at the first size), if 30 % faster than eager
+  COMPILE=$(python3 - "$WORK" ${SIZES[0]:-7000 128} <<'PY'
+import json, sys
+from pathlib import Path
+work, n, size = Path(sys.argv[1]), *sys.argv[2:]
+step = {}
+for f in work.glob(f"step_cuda_{n}_{size}*.json"):
+    for r in json.loads(f.read_text())["results"]:
+        step[r["compile"]] = min(step.get(r["compile"], 1e9), r["step_s"])
+best = min(step, key=step.get, default="none")
+print(best if "none" in step and step[best] < 0.7 * step["none"] else "none", end="")
+print(f"compile=auto: step seconds {step}", file=sys.stderr)
+PY
+); el "compile=auto chose $COMPILE"
+fi
 if [ -n "${BASELINE:-}" ] && [ ${#SIZES[@]} -gt 0 ]; then
   el "baseline step profile ($BASELINE, 7000 / 128)"
   (cd "$BASELINE" && PYTHONPATH=$SITE:$PWD/src timeout 120 python3 $STEP --n 7000 --size 128 \
