@@ -171,11 +171,13 @@ def test_training_command_runs_on_fixture_dataset(tmp_path):
 
 
 @pytest.mark.gpu
-def test_training_on_a_gpu_synchronises_only_on_log_steps(scenes_root, tmp_path):
+def test_training_on_a_gpu_synchronises_only_on_log_steps(scenes_root, tmp_path, capfd):
     """Lightning's whole loop on CUDA (the loader, the batches' copies, the step, logging, the progress bar, the
     sampler's feedback) under torch.cuda.set_sync_debug_mode("warn"): a synchronising call only in the steps that
     log (every trainer.log_every_n_steps) and inside gsplat's rasterizer. Each step's span runs from its
-    on_train_batch_start to the next one's, so it holds the next batch's copies too."""
+    on_train_batch_start to the next one's, so it holds the next batch's copies too. A sync warned outside Python's
+    reach (C++ without a Python warning handler, printed to stderr: gsplat's extension reading its intersection count,
+    one per step on an H200 at 6913e4f) cannot be placed in a step: at most one per step is allowed."""
     import pytorch_lightning as pl
     from hydra.utils import instantiate
 
@@ -219,7 +221,9 @@ def test_training_on_a_gpu_synchronises_only_on_log_steps(scenes_root, tmp_path)
     for kind, what in events:
         if kind == "step":
             step = what
-        elif ("synchroniz" in what.lower() and "gsplat" not in what.split(":")[0]
-              and (step + 1) % log_every != 0):  # training_step's log_now
+        elif ("called a synchronizing" in what and "gsplat" not in what.split(":")[0]  # not torch's notice that
+              and (step + 1) % log_every != 0):  # the mode is a prototype; training_step's log_now
             bad.append(f"step {step}: {what}")
     assert not bad, bad
+    unplaced = capfd.readouterr().err.count("called a synchronizing CUDA operation")
+    assert unplaced <= steps - 2, f"{unplaced} syncs warned by C++ in {steps - 2} steps"
