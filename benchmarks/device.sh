@@ -20,7 +20,7 @@
 #   python3 -m pip download --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
 #     --platform manylinux_2_28_x86_64 --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64 -d .whl \
 #     hydra-core==1.3.8 omegaconf==2.3.1 mannequin-x==0.3.0 nanomanifold kornia==0.9.0 kornia_rs==0.2.0 \
-#     trimesh==5.2.0 embreex==4.4.0.post1 mujoco==4.0.0 mujoco-core==4.0.0 mujoco-studio==4.0.0 glfw pyopengl \
+#     trimesh==5.2.0 embreex==4.4.0.post1 mujoco==4.0.0 mujoco-core==4.0.0 mujoco-studio==4.0.0 glfw pyopengl threadpoolctl \
 #     gsplat==1.5.3
 #   python3 -m pip wheel --no-deps -w .whl antlr4-python3-runtime==4.9.3
 set -u

@@ -154,6 +154,23 @@ def test_determinism_cache_and_other_seed(ci_scene, tmp_path, monkeypatch):
     assert not [p for p in root_b.iterdir() if p.name.startswith(".tmp")]
 
 
+def blas_threads(f: int) -> int:
+    """Stands in for scene._render_frame in the frame workers (module level: the pool pickles it by name)."""
+    from threadpoolctl import threadpool_info
+
+    return max((i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"), default=1)
+
+
+def test_frame_workers_run_blas_on_one_thread(monkeypatch):
+    """Each frame worker has a core: BLAS's own threads (one per core, in every worker) would only contend."""
+    from realityavatar.data.synthetic import scene
+
+    if len(os.sched_getaffinity(0)) < 2:
+        pytest.skip("one core: the frames are cast in this process")
+    monkeypatch.setattr(scene, "_render_frame", blas_threads)
+    assert list(scene._rendered_frames({}, 4)) == [1, 1, 1, 1]
+
+
 @pytest.mark.parametrize("overrides, match", [
     ({"cameras": 0}, "cameras"),
     ({"train_frames": -3}, "train_frames"),
