@@ -287,6 +287,23 @@ def launches_per_step(prof) -> float:
                for e in prof.events()) / PROFILED_STEPS
 
 
+def sync_sources(events, steps: int, k: int = 10) -> dict[str, float]:
+    """Where a profile's host waits come from, per step: each CUDA synchronisation (cudaStreamSynchronize and the like)
+    or device-to-host copy named by the chain of operations that issued it (innermost first, up to 3), the k most
+    frequent."""
+    from collections import Counter
+
+    found: Counter = Counter()
+    for e in events:
+        if "Synchronize" in e.name or e.name.startswith("Memcpy DtoH"):
+            chain, p = [], getattr(e, "cpu_parent", None)
+            while p is not None and len(chain) < 3:
+                chain.append(p.name)
+                p = getattr(p, "cpu_parent", None)
+            found[f"{e.name} < {' < '.join(chain) or '(top level)'}"] += 1
+    return {key: n / steps for key, n in found.most_common(k)}
+
+
 def top_ops(prof, k: int) -> list[dict]:
     """The k operations of a `profile_steps(shapes=True)` profile that take the most time (grouped by operation and
     input shapes; on a GPU by the time of their kernels): where a step's time goes, per step."""
@@ -341,7 +358,8 @@ def run_config(n: int, size: int, backend: str, repeats: int, overrides: list[st
         names = [e.name for e in prof.events()]
         cuda_calls = {"kernel_launches_per_step": sum("LaunchKernel" in k for k in names) / steps,
                       "stream_syncs_per_step": sum("Synchronize" in k for k in names) / steps,
-                      "device_to_host_copies_per_step": sum(k.startswith("Memcpy DtoH") for k in names) / steps}
+                      "device_to_host_copies_per_step": sum(k.startswith("Memcpy DtoH") for k in names) / steps,
+                      "sync_sources": sync_sources(prof.events(), steps)}
     multi = {}
     for V in views:
         if V == 1:
@@ -434,6 +452,8 @@ def main() -> None:
                                 for V, t in r["views_step_s"].items()), flush=True)
                 for t in r["top_ops_time"]:
                     print(f"      {t['ms_per_step']:7.2f} ms  x{t['calls_per_step']:<5.1f} {t['op']:32s} {t['shapes']}")
+                for where, per_step in r.get("sync_sources", {}).items():
+                    print(f"  sync {per_step:5.2f} per step  {where[:300]}")
     cols = ["step", *PARTS]
     print("\nseconds (GEMM units); GEMM unit = 8 float32 matmuls of 1024^3 timed in this process")
     print("| backend | N | image | " + " | ".join(cols) + " |")

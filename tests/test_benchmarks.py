@@ -190,3 +190,19 @@ def test_loader_benchmark_times_the_main_process(scenes_root, tmp_path):
     assert res["results"][0]["batches"] == 3 and 0 < res["results"][0]["median_ms"] < 1000
     assert 0 < res["results"][0]["composite_host_ms"] < 1000
     assert res["meta"]["overrides"] == "data=synthetic_ci" and "--workers 0" in res["meta"]["command"]
+
+
+def test_step_benchmark_names_where_syncs_come_from():
+    """A GPU row's sync_sources: each synchronisation or device-to-host copy of a profile, named by the operations
+    that issued it (innermost first), counted per step."""
+    from types import SimpleNamespace as E
+
+    step = benchmark("step")
+    item = E(name="aten::_local_scalar_dense", cpu_parent=E(name="aten::item", cpu_parent=E(name="isect_tiles", cpu_parent=None)))
+    events = [E(name="cudaStreamSynchronize", cpu_parent=item), E(name="Memcpy DtoH (Device -> Pageable)", cpu_parent=item),
+              E(name="cudaStreamSynchronize", cpu_parent=item), E(name="cudaLaunchKernel", cpu_parent=item),
+              E(name="cudaDeviceSynchronize", cpu_parent=None)]
+    assert step.sync_sources(events, steps=2) == {
+        "cudaStreamSynchronize < aten::_local_scalar_dense < aten::item < isect_tiles": 1.0,
+        "Memcpy DtoH (Device -> Pageable) < aten::_local_scalar_dense < aten::item < isect_tiles": 0.5,
+        "cudaDeviceSynchronize < (top level)": 0.5}

@@ -49,6 +49,12 @@ def test_loss_terms_dssim_fallback_weights_and_schedule():
     assert terms["perceptual"].kind == "dssim" and terms["perceptual"].weight == 0.2
     pred, alpha, gt, mask = _batch()
     field = SkinningField(hidden_dim=16, num_layers=1)
+    with pytest.raises(RuntimeError, match="bind"):
+        total_loss(terms, _render(pred, alpha, gt, mask, 0, field))
+    for term in terms.values():
+        term.bind(_render(pred, alpha, gt, mask, 0, field).avatar)  # as AvatarModule does when it is built
+    # the skinning term's pool: 20 x samples points with the body's 24 weights, not saved in checkpoints
+    assert terms["skinning"].pool_weights.shape == (640, 24) and not terms["skinning"].state_dict()
     for step, lam in ((4, 10.0), (5, 0.1)):
         total, logs = total_loss(terms, _render(pred, alpha, gt, mask, step, field))
         expected = logs["l1"] + 0.1 * logs["mask"] + 0.2 * logs["perceptual"] + lam * logs["skin"]

@@ -77,7 +77,16 @@ def total_loss(terms: Mapping[str, nn.Module], out: TrainingRender) -> tuple[tor
     return total, logs
 
 
-class ColourL1(nn.Module):
+class LossTerm(nn.Module):
+    """A term of the training loss: forward(out) -> (its weighted value, {name: detached value to log}).
+    bind(avatar) runs once, when the module is built: outside torch.compile's graphs, what a term draws from the
+    avatar ahead of training (a term that needs nothing keeps this one)."""
+
+    def bind(self, avatar: nn.Module) -> None:
+        """Nothing to prepare."""
+
+
+class ColourL1(LossTerm):
     """weight x mean |rendered - ground-truth colour| (the paper's L1)."""
 
     def __init__(self, weight: float = 1.0) -> None:
@@ -89,7 +98,7 @@ class ColourL1(nn.Module):
         return self.weight * v, {"l1": v.detach()}
 
 
-class MaskLoss(nn.Module):
+class MaskLoss(LossTerm):
     """weight x the rendered alpha's disagreement with the mask: mean squared (mse), absolute (l1) or BCE (bce)."""
 
     def __init__(self, weight: float = 0.1, kind: Literal["mse", "bce", "l1"] = "mse") -> None:
@@ -109,7 +118,7 @@ class MaskLoss(nn.Module):
         return self.weight * v, {"mask": v.detach()}
 
 
-class PerceptualLoss(nn.Module):
+class PerceptualLoss(LossTerm):
     """weight x VGG19 feature loss when `vgg19_weights` points to a file (kind auto or vgg19), else
     dssim_weight x D-SSIM = (1 - SSIM)/2 (11x11 window; VGG feature losses and D-SSIM differ in scale, so each has
     its own weight). `kind` records which one is used ("vgg19" | "dssim")."""
@@ -134,7 +143,7 @@ class PerceptualLoss(nn.Module):
         return self.weight * v, {"perceptual": v.detach()}
 
 
-class SkinningLoss(nn.Module):
+class SkinningLoss(LossTerm):
     """The paper's L_skin: the skinning field against the body's weights at `samples` points drawn from the canonical
     body surface each step; weight until step `switch`, weight_after from then on (3DGS-Avatar's 10 -> 0.1)."""
 
@@ -142,28 +151,34 @@ class SkinningLoss(nn.Module):
         super().__init__()
         self.weight, self.weight_after, self.switch = float(weight), float(weight_after), int(switch)
         self.samples = int(samples)
-        self._surface: tuple[torch.Tensor, torch.Tensor] | None = None
+        # The pool the samples are drawn from (bind): moved with the module, not saved in checkpoints.
+        self.register_buffer("pool_points", torch.zeros(0, 3), persistent=False)
+        self.register_buffer("pool_weights", torch.zeros(0, 0), persistent=False)
+
+    def bind(self, avatar: nn.Module) -> None:
+        """A fixed pool of 20 x `samples` points on the canonical body surface and the body's weights there [P,24]."""
+        body = avatar.body
+        self.pool_points, self.pool_weights = sample_surface(
+            body.canonical_vertices().detach(), body.faces, body.skin_weights, 20 * self.samples,
+            torch.Generator().manual_seed(1234))
 
     def weight_at(self, step: int) -> float:
         return self.weight_after if step >= self.switch else self.weight
 
-    def targets(self, body, like: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """`samples` surface points [S,3] and the body's weights there [S,24], from a fixed pool of 20x as many."""
-        if self._surface is None or self._surface[0].device != like.device or self._surface[0].dtype != like.dtype:
-            gen = torch.Generator().manual_seed(1234)
-            verts = body.canonical_vertices().detach()
-            self._surface = sample_surface(verts, body.faces, body.skin_weights, 20 * self.samples, gen)
-        pts, w = self._surface  # on the body's device, in its dtype
-        idx = torch.randint(0, pts.shape[0], (self.samples,), device=pts.device)
-        return pts[idx], w[idx]
+    def targets(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """`samples` surface points [S,3] and the body's weights there [S,24], drawn from the pool."""
+        if not len(self.pool_points):
+            raise RuntimeError("SkinningLoss: no surface pool; bind(avatar) first (AvatarModule binds its terms)")
+        idx = torch.randint(0, self.pool_points.shape[0], (self.samples,), device=self.pool_points.device)
+        return self.pool_points[idx], self.pool_weights[idx]
 
     def forward(self, out: TrainingRender) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-        pts, w = self.targets(out.avatar.body, out.rgb)
+        pts, w = self.targets()
         v = skinning_loss(out.avatar.skinning, pts, w)
         return self.weight_at(out.step) * v, {"skin": v.detach()}
 
 
-class SheetStrain(nn.Module):
+class SheetStrain(LossTerm):
     """weight x the garment sheet's stretch down the garment beyond sheet.strain_free (model/sheet.py `strain`),
     on the posed vertices; only with sheet=skirt: `'+loss.sheet_strain={_target_:realityavatar.losses.SheetStrain}'`."""
 
@@ -205,7 +220,7 @@ def nearest_index(queries: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
     return torch.from_numpy(idx).long()
 
 
-class SilhouetteChamfer(nn.Module):
+class SilhouetteChamfer(LossTerm):
     """Long-range silhouette supervision: a 2D chamfer between projected Gaussian centres and the mask.
 
     Photometric and per-pixel mask losses reach a Gaussian only through pixels its footprint covers, so a

@@ -352,3 +352,12 @@ def test_a_training_step_on_a_gpu_does_not_synchronise(body, monkeypatch):
     ours = [f"{w.filename}:{w.lineno}: {w.message}" for w in caught
             if "synchroniz" in str(w.message).lower() and "gsplat" not in w.filename]
     assert not ours, ours
+
+
+def test_a_loss_term_that_is_not_a_loss_term_is_named(body):
+    """A configured loss that is not a losses.LossTerm (it could not bind to the avatar) stops the build, naming it."""
+    from realityavatar.build import build_module
+
+    cfg = compose(["gaussians.num_points=200", "+loss.extra={_target_:torch.nn.Identity}"])
+    with pytest.raises(TypeError, match=r"loss\.extra: Identity is not a realityavatar\.losses\.LossTerm"):
+        build_module(cfg, body, num_train_frames=2, scene_extent=1.0)

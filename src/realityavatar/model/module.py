@@ -14,7 +14,7 @@ from torch import nn
 
 from realityavatar.body.base import BodyModel
 from realityavatar.data.datamodule import composite
-from realityavatar.losses import TrainingRender, total_loss
+from realityavatar.losses import LossTerm, TrainingRender, total_loss
 from realityavatar.model.avatar import Avatar
 
 # Networks whose gradient norm optim.grad_clip bounds (not the Gaussians', nor the sheet's), in this order.
@@ -87,6 +87,10 @@ class AvatarModule(Avatar, pl.LightningModule):
         self.automatic_optimization = False  # density control edits parameters between optimizer steps
         self.density = density
         self.losses = nn.ModuleDict(losses)  # summed in this order (losses.total_loss)
+        for name, term in self.losses.items():
+            if not isinstance(term, LossTerm):
+                raise TypeError(f"loss.{name}: {type(term).__name__} is not a realityavatar.losses.LossTerm")
+            term.bind(self)  # what the term draws from the avatar, before any step (and outside torch.compile)
         self.optimizer_factory = optimizer
         self.lr = dict(lr)
         self.final_factor = dict(final_factor)
