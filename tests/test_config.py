@@ -91,6 +91,8 @@ def _forward(group: str, obj, cfg, body) -> None:
         rgb, gt = torch.rand(B, 16, 16, 3, generator=gen, requires_grad=True), torch.rand(B, 16, 16, 3, generator=gen)
         alpha, mask = torch.rand(B, 16, 16, 1, generator=gen), (torch.rand(B, 16, 16, 1, generator=gen) > 0.5).float()
         avatar = SimpleNamespace(body=body, skinning=instantiate(cfg.skinning))
+        for term in obj.values():
+            term.bind(avatar)  # as AvatarModule does when it is built
         total, terms = total_loss(obj, TrainingRender(rgb, alpha, {"image": gt, "mask": mask}, {}, avatar, 0))
         assert {"l1", "mask", "perceptual", "skin"} <= set(terms) and torch.isfinite(total)
         total.backward()
