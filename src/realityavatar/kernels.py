@@ -299,7 +299,7 @@ def _cofactor_det(X: torch.Tensor, floor: float) -> tuple[torch.Tensor, torch.Te
     Its rows r1 x r2, r2 x r0, r0 x r1 are one cross product of the rows rolled by one and by two."""
     cof = torch.linalg.cross(X.roll(-1, -2), X.roll(-2, -2))
     det = (X[..., 0, :] * cof[..., 0, :]).sum(-1)
-    return cof, torch.where(det.abs() < floor, floor, det)
+    return cof, torch.where(det.abs() < floor, constant((floor,), det), det)  # a scalar would be a new tensor per call
 
 
 def _polar_newton_torch(M: torch.Tensor, iters: int) -> torch.Tensor:
