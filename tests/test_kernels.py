@@ -183,7 +183,7 @@ def test_the_networks_and_losses_compile_whole():
     against its launch count): dynamo breaks the networks' graph only at the LSTM, which it runs eagerly by default
     (with compile_path's settings it traces the LSTM too: one graph), and traces every loss term as one graph. The polar rotation's numba call, the device-constant cache (runtime.constant), the
     D-SSIM's numba call and the silhouette's k-d tree each broke them before; a break costs a graph and a round of
-    launches. The skinning term drew its surface pool at the first call until 6e9ba89: in training that call broke the
+    launches. The skinning term drew its surface pool at the first call until e57a89a: in training that call broke the
     graph inside total_loss's loop, and dynamo ran total_loss eagerly from then on (LossTerm.bind draws it now)."""
     from tests.helpers import benchmark
 

@@ -96,8 +96,8 @@ def matrix_to_quat(R: torch.Tensor) -> torch.Tensor:
     # [...] the largest 4 q_i^2 (argmax over the strided diagonal view takes 7x as long as over a copy of it)
     idx = torch.diagonal(cands, dim1=-2, dim2=-1).contiguous().argmax(-1)
     q = unit(torch.gather(cands, -2, idx[..., None, None].expand(idx.shape + (1, 4))).squeeze(-2))
-    return q * torch.where(q[..., :1] < 0, constant((-1.0,), q), constant((1.0,), q))  # w >= 0 (constants: no new
-    # tensors per call; a where(cond, -q, q) would add a where's backward)
+    # w >= 0; the signs as device constants, not new tensors per call (a where(cond, -q, q) would add a backward)
+    return q * torch.where(q[..., :1] < 0, constant((-1.0,), q), constant((1.0,), q))
 
 
 def quat_to_matrix(q: torch.Tensor) -> torch.Tensor:
