@@ -184,7 +184,9 @@ def test_the_networks_and_losses_compile_whole():
     (with compile_path's settings it traces the LSTM too: one graph), and traces every loss term as one graph. The polar rotation's numba call, the device-constant cache (runtime.constant), the
     D-SSIM's numba call and the silhouette's k-d tree each broke them before; a break costs a graph and a round of
     launches. The skinning term drew its surface pool at the first call until e57a89a: in training that call broke the
-    graph inside total_loss's loop, and dynamo ran total_loss eagerly from then on (LossTerm.bind draws it now)."""
+    graph inside total_loss's loop, and dynamo ran total_loss eagerly from then on (LossTerm.bind draws it now).
+    No graph takes a module-level host tensor as an input: twelve did until runtime.Table, each copied to the GPU
+    with a wait at every call (the compiled step's 13 syncs on an H200), and CUDA graphs skip such a graph."""
     from tests.helpers import benchmark
 
     step = benchmark("step")
@@ -207,6 +209,7 @@ def test_the_networks_and_losses_compile_whole():
     with torch._dynamo.config.patch(**DYNAMO_CONFIG):  # compile_path's settings: the LSTM traced too
         ex = torch._dynamo.explain(networks)(batch)
     assert ex.graph_count == 1 and not ex.break_reasons, [str(r.reason).splitlines()[0] for r in ex.break_reasons]
+    assert not _global_inputs(ex)
 
     from realityavatar.losses import TrainingRender
 
@@ -215,3 +218,11 @@ def test_the_networks_and_losses_compile_whole():
     out = TrainingRender(rgb, alpha, batch, posed, module, step_)
     ex = torch._dynamo.explain(module.loss)(out)  # the first call, as in training: nothing drawn while tracing
     assert ex.graph_count == 1 and not ex.break_reasons, [str(r.reason).splitlines()[0] for r in ex.break_reasons]
+    assert not _global_inputs(ex)
+
+
+def _global_inputs(ex) -> list[str]:
+    """The inputs of explain's graphs that dynamo took from a module's globals (it names them g_...): a module-level
+    tensor, which a GPU copies from the host at every call (with a wait) and which makes CUDA graphs skip the graph
+    (runtime.Table holds such constants)."""
+    return [n.name for g in ex.graphs for n in g.graph.nodes if n.op == "placeholder" and n.name.startswith("g_")]

@@ -58,11 +58,11 @@ def test_tune_malloc_reports_and_runs_once():
 
 
 def test_constant_is_made_once_per_device_and_dtype():
-    """runtime.constant: a module tensor or a tuple of numbers, in `like`'s dtype, made once (a step on a GPU would
+    """runtime.constant: a module-level Table or a tuple of numbers, in `like`'s dtype, made once (a step on a GPU would
     otherwise copy it from the host every time); each distinct value has its own entry."""
     import torch
 
-    from realityavatar.runtime import constant
+    from realityavatar.runtime import Table, constant
 
     like = torch.zeros(2, dtype=torch.float64)
     a = constant((63.0, 31.0), like)
@@ -72,5 +72,8 @@ def test_constant_is_made_once_per_device_and_dtype():
     for w in range(60, 70):  # tuples made at run time (an image's size): keyed by value, never by a reused id
         assert constant((w - 1.0, 31.0), like).tolist() == [w - 1.0, 31.0]
         assert constant((w - 1.0, 31.0), like) is constant((w - 1.0, 31.0), like)
-    t = torch.arange(3.0)
+    t = Table(torch.arange(3.0))
     assert constant(t, like) is constant(t, like) and constant(t, like).dtype == torch.float64
+    assert constant(t, like).tolist() == [0.0, 1.0, 2.0] and t.values == (0.0, 1.0, 2.0)
+    with pytest.raises(TypeError, match="runtime.Table"):  # a bare tensor: a host input of a compiled graph
+        constant(torch.arange(3.0), like)

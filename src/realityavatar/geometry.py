@@ -8,7 +8,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from realityavatar.runtime import constant
+from realityavatar.runtime import Table, constant
 
 
 class _Unit(torch.autograd.Function):
@@ -84,6 +84,8 @@ for _row, _terms in enumerate((
         ((1, 3, 2), (0, 2, -2)), ((2, 3, 2), (0, 1, 2)), ((1, 1, -2), (2, 2, -2)))):
     for _i, _j, _s in _terms:
         _QUAT_TO_MATRIX[4 * _i + _j, _row] = _s
+_SKEW, _HAMILTON_FLAT, _CANDIDATES_0, _CANDIDATES, _QUAT_TO_MATRIX = (
+    Table(t) for t in (_SKEW, _HAMILTON_FLAT, _CANDIDATES_0, _CANDIDATES, _QUAT_TO_MATRIX))
 
 
 def matrix_to_quat(R: torch.Tensor) -> torch.Tensor:

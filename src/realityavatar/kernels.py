@@ -20,7 +20,7 @@ import torch.nn.functional as F
 
 from realityavatar.geometry import skew
 from realityavatar.render.numba_backend import NUMBA_ERROR, njit, prange
-from realityavatar.runtime import constant, host_path
+from realityavatar.runtime import Table, constant, host_path
 
 # ----------------------------------------------------------------------------------------------------------- D-SSIM
 SSIM_WINDOW = 11
@@ -216,7 +216,7 @@ class _DSSIMNumba(torch.autograd.Function):
 
 
 _TAPS = _gauss_taps()
-_TAPS_T = torch.from_numpy(_TAPS)  # the torch path's copy, moved to each device once
+_TAPS_T = Table(torch.from_numpy(_TAPS))  # the torch path's copy
 
 
 def _dssim_torch(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
@@ -325,6 +325,7 @@ _EYE3 = torch.eye(3)
 _AXIAL = torch.zeros(9, 3)  # flattened A [9] -> 0.5 (A21 - A12, A02 - A20, A10 - A01)
 for _i, (_p, _m) in enumerate(((7, 5), (2, 6), (3, 1))):
     _AXIAL[_p, _i], _AXIAL[_m, _i] = 0.5, -0.5
+_EYE3, _AXIAL = Table(_EYE3), Table(_AXIAL)
 
 
 class _PolarRotation(torch.autograd.Function):

@@ -93,16 +93,32 @@ def host_path(t: torch.Tensor) -> bool:
     return t.device.type == "cpu" and not torch.compiler.is_compiling()
 
 
-def constant(t: torch.Tensor | tuple[float, ...], like: torch.Tensor) -> torch.Tensor:
-    """A constant in `like`'s device and dtype, copied there once: a module-level tensor `t`, or a tuple of numbers
+class Table:
+    """A table of numbers defined at import (a basis, a stencil, a sign pattern), for `constant`. Its numbers are kept
+    as Python floats too: under torch.compile they become a literal of the graph on its device. A module-level
+    tensor would be a host input of the graph, copied to the GPU at every call (a copy and a wait each: the 13
+    syncs per compiled step on an H200), and CUDA graphs skip a graph with a host input."""
+
+    def __init__(self, t: torch.Tensor) -> None:
+        self.tensor = t.detach().clone()
+        self.values = _nested_tuple(self.tensor.tolist())
+
+
+def _nested_tuple(v):
+    return tuple(_nested_tuple(x) for x in v) if isinstance(v, list) else v
+
+
+def constant(t: Table | tuple[float, ...], like: torch.Tensor) -> torch.Tensor:
+    """A constant in `like`'s device and dtype, made there once: a module-level `Table`, or a tuple of numbers
     (e.g. an image's size). A `t.to(like)` or `like.new_tensor(values)` in the training step would copy it from the
     host at every step on a GPU (and wait for the copy)."""
-    def make() -> torch.Tensor:
-        return torch.tensor(t, dtype=like.dtype, device=like.device) if isinstance(t, tuple) else t.to(like)
-
-    if torch.compiler.is_compiling():  # traced by torch.compile: a constant of the graph (the cache is a side effect)
-        return make()
-    key = (t if isinstance(t, tuple) else id(t), like.device, like.dtype)
+    if not isinstance(t, (Table, tuple)):
+        raise TypeError(f"constant: expected a runtime.Table or a tuple of numbers, got {type(t).__name__}")
+    values = t.values if isinstance(t, Table) else t
+    if torch.compiler.is_compiling():  # traced by torch.compile: a literal of the graph (the cache is a side effect)
+        return torch.tensor(values, dtype=like.dtype, device=like.device)
+    key = (id(t) if isinstance(t, Table) else t, like.device, like.dtype)
     if key not in _CONSTANTS:
-        _CONSTANTS[key] = make()
+        _CONSTANTS[key] = (t.tensor.to(like) if isinstance(t, Table) else
+                           torch.tensor(values, dtype=like.dtype, device=like.device))
     return _CONSTANTS[key]

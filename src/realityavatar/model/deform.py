@@ -10,11 +10,11 @@ from torch import nn
 
 from realityavatar.geometry import quat_multiply, unit
 from realityavatar.model.encodings import FrequencyEncoding
-from realityavatar.runtime import constant
+from realityavatar.runtime import Table, constant
 
 _ACTIVATIONS = {"silu": nn.SiLU, "relu": nn.ReLU}
 
-_IDENTITY_QUAT = torch.tensor([1.0, 0.0, 0.0, 0.0])
+_IDENTITY_QUAT = Table(torch.tensor([1.0, 0.0, 0.0, 0.0]))
 
 
 class MotionTrendDecoder(nn.Module):

@@ -4,7 +4,7 @@ from __future__ import annotations
 import torch
 
 from realityavatar.geometry import unit
-from realityavatar.runtime import constant
+from realityavatar.runtime import Table, constant
 
 _C0 = 0.28209479177387814
 _C1 = 0.4886025119029199
@@ -47,8 +47,8 @@ for _band, _terms in _POLYNOMIALS.items():
         _BASIS[_monomial(*_axes), _band] += _c
 _BASIS_BY_DEGREE = [_BASIS[: (1, 4, 13, 40)[d], : (d + 1) ** 2].contiguous() for d in range(4)]
 # the constant monomial's row (a bias: the basis is one addmm of the other monomials, no column of ones) and the rest
-_CONSTANT_BY_DEGREE = [b[0].contiguous() for b in _BASIS_BY_DEGREE]
-_LINEAR_BY_DEGREE = [b[1:].contiguous() for b in _BASIS_BY_DEGREE]
+_CONSTANT_BY_DEGREE = [Table(b[0]) for b in _BASIS_BY_DEGREE]
+_LINEAR_BY_DEGREE = [Table(b[1:]) for b in _BASIS_BY_DEGREE]
 
 
 def sh_basis(degree: int, dirs: torch.Tensor) -> torch.Tensor:
