@@ -226,3 +226,41 @@ def _global_inputs(ex) -> list[str]:
     tensor, which a GPU copies from the host at every call (with a wait) and which makes CUDA graphs skip the graph
     (runtime.Table holds such constants)."""
     return [n.name for g in ex.graphs for n in g.graph.nodes if n.op == "placeholder" and n.name.startswith("g_")]
+
+
+def test_compiled_graphs_take_no_host_scalars_as_training_steps_advance():
+    """In training the step changes every call: the decoder's coarse-to-fine window (set_progress) and the loss terms'
+    switches (LossTerm.weight_at) read it. No compiled graph may take a Python number or a 0-d host tensor as an input
+    for it: dynamo made the window's alpha such an input after its first change (a host scalar per call; CUDA graphs
+    skip the graph). The window's weights are a buffer now, made by set_window; the loss's step is a guard only."""
+    from realityavatar.model.module import DYNAMO_CONFIG
+    from tests.helpers import benchmark
+
+    step = benchmark("step")
+    cfg, module, opt, sched = step.build(300, "numba", ["skinning.voxel_size=0.1", "shading.voxel_size=0.1"])
+    make_batch = step.make_batch_fn(module, 32, int(cfg.data.window_len))
+    graphs: dict[str, list[list[str]]] = {}
+
+    def recording(name):
+        def backend(gm, inputs):
+            names = [n.name for n in gm.graph.nodes if n.op == "placeholder"]
+            graphs.setdefault(name, []).append(
+                [n for n, x in zip(names, inputs) if not torch.is_tensor(x) or x.dim() == 0])
+            return gm.forward
+        return backend
+
+    torch._dynamo.reset()
+    with torch._dynamo.config.patch(**DYNAMO_CONFIG):
+        for name in ("deform", "shade", "loss"):
+            setattr(module, name, torch.compile(getattr(module, name), backend=recording(name)))
+        first = step.timed_step(cfg)
+        step._stub_trainer_hooks(module, opt, sched, first)
+        at = {"step": first}
+        module.__class__ = type("Stepping", (type(module).__mro__[1],), {"global_step": property(lambda s: at["step"])})
+        for k in range(4):  # the window opens a little at every step (schedule.deform_anneal)
+            module.training_step(make_batch(), 0)
+            at["step"] += 1
+    torch._dynamo.reset()
+    assert 0 < module.deformer.encoding.alpha < module.deformer.encoding.num_freqs
+    assert len(graphs["deform"]) == 1 and len(graphs["shade"]) == 1, {k: len(v) for k, v in graphs.items()}
+    assert all(not scalars for g in graphs.values() for scalars in g), graphs

@@ -19,19 +19,29 @@ class FrequencyEncoding(nn.Module):
         self.out_dim = in_dim * (2 * num_freqs + int(include_input))
         self.in_dim = in_dim
         self.alpha = float(num_freqs)  # coarse-to-fine window (set_window); num_freqs: every band at full weight
+        self.windowed = False  # alpha < num_freqs: the bands are weighted by band_weights
+        # The window's weight per band and axis, made by set_window on the module's device: under torch.compile the
+        # graph reads a tensor, not alpha (a float that changes every step would be a host scalar input of the graph,
+        # which CUDA graphs skip).
+        self.register_buffer("band_weights", torch.ones(num_freqs * in_dim), persistent=False)
 
     def set_window(self, alpha: float) -> None:
         """Nerfies' coarse-to-fine window: band k is weighted (1 - cos(pi clamp(alpha - k, 0, 1))) / 2, so with alpha
         = 0 only the input itself passes and each band fades in as alpha passes it."""
-        self.alpha = float(min(max(alpha, 0.0), self.num_freqs))
+        alpha = float(min(max(alpha, 0.0), self.num_freqs))
+        if alpha == self.alpha:
+            return
+        self.alpha, self.windowed = alpha, alpha < self.num_freqs
+        with torch.no_grad():
+            k = torch.arange(self.num_freqs, device=self.freqs.device, dtype=self.freqs.dtype)
+            w = (1 - torch.cos(math.pi * (alpha - k).clamp(0, 1))) / 2
+            self.band_weights.copy_(w.repeat_interleave(self.in_dim))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         xf = (x[..., None, :] * self.freqs[:, None]).flatten(-2)  # [...,F*3]
         parts = [x] if self.include_input else []
         sin, cos = xf.sin(), xf.cos()
-        if self.alpha < self.num_freqs:
-            k = torch.arange(self.num_freqs, device=x.device, dtype=x.dtype)
-            w = (1 - torch.cos(math.pi * (self.alpha - k).clamp(0, 1))) / 2
-            w = w.repeat_interleave(self.in_dim)
+        if self.windowed:
+            w = self.band_weights.to(x.dtype)
             sin, cos = sin * w, cos * w
         return torch.cat(parts + [sin, cos], -1)
