@@ -83,7 +83,7 @@ for MODE in ${STEP_COMPILE:-}; do  # e.g. STEP_COMPILE="default reduce-overhead"
   set -- ${SIZES[0]:-7000 128}
   el "step profile, torch.compile $MODE ($1 / $2; first_step_s includes compiling)"
   timeout ${STEP_COMPILE_TIMEOUT:-240} python3 $STEP --n $1 --size $2 --compile $MODE --out "$WORK/step_cuda_$1_$2_compile_$MODE.json" \
-    > "$WORK/step_compile_$MODE.log" 2>&1; echo "rc $?"; grep -E "^  gsplat|Error|^  sync" "$WORK/step_compile_$MODE.log" | cut -c1-500
+    > "$WORK/step_compile_$MODE.log" 2>&1; echo "rc $?"; grep -E "^  gsplat|Error|^  sync|skipping cudagraphs" "$WORK/step_compile_$MODE.log" | cut -c1-500
 done
 if [ "${COMPILE:-}" = auto ]; then  # the mode whose step was fastest above (at the first size), if 30 % faster than eager
   COMPILE=$(python3 - "$WORK" ${SIZES[0]:-7000 128} <<'PY'

@@ -373,7 +373,18 @@ def run_config(n: int, size: int, backend: str, repeats: int, overrides: list[st
             "step_min_s": min(whole),
             "sum_of_parts_s": sum(med.values()), "parts_s": med, "views_step_s": multi, "gpu_kernel_s": gpu_kernel_s,
             "top_ops_time": top, **({"cpu_launches_per_step": launches_per_step(prof)} if _device == "cpu" else {}),
-            **counts, **cuda_calls}
+            **counts, **cuda_calls, **compile_stats(compile_mode)}
+
+
+def compile_stats(mode: str) -> dict:
+    """A compiled row's graphs and the graphs CUDA graphs skipped (reduce-overhead skips a graph with a host input,
+    printing why): from dynamo's and inductor's counters."""
+    if mode == "none":
+        return {}
+    from torch._dynamo.utils import counters
+
+    return {"compiled_graphs": counters["stats"]["unique_graphs"],
+            "cudagraph_skips": counters["inductor"]["cudagraph_skips"]}
 
 
 def main() -> None:
@@ -443,7 +454,8 @@ def main() -> None:
                       f"(best of {a.repeats}: {r['step_min_s']:.3f}s / {r['gemm_unit_min_s']:.3f}s = "
                       f"{r['step_min_s'] / r['gemm_unit_min_s']:.2f}) (first step {r['first_step_s']:.1f}s, compile {r['compile']}) "
                       f"(render fwd+bwd {r['parts_s']['render_fwd'] + r['parts_s']['render_bwd']:.3f}s{gk}); "
-                      + ("tensor ops not counted (compiled)" if r["ops_per_step"] is None else
+                      + (f"tensor ops not counted (compiled: {r['compiled_graphs']} graphs, "
+                         f"{r['cudagraph_skips']} skipped by CUDA graphs)" if r["ops_per_step"] is None else
                          f"{r['ops_per_step']:.0f} tensor ops, {r['scalar_reads_per_step']:.0f} scalar reads, "
                          f"{r['data_dependent_per_step']:.0f} data-dependent shapes per step")
                       + (f"; {r['cpu_launches_per_step']:.0f} launches per step (CPU profile)"

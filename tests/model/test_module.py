@@ -354,6 +354,34 @@ def test_a_training_step_on_a_gpu_does_not_synchronise(body, monkeypatch):
     assert not ours, ours
 
 
+@pytest.mark.gpu
+def test_compiled_steps_on_a_gpu_replay_cuda_graphs(body, monkeypatch):
+    """compile=reduce-overhead: `deform`, `shade` and `loss` replay as CUDA graphs over advancing steps (the decoder's
+    window opening). Inductor skips a graph with a host input, and `cudagraph_or_error` makes a skip an error:
+    module-level constant tensors and the window's alpha were such inputs
+    (docs/research/2026-11-27-compiled-graph-host-constants.md)."""
+    from torch._dynamo.utils import counters
+
+    from realityavatar.render.splat import gsplat_status
+
+    if not torch.cuda.is_available() or gsplat_status() != "ok":
+        pytest.skip("needs CUDA and gsplat")
+    module, make_batch = _stepping_module(body, monkeypatch, "cuda", 50, "render.backend=gsplat")
+    torch._dynamo.reset()
+    counters.clear()
+    module.compile_path("reduce-overhead")
+    try:
+        with torch._inductor.config.patch({"triton.cudagraph_or_error": True}):
+            for s in range(1, 7):
+                module._test_step = s
+                module.training_step(make_batch(), 0)
+            torch.cuda.synchronize()
+    finally:
+        torch._dynamo.reset()
+    assert counters["inductor"]["cudagraph_skips"] == 0
+    assert 0 < module.deformer.encoding.alpha < module.deformer.encoding.num_freqs  # the window moved every step
+
+
 def test_a_loss_term_that_is_not_a_loss_term_is_named(body):
     """A configured loss that is not a losses.LossTerm (it could not bind to the avatar) stops the build, naming it."""
     from realityavatar.build import build_module
