@@ -13,7 +13,8 @@
 # PAPER_RESUME=1 continues that run (resume=true) towards its 15,000 steps. After training, paper_scale is evaluated
 # and probed on the 128 px sweep scene, 4x supersampled (beside the CPU sweep preset); PAPER_EVAL=1 does only that, for
 # a run an earlier call on the warm machine trained. COMPILE=<mode> trains this commit's sweep and paper_scale runs
-# with compile=<mode> (torch.compile of the networks' path and the losses).
+# with compile=<mode> (torch.compile of the networks' path and the losses). PAPER_ARGS="<overrides>" adds hydra
+# overrides to the paper_scale run (e.g. data.num_workers=2).
 # COMPILE=auto: the STEP_COMPILE mode whose step was fastest in this call if 30 % faster than eager, else none.
 #
 # Wheels (Python 3.12, x86_64; on a machine with pip and network):
@@ -146,7 +147,7 @@ if [ -n "${PAPER_SCALE:-}" ]; then
   MAXT=$(printf '00:%02d:%02d:%02d' $((T / 3600)) $((T % 3600 / 60)) $((T % 60)))
   el "+experiment=paper_scale ${RESUME[*]} (training stops after ${PAPER_SCALE}s more: max_time $MAXT)"
   run_train "$PWD" "$WORK/paper_scale" $(( $(left) - 5 )) +experiment=paper_scale +trainer.max_time=$MAXT \
-    +trainer.profiler=simple compile=${COMPILE:-none} "${RESUME[@]}"
+    +trainer.profiler=simple compile=${COMPILE:-none} "${RESUME[@]}" ${PAPER_ARGS:-}
 fi
 if [ -n "${PAPER_SCALE:-}${PAPER_EVAL:-}" ] && [ -f "$WORK/paper_scale/metrics.json" ] && [ "$(left)" -gt 40 ]; then
   # Beside the CPU sweep preset on equal terms: the 512 px model on the sweep scene (the same sequence and cameras at
