@@ -115,7 +115,7 @@ def constant(t: Table | tuple[float, ...], like: torch.Tensor) -> torch.Tensor:
     if not isinstance(t, (Table, tuple)):
         raise TypeError(f"constant: expected a runtime.Table or a tuple of numbers, got {type(t).__name__}")
     values = t.values if isinstance(t, Table) else t
-    if torch.compiler.is_compiling():  # traced by torch.compile: a literal of the graph (the cache is a side effect)
+    if torch.compiler.is_compiling():  # traced by torch.compile: a literal of the graph (not cached: a side effect)
         return torch.tensor(values, dtype=like.dtype, device=like.device)
     key = (id(t) if isinstance(t, Table) else t, like.device, like.dtype)
     if key not in _CONSTANTS:
