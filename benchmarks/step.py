@@ -326,6 +326,10 @@ def timed_step(cfg) -> int:
 def run_config(n: int, size: int, backend: str, repeats: int, overrides: list[str], views=(1,),
                compile_mode: str = "none", profile_top: int = 0) -> dict:
     torch.manual_seed(0)
+    if compile_mode != "none":  # compile_stats: this row's graphs, not the process's so far
+        from torch._dynamo.utils import counters
+
+        counters.clear()
     cfg, module, opt, sched = build(n, backend, overrides)
     # as training compiles (compile=MODE): the networks' path (Avatar.deform, .shade) and the losses, one graph each
     module.compile_path(compile_mode)
@@ -378,7 +382,7 @@ def run_config(n: int, size: int, backend: str, repeats: int, overrides: list[st
 
 def compile_stats(mode: str) -> dict:
     """A compiled row's graphs and the graphs CUDA graphs skipped (reduce-overhead skips a graph with a host input,
-    printing why): from dynamo's and inductor's counters."""
+    printing why): from dynamo's and inductor's counters, cleared when the row starts (run_config)."""
     if mode == "none":
         return {}
     from torch._dynamo.utils import counters

@@ -126,7 +126,7 @@ class SkinningGrid(nn.Module):
                                                self.smooth_iters, self.smooth_ramp, self.max_voxels, seed, "skinning")
         grid = grid / grid.sum(1, keepdim=True).clamp_min(1e-8)
         # channels last (each voxel's 24 weights together): a lookup reads 8 runs of 24 floats, not 192 scattered
-        # ones; grid_sample's values and gradients are the same, in half the time on a CPU at 10k points
+        # ones; grid_sample's values and gradients are the same (10.3 -> 8.4 ms at 10k Gaussians on a 2-core CPU)
         self.grid.data = grid.to(self.grid).contiguous(memory_format=torch.channels_last_3d)
         self.lo.copy_(lo.to(self.lo))
         self.hi.copy_(hi.to(self.hi))
