@@ -14,7 +14,8 @@
 # and probed on the 128 px sweep scene, 4x supersampled (beside the CPU sweep preset); PAPER_EVAL=1 does only that, for
 # a run an earlier call on the warm machine trained. COMPILE=<mode> trains this commit's sweep and paper_scale runs
 # with compile=<mode> (torch.compile of the networks' path and the losses). PAPER_ARGS="<overrides>" adds hydra
-# overrides to the paper_scale run (e.g. data.num_workers=2).
+# overrides to the paper_scale run (e.g. data.num_workers=2). LOADER=1 times the training process's work per paper_scale
+# batch moved to the GPU, with the training set on the host and kept on the GPU (data.device_cache).
 # COMPILE=auto: the STEP_COMPILE mode whose step was fastest in this call if 30 % faster than eager, else none.
 #
 # Wheels (Python 3.12, x86_64; on a machine with pip and network):
@@ -100,6 +101,11 @@ print(best if "none" in step and step[best] < 0.7 * step["none"] else "none", en
 print(f"compile=auto: step seconds {step}", file=sys.stderr)
 PY
 ); el "compile=auto chose $COMPILE"
+fi
+if [ -n "${LOADER:-}" ]; then  # LOADER=1 (the paper_scale scene built): the training process's time per 512 px batch
+  el "loader, paper_scale batches moved to the GPU (without and with data.device_cache)"
+  timeout 150 python3 benchmarks/loader.py "+experiment=paper_scale" --workers 0 --device-cache --device cuda \
+    --batches 100 --out "$WORK/loader_cuda.json" 2>&1 | grep -E "^workers|Error" | cut -c1-300
 fi
 if [ -n "${BASELINE:-}" ] && [ ${#SIZES[@]} -gt 0 ]; then
   el "baseline step profile ($BASELINE, 7000 / 128)"

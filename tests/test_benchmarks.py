@@ -182,14 +182,15 @@ def test_step_benchmark_profiles_the_compiled_networks(tmp_path, monkeypatch):
 
 
 def test_loader_benchmark_times_the_main_process(scenes_root, tmp_path):
-    """benchmarks/loader.py: per loader-worker count, the training process's time per batch after one epoch."""
+    """benchmarks/loader.py: per loader-worker count, and with the training set kept on the device, the training
+    process's time per batch after one epoch."""
     out = tmp_path / "loader.json"
-    assert benchmark("loader").main(["data=synthetic_ci", "--workers", "0", "--batches", "3", "--pause", "0",
-                                     "--out", str(out)]) == 0
+    assert benchmark("loader").main(["data=synthetic_ci", "--workers", "0", "--device-cache", "--batches", "3",
+                                     "--pause", "0", "--out", str(out)]) == 0
     res = json.loads(out.read_text())
-    assert [r["workers"] for r in res["results"]] == [0]
-    assert res["results"][0]["batches"] == 3 and 0 < res["results"][0]["median_ms"] < 1000
-    assert 0 < res["results"][0]["composite_host_ms"] < 1000
+    assert [(r["workers"], r["device_cache"]) for r in res["results"]] == [(0, False), (0, True)]
+    for row in res["results"]:
+        assert row["batches"] == 3 and 0 < row["median_ms"] < 1000 and 0 < row["composite_ms"] < 1000
     assert res["meta"]["overrides"] == "data=synthetic_ci" and "--workers 0" in res["meta"]["command"]
 
 

@@ -465,9 +465,47 @@ def test_batches_are_pinned_when_the_trainer_runs_on_a_gpu(scene_root, body):
     on a CPU or without a trainer."""
     from types import SimpleNamespace
 
-    dm = make(scene_root, body)
+    dm = make(scene_root, body, device_cache=False)  # a GPU's training set would move there (needs CUDA)
     assert not dm.train_dataloader().pin_memory
     for device, pinned in (("cpu", False), ("cuda", True)):
         dm.trainer = SimpleNamespace(strategy=SimpleNamespace(root_device=torch.device(device)), training=True)
         loaders = [dm.train_dataloader(), dm.val_dataloader(), *dm.test_dataloader()]
         assert [loader.pin_memory for loader in loaders] == [pinned] * len(loaders)
+
+
+def test_device_cache_serves_the_host_batches_from_the_device(scene_root, body, monkeypatch):
+    """data.device_cache: the training set kept on the device gives the trainer the batches the host path gives (every
+    entry, value and dtype; one and three views per frame), its loader carries the host entries only, test batches
+    keep the host path, and a set larger than half the GPU's free memory stays on the host. The set is made for a
+    GPU; here it is kept on the CPU to compare."""
+    from types import SimpleNamespace
+
+    trainer = SimpleNamespace(strategy=SimpleNamespace(root_device=torch.device("cpu")), training=True)
+    cpu = torch.device("cpu")
+    for kw in ({}, {"views_per_step": 3, "batch_size": 2}):
+        host = make(scene_root, body, device_cache=False, **kw)
+        dev = make(scene_root, body, shuffle_seed=host.shuffle_seed, **kw)
+        monkeypatch.setattr(dev, "_store_device", lambda: cpu)
+        host.trainer = dev.trainer = trainer
+        a_batches, b_batches = list(host.train_dataloader()), list(dev.train_dataloader())
+        assert host.device_samples is None and len(dev.device_samples) == len(dev.datasets["train"])
+        assert len(a_batches) == len(b_batches)
+        for a, b in zip(a_batches, b_batches):
+            assert "pixels" not in b and not any(torch.is_tensor(v) and v.ndim > 1 for v in b.values())
+            a = host.transfer_batch_to_device(host.on_before_batch_transfer(a, 0), cpu, 0)
+            b = dev.transfer_batch_to_device(dev.on_before_batch_transfer(b, 0), cpu, 0)
+            assert a.keys() == b.keys()
+            for k, v in a.items():
+                if torch.is_tensor(v):
+                    assert v.dtype == b[k].dtype and torch.equal(v, b[k]), k
+                else:
+                    assert v == b[k], k
+    test_batch = next(iter(dev.test_dataloader()[0]))
+    moved = dev.transfer_batch_to_device(test_batch, cpu, 0)
+    assert torch.equal(moved["pixels"], test_batch["pixels"]) and torch.equal(moved["index"], test_batch["index"])
+    full = make(scene_root, body)
+    full.trainer = trainer
+    monkeypatch.setattr(full, "_store_device", lambda: torch.device("cuda"))
+    monkeypatch.setattr(torch.cuda, "mem_get_info", lambda device=None: (1 << 20, 1 << 30))  # 1 MiB free
+    full.train_dataloader()
+    assert full.device_samples is None

@@ -378,3 +378,21 @@ def test_compile_trains_through_the_compiled_path(scenes_root, tmp_path, monkeyp
         m = _run(tmp_path / "r", "compile=default", "iterations=8", "density.refine_every=3", "test_after_fit=false")
     assert m["iterations"] == 8 and {"deform", "shade", "loss"} <= set(calls), set(calls)
     assert calls.count("loss") == 8  # every training step's losses ran compiled
+
+
+def test_a_run_with_its_training_set_on_the_device_trains_as_one_without(scenes_root, tmp_path, monkeypatch):
+    """data.device_cache (a GPU's training set kept there, data/datamodule.py DeviceSamples) is invisible to training:
+    the trainer takes every batch's tensors from the kept set (the datamodule's transfer hook) and the run ends
+    bit-equal to one whose batches are collated and copied. Kept on the CPU here, where a run would not keep it."""
+    from realityavatar.data.datamodule import AvatarDataModule, DeviceSamples
+
+    ref = _run(tmp_path / "host", "iterations=4", "data.device_cache=false")
+    gathered = []
+    gather = DeviceSamples.gather
+    monkeypatch.setattr(AvatarDataModule, "_store_device", lambda self: torch.device("cpu"))
+    monkeypatch.setattr(DeviceSamples, "gather", lambda self, index: gathered.append(index) or gather(self, index))
+    metrics = _run(tmp_path / "dev", "iterations=4")
+    assert len(gathered) == 4
+    a, b = (_state(tmp_path / d / "last.ckpt")["state_dict"] for d in ("host", "dev"))
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    assert metrics["test/novel_view/psnr"] == ref["test/novel_view/psnr"]
