@@ -102,15 +102,15 @@ print(f"compile=auto: step seconds {step}", file=sys.stderr)
 PY
 ); el "compile=auto chose $COMPILE"
 fi
-if [ -n "${LOADER:-}" ]; then  # LOADER=1 (the paper_scale scene built): the training process's time per 512 px batch
-  el "loader, paper_scale batches moved to the GPU (without and with data.device_cache)"
-  timeout 150 python3 benchmarks/loader.py "+experiment=paper_scale" --workers 0 --device-cache --device cuda \
-    --batches 100 --out "$WORK/loader_cuda.json" 2>&1 | grep -E "^workers|Error" | cut -c1-300
-fi
 if [ -n "${BASELINE:-}" ] && [ ${#SIZES[@]} -gt 0 ]; then
   el "baseline step profile ($BASELINE, 7000 / 128)"
   (cd "$BASELINE" && PYTHONPATH=$SITE:$PWD/src timeout 120 python3 $STEP --n 7000 --size 128 \
     --out "$WORK/step_cuda_baseline_7000_128.json" 2>&1 | grep -E "^  gsplat" | cut -c1-400)
+fi
+if [ -n "${LOADER:-}" ] && [ "$(left)" -gt 90 ]; then  # LOADER=1 (the paper_scale scene built): per 512 px batch
+  el "loader, paper_scale batches moved to the GPU (without and with data.device_cache)"
+  timeout 150 python3 benchmarks/loader.py "+experiment=paper_scale" --workers 0 --device-cache --device cuda \
+    --batches 100 --out "$WORK/loader_cuda.json" 2>&1 | grep -E "^workers|Error" | cut -c1-300
 fi
 run_train() {  # <tree> <run dir> <timeout s> <overrides...>: train (+ evaluate) and print the step rate and metrics
   local tree=$1 dir=$2 limit=$3; shift 3
