@@ -126,7 +126,7 @@ m = Path(sys.argv[1]) / "metrics.json"
 if not m.is_file():
     sys.exit(f"no metrics.json in {sys.argv[1]}")
 r = json.loads(m.read_text())
-keys = ("train_seconds", "iterations", "num_gaussians", "peak_gpu_memory_gb", "render_fps", "backend")
+keys = ("train_seconds", "iterations", "num_gaussians", "peak_gpu_memory_gb", "render_fps", "backend", "training_set")
 print(json.dumps({k: r.get(k) for k in keys}))
 print(json.dumps({f"{s}/{k}": r.get(f"test/{s}/{k}") for s in ("novel_view", "novel_pose") for k in ("psnr", "ssim", "iou")}))
 PY

@@ -110,6 +110,7 @@ def _run(cfg: DictConfig, choices: dict | None, out_dir: Path, resume_from: Path
         "seed": int(cfg.seed),
         "commit": git_commit(),
         "scene": getattr(dm, "sequence", None),
+        "training_set": getattr(dm, "training_set", "host"),  # kept on the GPU (data.device_cache) or on the host
         "train_seconds": state.train_seconds(),
         "iterations": int(trainer.global_step),
         # training's peak of allocated GPU memory (null on a CPU)

@@ -508,4 +508,4 @@ def test_device_cache_serves_the_host_batches_from_the_device(scene_root, body, 
     monkeypatch.setattr(full, "_store_device", lambda: torch.device("cuda"))
     monkeypatch.setattr(torch.cuda, "mem_get_info", lambda device=None: (1 << 20, 1 << 30))  # 1 MiB free
     full.train_dataloader()
-    assert full.device_samples is None
+    assert full.device_samples is None and full.training_set.startswith("host: its 24 samples would take")

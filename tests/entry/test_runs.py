@@ -396,3 +396,4 @@ def test_a_run_with_its_training_set_on_the_device_trains_as_one_without(scenes_
     a, b = (_state(tmp_path / d / "last.ckpt")["state_dict"] for d in ("host", "dev"))
     assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
     assert metrics["test/novel_view/psnr"] == ref["test/novel_view/psnr"]
+    assert ref["training_set"] == "host" and metrics["training_set"]["device"] == "cpu"  # metrics.json says where

@@ -439,6 +439,7 @@ class AvatarDataModule(pl.LightningDataModule):
         self.val_items = int(val_items)
         self.undistort, self.cache_images, self.device_cache = undistort, cache_images, bool(device_cache)
         self.device_samples: DeviceSamples | None = None  # the training set on the device (device_cache)
+        self.training_set: str | dict = "host"  # where it is kept, for metrics.json (`_on_device`)
         self.body = body
         self.pelvis = pelvis
         self.build_preset, self.build_sequence, self.build_seed = build_preset, build_sequence, int(build_seed)
@@ -659,13 +660,15 @@ class AvatarDataModule(pl.LightningDataModule):
         need = len(ds) * sum(v.numel() * v.element_size() for v in ds[0].values() if torch.is_tensor(v))
         free = torch.cuda.mem_get_info(device)[0] if device.type == "cuda" else need * 2
         if need > free // 2:
-            log.info("data.device_cache: the %d training samples would take %.1f GiB of the GPU's %.1f GiB free; "
-                     "batches are copied from the host", len(ds), need / 2**30, free / 2**30)
+            self.training_set = (f"host: its {len(ds)} samples would take {need / 2**30:.1f} GiB of the GPU's "
+                                 f"{free / 2**30:.1f} GiB free")
+            log.info("data.device_cache: the training set stays on the %s; batches are copied", self.training_set)
             return None
         t0 = time.perf_counter()
         samples = DeviceSamples(ds, device)
-        log.info("data.device_cache: %d training samples kept on %s (%.2f GiB, %.1f s)", len(ds), device,
-                 need / 2**30, time.perf_counter() - t0)
+        self.training_set = {"device": str(device), "samples": len(ds), "gb": round(need / 2**30, 3),
+                             "seconds": round(time.perf_counter() - t0, 2)}
+        log.info("data.device_cache: the training set kept on the device: %s", self.training_set)
         return samples
 
     def transfer_batch_to_device(self, batch: dict, device: torch.device, dataloader_idx: int) -> dict:
