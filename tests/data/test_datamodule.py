@@ -509,3 +509,29 @@ def test_device_cache_serves_the_host_batches_from_the_device(scene_root, body, 
     monkeypatch.setattr(torch.cuda, "mem_get_info", lambda device=None: (1 << 20, 1 << 30))  # 1 MiB free
     full.train_dataloader()
     assert full.device_samples is None and full.training_set.startswith("host: its 24 samples would take")
+
+
+@pytest.mark.gpu
+def test_device_cache_on_a_gpu_keeps_the_set_there_and_serves_the_host_batches(scene_root, body):
+    """On a GPU trainer the training set moves there (data.device_cache): each batch's tensors come from it, equal to
+    the pinned host batch moved there, and its entries are the host path's."""
+    from types import SimpleNamespace
+
+    if not torch.cuda.is_available():
+        pytest.skip("needs CUDA")
+    gpu = torch.device("cuda")
+    trainer = SimpleNamespace(strategy=SimpleNamespace(root_device=gpu), training=True)
+    host = make(scene_root, body, device_cache=False)
+    dev = make(scene_root, body, shuffle_seed=host.shuffle_seed)
+    host.trainer = dev.trainer = trainer
+    a_loader, b_loader = host.train_dataloader(), dev.train_dataloader()
+    assert dev.training_set["device"].startswith("cuda") and host.device_samples is None
+    for a, b in zip(a_loader, b_loader):
+        a = host.transfer_batch_to_device(host.on_before_batch_transfer(a, 0), gpu, 0)
+        b = dev.transfer_batch_to_device(dev.on_before_batch_transfer(b, 0), gpu, 0)
+        assert a.keys() == b.keys()
+        for k, v in a.items():
+            if torch.is_tensor(v):
+                assert b[k].device.type == "cuda" and v.dtype == b[k].dtype and torch.equal(v, b[k]), k
+            else:
+                assert v == b[k], k
