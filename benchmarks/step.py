@@ -142,21 +142,28 @@ def make_batch_fn(module, size: int, window: int, views: int = 1):
         transl = torch.zeros(views, window, 3)
         windows.append({"poses": poses, "transl": transl, **pose_inputs(body, poses, transl)})
 
+    if _device != "cpu":  # the training set kept on the GPU, as training keeps it there (data.device_cache)
+        images, masks, dists = ([t.to(_device) for t in ts] for ts in (images, masks, dists))
+        windows = [{name: x.to(_device) for name, x in w.items()} for w in windows]
+        vm, K = vm.to(_device), K.to(_device)
+
     def make():
-        """Per sample, as AvatarDataset.__getitem__: a frame's cached pose window and inputs, a cached image."""
+        """Per sample, as the DataModule serves it: a frame's cached pose window and inputs, a cached image. On the
+        CPU collation copies them; on a GPU they are the kept set's tensors, and only the frame index travels."""
         V = views
         k = int(torch.randint(len(images), (), generator=g))
+        copy = (lambda x: x.clone()) if _device == "cpu" else (lambda x: x)
         batch = {
-            **{name: x.clone() for name, x in windows[k].items()},  # collation copies them
+            **{name: copy(x) for name, x in windows[k].items()},
             "frame_idx": torch.full((V,), 3),
-            "viewmat": vm.clone(),
-            "K": K[None].repeat(V, 1, 1),
+            "viewmat": copy(vm),
+            "K": K[None] if _device != "cpu" and V == 1 else K[None].repeat(V, 1, 1),
             "image": images[k],
             "mask": masks[k],
             "mask_dist": dists[k],
         }
-        if _device != "cpu":  # as the training loader does for a GPU: pinned memory, copies that wait for no kernel
-            batch = {k: v.pin_memory().to(_device, non_blocking=True) for k, v in batch.items()}
+        if _device != "cpu":  # the host entry (the frame index) pinned, copied without waiting for a kernel
+            batch["frame_idx"] = batch["frame_idx"].pin_memory().to(_device, non_blocking=True)
         # host ints and the views of one frame (AvatarDataModule.on_before_batch_transfer, data.views_per_step=V)
         return {**batch, "width": [size] * V, "height": [size] * V, **({"views_per_frame": V} if V > 1 else {})}
 

@@ -382,17 +382,26 @@ def test_compile_trains_through_the_compiled_path(scenes_root, tmp_path, monkeyp
 
 def test_a_run_with_its_training_set_on_the_device_trains_as_one_without(scenes_root, tmp_path, monkeypatch):
     """data.device_cache (a GPU's training set kept there, data/datamodule.py DeviceSamples) is invisible to training:
-    the trainer takes every batch's tensors from the kept set (the datamodule's transfer hook) and the run ends
-    bit-equal to one whose batches are collated and copied. Kept on the CPU here, where a run would not keep it."""
+    the trainer takes every batch's tensors from the kept set (the datamodule's transfer hook), the steps leave the
+    kept tensors as they were (a batch of one sample is a view of them), and the run ends bit-equal to one whose
+    batches are collated and copied. Kept on the CPU here, where a run would not keep it."""
     from realityavatar.data.datamodule import AvatarDataModule, DeviceSamples
 
     ref = _run(tmp_path / "host", "iterations=4", "data.device_cache=false")
-    gathered = []
+    gathered = []  # (the kept set, index, its tensors as they were when gathered)
     gather = DeviceSamples.gather
+
+    def spy(self, index):
+        gathered.append((self, index, [{k: v.clone() for k, v in self.tensors[i].items()} for i in index]))
+        return gather(self, index)
+
     monkeypatch.setattr(AvatarDataModule, "_store_device", lambda self: torch.device("cpu"))
-    monkeypatch.setattr(DeviceSamples, "gather", lambda self, index: gathered.append(index) or gather(self, index))
+    monkeypatch.setattr(DeviceSamples, "gather", spy)
     metrics = _run(tmp_path / "dev", "iterations=4")
     assert len(gathered) == 4
+    for kept, index, before in gathered:
+        for i, row in zip(index, before):
+            assert all(torch.equal(kept.tensors[i][k], v) for k, v in row.items()), f"sample {i} changed in place"
     a, b = (_state(tmp_path / d / "last.ckpt")["state_dict"] for d in ("host", "dev"))
     assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
     assert metrics["test/novel_view/psnr"] == ref["test/novel_view/psnr"]
