@@ -230,6 +230,8 @@ def test_bad_arguments_fail_fast():
         AvatarDataModule("x", "y", reader="h36m")
     with pytest.raises(ValueError, match="background"):
         AvatarDataModule("x", "y", background=[0, 0])
+    with pytest.raises(TypeError, match=r"data.device_cache: expected true or false, got .no."):
+        AvatarDataModule("x", "y", device_cache="no")
 
 
 def test_build_preset_builds_missing_scene(tmp_path, body, monkeypatch):

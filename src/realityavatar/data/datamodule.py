@@ -437,7 +437,9 @@ class AvatarDataModule(pl.LightningDataModule):
         self.max_train_frames = max_train_frames
         self.train_frame_subsample, self.frame_subsample = int(train_frame_subsample), int(frame_subsample)
         self.val_items = int(val_items)
-        self.undistort, self.cache_images, self.device_cache = undistort, cache_images, bool(device_cache)
+        if not isinstance(device_cache, bool):
+            raise TypeError(f"data.device_cache: expected true or false, got {device_cache!r}")
+        self.undistort, self.cache_images, self.device_cache = undistort, cache_images, device_cache
         self.device_samples: DeviceSamples | None = None  # the training set on the device (device_cache)
         self.training_set: str | dict = "host"  # where it is kept, for metrics.json (`_on_device`)
         self.body = body
