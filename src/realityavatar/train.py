@@ -34,6 +34,7 @@ def run(cfg: DictConfig, choices: dict | None = None) -> dict:
     from realityavatar.runs import claim_run_dir, read_checkpoint, restore_hydra_record, run_lock
 
     check_settings(cfg)
+    check_accelerator(cfg)
     out_dir = Path(cfg.out_dir)
     owned = {"folder": False}
     with run_lock(out_dir):
@@ -45,6 +46,18 @@ def run(cfg: DictConfig, choices: dict | None = None) -> dict:
             if not owned["folder"]:  # failed before taking the folder: leave the previous run's record as it was
                 restore_hydra_record(out_dir)
             raise
+
+
+def check_accelerator(cfg: DictConfig) -> None:
+    """A GPU trainer where torch sees no CUDA device stops here, before the scene is built (minutes at 512²), with what
+    to run instead; Lightning would say so only when the trainer is made."""
+    acc = str(OmegaConf.select(cfg, "trainer.accelerator", default="cpu"))
+    if acc in ("gpu", "cuda") and not torch.cuda.is_available():
+        why = (f"torch {torch.__version__} is a CPU build" if torch.version.cuda is None
+               else f"torch {torch.__version__} (CUDA {torch.version.cuda}) sees no CUDA device")
+        raise RuntimeError(f"trainer.accelerator={acc} (trainer=gpu, e.g. from +experiment=paper_scale): {why}. "
+                           "Train on the CPU with trainer=cpu render.backend=numba, or install a CUDA build of torch "
+                           "(README, GPU)")
 
 
 def _run(cfg: DictConfig, choices: dict | None, out_dir: Path, resume_from: Path | None, prior: dict | None,

@@ -160,6 +160,30 @@ def test_config_written_only_once_the_run_is_valid(scenes_root, tmp_path):
     assert not (tmp_path / "new" / "config.yaml").exists()
 
 
+def test_a_gpu_trainer_without_cuda_stops_before_the_scene_is_read(tmp_path, monkeypatch):
+    """`+experiment=paper_scale` on a machine without CUDA: named before its 512² scene is built (minutes), nothing
+    written; the same command on the CPU trainer gets past the check."""
+    from realityavatar import train
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    monkeypatch.setenv("REALITYAVATAR_SCENES", str(tmp_path / "scenes"))
+    built = []
+    monkeypatch.setattr(train, "_run", lambda *a, **k: built.append(a) or {})
+
+    def cfg(out: Path, *overrides: str):  # the experiment as typed (TINY's trainer=ci would replace its trainer)
+        c = compose(["+experiment=paper_scale", *overrides])
+        with open_dict(c):
+            del c["hydra"]
+            c.out_dir = str(out)
+        return c
+
+    with pytest.raises(RuntimeError, match=r"trainer\.accelerator=gpu.*trainer=cpu render\.backend=numba"):
+        train.run(cfg(tmp_path / "run"))
+    assert not built and not (tmp_path / "run").exists() and not (tmp_path / "scenes").exists()
+    train.run(cfg(tmp_path / "cpu", "trainer=cpu"))
+    assert len(built) == 1
+
+
 def test_save_images_zero_and_eval_failure_keep_training_results(scenes_root, tmp_path, monkeypatch):
     out = tmp_path / "z"
     metrics = _run(out, "iterations=3", "eval.save_images=0")
