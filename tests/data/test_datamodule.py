@@ -219,9 +219,11 @@ def test_pose_inputs_are_made_once_per_frame(scene_root, body, monkeypatch):
     assert not torch.equal(ds[int(b["index"][0])]["pose_features"], b["pose_features"][0])
 
 
-def test_missing_scene_folder_error_says_how_to_build(tmp_path):
+def test_missing_scene_folder_error_says_how_to_get_it(tmp_path):
+    """The folder could be I3D-Human's (downloaded) or an embedded scene's (built): the error says both."""
     dm = AvatarDataModule(str(tmp_path), "demo_skirt_spin")
-    with pytest.raises(FileNotFoundError, match=r"scene folder .*demo_skirt_spin-train not found; build it with"):
+    with pytest.raises(FileNotFoundError, match=r"scene folder .*demo_skirt_spin-train not found; I3D-Human: download "
+                                                r"it .* set I3D_ROOT or data\.root; an embedded scene: build it with"):
         dm.setup()
 
 

@@ -496,8 +496,9 @@ class AvatarDataModule(pl.LightningDataModule):
         if self.reader == "i3d":
             from realityavatar.data.i3d import read_i3d
 
-            hint = ("build it with `realityavatar-make-scene` or set data.build_preset (ci|demo|full) so the "
-                    "DataModule builds it; otherwise check data.root and data.sequence")
+            hint = ("I3D-Human: download it (Dyco's layout, docs/data.md) and set I3D_ROOT or data.root; an embedded "
+                    "scene: build it with `realityavatar-make-scene` or set data.build_preset (ci|demo|full); "
+                    "otherwise check data.root and data.sequence")
             return read_i3d(self.root, self.sequence, self._pelvis(), build_hint=hint)
         from realityavatar.data.zju import read_zju
 
