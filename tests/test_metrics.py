@@ -146,6 +146,12 @@ def test_lpips_not_computed_without_weights(tmp_path):
     m, why = build_lpips("vgg", None, None)  # nothing configured, nothing found (tests/conftest.py)
     assert m is None and why.startswith("not computed: no LPIPS weights") and "metrics.lpips_weights" in why
     assert "lpips package weights/v0.1/vgg.pth" in why and "hub/checkpoints/vgg16-397923af.pth" in why
+    with pytest.MonkeyPatch.context() as mp:  # torch's default cache under the home folder: named from `~`
+        mp.setenv("HOME", str(tmp_path))
+        mp.setenv("TORCH_HOME", str(tmp_path / ".cache" / "torch"))
+        _, why = build_lpips("vgg", None, None)
+    assert "not found: lpips package weights/v0.1/vgg.pth, ~/.cache/torch/hub/checkpoints/vgg16-397923af.pth;" in why
+    assert str(tmp_path) not in why
     m, why = build_lpips("vgg", None, str(tmp_path))  # empty directory: the missing file is named
     assert m is None and why.startswith("not computed: LPIPS weight file") and "vgg" in why
     with pytest.raises(FileNotFoundError, match="not computed"):

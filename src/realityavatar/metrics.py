@@ -325,6 +325,13 @@ def hub_checkpoint(name: str) -> str | None:
     return path if os.path.isfile(path) else None
 
 
+def _home_relative(path: str) -> str:
+    """`path` with the user's home as `~`: the status is written into metrics.json, and results committed from one
+    machine should not carry its home folder."""
+    home = os.path.expanduser("~")
+    return "~" + path[len(home):] if home not in ("", "/") and path.startswith(home + os.sep) else path
+
+
 def lpips_package_file(net: str) -> str | None:
     """The installed lpips package's v0.1 linear layers, <package>/weights/v0.1/<net>.pth, or None. Found without
     importing lpips (that imports torchvision, which need not work with this torch)."""
@@ -400,7 +407,7 @@ def build_lpips(net: str = "vgg", backbone_weights: str | None = None,
         lin, lin_from = lpips_package_file(net), "lpips package"
         if not lin or not backbone:
             missing = ([] if lin else [f"lpips package weights/v0.1/{net}.pth"]) + (
-                [] if backbone else [os.path.join(torch.hub.get_dir(), "checkpoints", name)])
+                [] if backbone else [_home_relative(os.path.join(torch.hub.get_dir(), "checkpoints", name))])
             reasons.append(f"not found: {', '.join(missing)}")
             return None, (f"not computed: no LPIPS weights ({'; '.join(reasons)}; set metrics.lpips_weights=<dir "
                           f"with the lpips {net}.pth and torchvision {name}>)")
