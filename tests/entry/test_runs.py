@@ -169,18 +169,11 @@ def test_a_gpu_trainer_without_cuda_stops_before_the_scene_is_read(tmp_path, mon
     monkeypatch.setenv("REALITYAVATAR_SCENES", str(tmp_path / "scenes"))
     built = []
     monkeypatch.setattr(train, "_run", lambda *a, **k: built.append(a) or {})
-
-    def cfg(out: Path, *overrides: str):  # the experiment as typed (TINY's trainer=ci would replace its trainer)
-        c = compose(["+experiment=paper_scale", *overrides])
-        with open_dict(c):
-            del c["hydra"]
-            c.out_dir = str(out)
-        return c
-
+    # trainer=gpu as the experiment sets it (after TINY's trainer=ci, the later value wins)
     with pytest.raises(RuntimeError, match=r"trainer\.accelerator=gpu.*trainer=cpu render\.backend=numba"):
-        train.run(cfg(tmp_path / "run"))
+        train.run(*_cfg(tmp_path / "run", "+experiment=paper_scale", "trainer=gpu"))
     assert not built and not (tmp_path / "run").exists() and not (tmp_path / "scenes").exists()
-    train.run(cfg(tmp_path / "cpu", "trainer=cpu"))
+    train.run(*_cfg(tmp_path / "cpu", "+experiment=paper_scale", "trainer=cpu"))
     assert len(built) == 1
 
 
