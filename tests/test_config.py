@@ -161,6 +161,35 @@ def test_unknown_option_names_the_group():
     assert "temporal" in str(e.value) and "transformer" in str(e.value)
 
 
+def test_every_shipped_composition_passes_the_settings_check():
+    """Each option of each group, and each experiment, preset, variant and ablation, passes check_settings."""
+    from realityavatar.config import check_settings
+
+    for group in sorted(p.name for p in CONFIG_DIR.iterdir() if p.is_dir() and p.name != "hydra"):
+        plus = "+" if group in ("experiment", "preset", "variant", "ablation") else ""
+        for opt in _options(group):
+            check_settings(compose([f"{plus}{group}={opt}"]))
+
+
+def test_bad_network_sizes_weights_rates_and_density_settings_name_their_keys():
+    """Sizes torch cannot make, negative loss weights and learning rates, density thresholds: one ValueError naming
+    every key as typed (`*` keys by their own name, e.g. optim.lr.deformer), before anything is built. Before the
+    check, a negative learning rate or loss weight trained without a word, and a width of -1 failed in torch
+    ("negative dimension") without the key."""
+    from realityavatar.config import check_settings
+
+    bad = {"deformer.hidden_dim": 0, "encoder.out_dim": -1, "temporal.num_layers": 0, "color.hidden_dim": -1,
+           "encoder.clothes_latent_dim": -1, "optim.lr.deformer": -1e-3, "optim.final_factor.means": -0.5,
+           "loss.mask.weight": -1, "loss.skinning.weight_after": float("nan"), "loss.skinning.samples": 0,
+           "silhouette.max_pixels": 0, "silhouette.covered_alpha": 2, "density.refine_every": 0,
+           "density.prune_opacity": 1.0, "trainer.log_every_n_steps": 0}
+    with pytest.raises(ValueError) as e:
+        check_settings(compose([f"{k}={v}" for k, v in bad.items()]))
+    named = [k for k in bad if f"{k}=" in str(e.value)]
+    assert named == list(bad), str(e.value)
+    check_settings(compose(["encoder=no_zc", "optim.lr.deformer=0", "deformer.num_freqs=0", "density=off"]))
+
+
 def test_spin_target_experiment_is_the_command_it_was_measured_with():
     """+experiment=spin_target composes exactly the command the README's 10,000-step spin numbers came from."""
     from omegaconf import OmegaConf

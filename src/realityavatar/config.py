@@ -120,7 +120,37 @@ SETTINGS = {
     "eval.fps_frames": (lambda v: _is_int(v) and v >= 1, "a whole number >= 1"),
     "resume": (lambda v: isinstance(v, bool), "true or false"),
     "overwrite": (lambda v: isinstance(v, bool), "true or false"),
+    "trainer.log_every_n_steps": (lambda v: _is_int(v) and v >= 1, "a whole number >= 1"),
+    "schedule.deform_start": (lambda v: _is_int(v) and v >= 0, "a whole number >= 0"),
+    # the networks' sizes (a size torch cannot make fails deep in a constructor without the key's name)
+    **{k: (lambda v: _is_int(v) and v >= 1, "a whole number >= 1") for k in (
+        "encoder.part_dim", "encoder.hidden_dim", "encoder.out_dim", "temporal.hidden_dim", "temporal.num_layers",
+        "deformer.hidden_dim", "deformer.num_layers", "skinning.hidden_dim", "skinning.num_layers", "color.hidden_dim")},
+    **{k: (lambda v: _is_int(v) and v >= 0, "a whole number >= 0") for k in (
+        "encoder.clothes_latent_dim", "deformer.feature_dim", "deformer.num_freqs", "skinning.num_freqs")},
+    **{k: (lambda v: _is_num(v) and v >= 0, "a number >= 0") for k in (
+        "gaussians.feature_init_std", "encoder.latent_init_std", "silhouette.near", "optim.grad_clip", "optim.lr.*",
+        "loss.*.weight", "loss.*.weight_after", "loss.*.dssim_weight", "density.grad_threshold")},
+    "optim.final_factor.*": (lambda v: _is_num(v) and v > 0, "a number > 0 (the learning rate's factor at the last step)"),
+    "loss.*.samples": (lambda v: _is_int(v) and v >= 1, "a whole number >= 1"),
+    "silhouette.max_pixels": (lambda v: _is_int(v) and v >= 1, "a whole number >= 1"),
+    "silhouette.covered_alpha": (lambda v: _is_num(v) and 0 <= v <= 1, "a number in [0, 1]"),
+    "density.refine_every": (lambda v: _is_int(v) and v >= 1, "a whole number >= 1"),
+    "density.reset_every": (lambda v: _is_int(v) and v >= 0, "a whole number >= 0 (0 = no opacity reset)"),
+    "density.max_points": (lambda v: _is_int(v) and v >= 1, "a whole number >= 1"),
+    "density.prune_opacity": (lambda v: _is_num(v) and 0 <= v < 1, "a number in [0, 1)"),
+    **{k: (lambda v: _is_num(v) and v > 0, "a number > 0") for k in (
+        "density.grow_scale3d", "density.prune_scale3d", "density.scene_scale", "optim.optimizer.eps")},
 }
+
+
+def _keys(cfg: DictConfig, key: str) -> list[str]:
+    """A SETTINGS key, or for one with a `*` segment (`optim.lr.*`, `loss.*.weight`) every key of that node."""
+    if "*" not in key:
+        return [key]
+    head, _, tail = key.partition(".*")
+    node = OmegaConf.select(cfg, head, default=None)
+    return [f"{head}.{k}{tail}" for k in node] if isinstance(node, DictConfig) else []
 
 
 def check_settings(cfg: DictConfig, prefix: str = "") -> None:
@@ -129,9 +159,8 @@ def check_settings(cfg: DictConfig, prefix: str = "") -> None:
     from omegaconf.errors import OmegaConfBaseException
 
     problems = []
-    for key, (ok, expected) in SETTINGS.items():
-        if not key.startswith(prefix):
-            continue
+    for key, (ok, expected) in ((k, rule) for pattern, rule in SETTINGS.items() if pattern.startswith(prefix)
+                                for k in _keys(cfg, pattern)):
         try:
             value = OmegaConf.select(cfg, key, default="<absent>", throw_on_missing=True)
         except OmegaConfBaseException as e:
