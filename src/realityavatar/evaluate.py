@@ -152,7 +152,7 @@ def format_table(metrics: dict) -> str:
             continue
         lp = f"{g('lpips'):9.2f}" if g("lpips") is not None else f"{'n/c':>9}"
         lines.append(
-            f"{split:<12}{g('psnr'):8.2f}{g('ssim'):8.4f}{g('iou') or float('nan'):7.3f}{lp}{g('psnr_masked'):11.2f}{g('ssim_masked'):11.4f}{g('num_images'):8d}"
+            f"{split:<12}{g('psnr'):8.2f}{g('ssim'):8.4f}{g('iou') if g('iou') is not None else float('nan'):7.3f}{lp}{g('psnr_masked'):11.2f}{g('ssim_masked'):11.4f}{g('num_images'):8d}"
         )
     lines.append(
         f"Gaussians {metrics.get('num_gaussians')}  parameters {metrics.get('num_parameters')}  "

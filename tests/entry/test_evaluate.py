@@ -49,6 +49,16 @@ def test_evaluate_records_where_lpips_weights_came_from(trained_run, tmp_path, m
     assert f"LPIPS {m['lpips']}" in format_table(m)
 
 
+def test_results_table_prints_a_zero_iou_as_zero():
+    """A silhouette that misses the mask everywhere has IoU 0.0, which the table prints as such (it printed nan)."""
+    from realityavatar.evaluate import format_table
+
+    m = {f"test/novel_view/{k}": v for k, v in {"psnr": 20.0, "ssim": 0.5, "iou": 0.0, "psnr_masked": 15.0,
+                                                "ssim_masked": 0.1, "num_images": 3}.items()}
+    row = format_table(m).splitlines()[1].split()
+    assert row[:4] == ["novel_view", "20.00", "0.5000", "0.000"], row
+
+
 def test_evaluate_and_probe_a_run_below_its_resolution_supersampled(trained_run, monkeypatch):
     """A run evaluated on its scene at half the size, each image rendered at 2x and averaged (as paper_scale's
     512 px run on the 128 px sweep scene, docs/gpu.md): metrics.json says so and has the smaller size (rendered
