@@ -105,6 +105,27 @@ def check_video_writer(path: str | Path) -> None:
                            "to an ffmpeg binary, or write a .gif (out=...gif)") from None
 
 
+ARGS = {"run_dir", "poses", "fps", "up", "place", "split", "cameras", "views", "orbit.turns", "orbit.height",
+        "orbit.radius", "out", "device"}
+
+
+def parse_args(argv: list[str], keys: set[str]) -> dict[str, str]:
+    """`key=value` arguments: the command's own `keys`, and overrides of the run's config (`data.fps=...`). Anything
+    else (a bare word, `pose=` for `poses=`, `orbit.radus=`) is a ValueError naming it: dropped, it would render or
+    export something the user did not ask for without a word."""
+    args = {}
+    own = {k.split(".")[0] for k in keys if "." in k}  # dotted keys of the command's own (orbit.*)
+    for a in argv:
+        key, eq, value = a.partition("=")
+        if not eq or not key:
+            raise ValueError(f"{a!r}: expected key=value")
+        if key not in keys and ("." not in key or key.split(".")[0] in own):
+            raise ValueError(f"{key}=: unknown argument; expected one of {', '.join(sorted(keys))}, or an override of "
+                             "the run's config (data.<key>=...)")
+        args[key] = value
+    return args
+
+
 def number(args: dict, key: str, default: float | None = None) -> float | None:
     """args[key] as a float (default when absent); a non-number names the key."""
     if key not in args:
@@ -120,7 +141,11 @@ def main(argv: list[str] | None = None) -> int:
 
     from realityavatar.build import build_data, load_run, run_device
 
-    args = dict(a.split("=", 1) for a in (sys.argv[1:] if argv is None else argv) if "=" in a)
+    try:
+        args = parse_args(sys.argv[1:] if argv is None else argv, ARGS)
+    except ValueError as e:
+        print(f"realityavatar-animate: {e}\n{__doc__}", file=sys.stderr)
+        return 2
     if "run_dir" not in args:
         print(__doc__, file=sys.stderr)
         return 2

@@ -136,6 +136,7 @@ def export_gaussians(module, out: Path, poses: torch.Tensor | None = None, trans
     return write_ply(out, **gaussians_for_export(module, poses, transl))
 
 
+ARGS = {"run_dir", "frame", "frames", "poses", "fps", "up", "place", "out"}
 USAGE = ("usage: realityavatar-export run_dir=<run> [frame=<global frame id> | frames=a:b[:step] [poses=<file.npz> "
          "[fps=<its frame rate>] [up=auto|z|y] [place=subject|keep]]] [out=<file.ply or folder>]")
 
@@ -176,16 +177,25 @@ def export_frames(module, table, frame_ids: list[int], window_len: int, window_s
 
 
 def main(argv: list[str] | None = None) -> int:
-    from realityavatar.animate import number
+    from realityavatar.animate import number, parse_args
     from realityavatar.build import build_data, load_run
     from realityavatar.data.motion import Stage, load_motion
 
-    args = dict(a.split("=", 1) for a in (sys.argv[1:] if argv is None else argv) if "=" in a)
+    try:
+        args = parse_args(sys.argv[1:] if argv is None else argv, ARGS)
+    except ValueError as e:
+        print(f"realityavatar-export: {e}\n{USAGE}", file=sys.stderr)
+        return 2
     if "run_dir" not in args:
         print(USAGE, file=sys.stderr)
         return 2
     if "frame" in args and "frames" in args:
         print(f"realityavatar-export: give frame=<id> or frames=a:b, not both\n{USAGE}", file=sys.stderr)
+        return 2
+    pose_file = sorted({"poses", "fps", "up", "place"} & set(args))
+    if pose_file and not {"poses", "frames"} <= set(args):  # else ignored: the canonical or a dataset frame written
+        print(f"realityavatar-export: {', '.join(k + '=' for k in pose_file)} apply to frames=a:b of a pose file: "
+              f"give both poses=<file.npz> and frames=a:b\n{USAGE}", file=sys.stderr)
         return 2
     frames = parse_frames(args["frames"]) if "frames" in args else None  # checked before the run is loaded
     cfg, module, _info = load_run(args["run_dir"], [f"{k}={v}" for k, v in args.items() if "." in k])

@@ -106,3 +106,16 @@ def test_the_runs_frame_rate_and_up_come_from_its_config_and_training_poses(trai
     dm.scene.meta.pop("fps")
     with pytest.raises(ValueError, match=r"skirt_spin_ci: the run's config has no data\.fps.*data\.fps=<frames"):
         Stage.of(dm, module.body)
+
+
+@pytest.mark.parametrize("argv, named", [
+    (["pose=walk.npz"], "pose="),                  # a typo of poses=: the dataset split was rendered instead
+    (["poses=walk.npz", "orbit.radus=2"], "orbit.radus="),
+    (["walk.npz"], "'walk.npz': expected key=value"),
+])
+def test_an_unknown_argument_stops_animate_before_the_run_is_read(argv, named, capsys):
+    """Each is refused with exit 2 and named on stderr, before the run folder (here absent) is read."""
+    from realityavatar.animate import main as animate_main
+
+    assert animate_main(["run_dir=/nonexistent/run", *argv]) == 2
+    assert named in capsys.readouterr().err

@@ -21,3 +21,16 @@ def test_ply_round_trip(tmp_path):
         np.testing.assert_allclose(back[k], v, rtol=1e-4, atol=1e-5, err_msg=k)
     with pytest.raises(ValueError, match="means"):
         write_ply(tmp_path / "bad.ply", means[:, :2], quats, scales, op, sh=sh)
+
+
+@pytest.mark.parametrize("argv, named", [
+    (["frme=3"], "frme=: unknown argument"),
+    (["poses=walk.npz"], "poses= apply to frames=a:b"),        # without frames=: the canonical Gaussians were written
+    (["frames=0:4", "fps=30"], "fps= apply to frames=a:b"),    # fps= without poses=: ignored
+])
+def test_export_refuses_arguments_it_would_ignore(argv, named, capsys):
+    """Exit 2 naming the argument, before the run folder (here absent) is read."""
+    from realityavatar.export import main as export_main
+
+    assert export_main(["run_dir=/nonexistent/run", *argv]) == 2
+    assert named in capsys.readouterr().err
