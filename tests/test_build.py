@@ -22,6 +22,29 @@ def test_rebuild_overrides_move_interpolated_keys(trained_run):
         load_run(out, ["~data.root"])
 
 
+def test_an_override_of_a_key_the_run_has_not_is_refused_unless_added_or_a_default(trained_run, tmp_path):
+    """A typo (`eval.supersampl=2`) is refused naming the key: merged, it was added to the config unread, and the run
+    evaluated at the default without a word. `+key=value` adds a key; a key of today's defaults that the run's config
+    predates (its config without `eval.supersample`) may be set."""
+    import shutil
+
+    from omegaconf import OmegaConf
+
+    from realityavatar.build import load_run
+
+    out, _ = trained_run
+    with pytest.raises(ValueError, match=r"no key 'eval\.supersampl' \(to add one: \+eval\.supersampl=2\)"):
+        load_run(out, ["eval.supersampl=2"])
+    assert load_run(out, ["+eval.supersampl=2"])[0].eval.supersampl == 2
+    old = tmp_path / "old_run"
+    shutil.copytree(out, old)
+    for name in ("config.yaml", "config_unresolved.yaml"):
+        cfg = OmegaConf.load(old / name)
+        del cfg.eval["supersample"]
+        OmegaConf.save(cfg, old / name)
+    assert load_run(old, ["eval.supersample=2"])[0].eval.supersample == 2
+
+
 def test_perceptual_loss_finds_vgg19_in_torch_hub_cache(tmp_path, monkeypatch):
     """loss.perceptual.vgg19_weights unset: torchvision's vgg19 in torch's hub cache makes the term VGG19, and
     build_losses says where it came from; kind=dssim, or no file, keeps D-SSIM."""

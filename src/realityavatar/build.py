@@ -12,7 +12,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 # importing config also registers the resolvers
-from realityavatar.config import RAW_CONFIG_NAME, check_settings
+from realityavatar.config import RAW_CONFIG_NAME, check_settings, compose
 from realityavatar.metrics import build_lpips, hub_checkpoint
 from realityavatar.model.module import AvatarModule, Schedule
 from realityavatar.runs import CKPT_NAME, read_checkpoint
@@ -96,14 +96,20 @@ def build_data(cfg: DictConfig, body):
     return dm
 
 
-def _dotlist(overrides: list[str] | None) -> list[str]:
-    """Command-line overrides for a saved run's config. Hydra's `+key=value` / `++key=value` (add a key) mean the same
-    as `key=value` here; without this OmegaConf would store the key under the literal name "+data" and drop it.
+def _dotlist(overrides: list[str] | None, cfg: DictConfig) -> list[str]:
+    """Command-line overrides for a saved run's config `cfg`. As in hydra, `key=value` sets a key the config has (or
+    that today's defaults have: a run from before the key existed) and `+key=value` / `++key=value` adds one; a key in
+    neither is a typo (`eval.supersampl=2` would evaluate at the default, without a word) and is refused, naming it.
     Hydra's `~key` (delete) has no meaning for a trained run and is refused, as is an override without `=`."""
-    out = []
+    out, defaults, absent = [], None, object()
     for o in overrides or []:
         if o.startswith("~") or "=" not in o:
             raise ValueError(f"override {o!r}: expected key=value (or +key=value) for a saved run's config")
+        key = o.split("=", 1)[0]
+        if not o.startswith("+") and OmegaConf.select(cfg, key, default=absent, throw_on_resolution_failure=False) is absent:
+            defaults = defaults if defaults is not None else compose([])
+            if OmegaConf.select(defaults, key, default=absent, throw_on_resolution_failure=False) is absent:
+                raise ValueError(f"override {o!r}: the run's config has no key {key!r} (to add one: +{o})")
         out.append(o.lstrip("+"))
     return out
 
@@ -115,16 +121,17 @@ def load_run(run_dir: str | Path, overrides: list[str] | None = None, ckpt: str 
     if not cfg_path.is_file():
         raise FileNotFoundError(f"{cfg_path} not found: expected a run folder written by realityavatar-train")
     raw_path = run_dir / RAW_CONFIG_NAME
-    overrides = _dotlist(overrides)
     if overrides and raw_path.is_file():
         # Overrides go into the run's unresolved config, so keys interpolated from them follow (as in train).
         cfg = OmegaConf.load(raw_path)
-        cfg.merge_with_dotlist(list(overrides))
+        overrides = _dotlist(overrides, cfg)
+        cfg.merge_with_dotlist(overrides)
         OmegaConf.resolve(cfg)
     else:
         cfg = OmegaConf.load(cfg_path)
+        overrides = _dotlist(overrides, cfg)
         if overrides:  # a run folder from before config_unresolved.yaml existed
-            cfg.merge_with_dotlist(list(overrides))
+            cfg.merge_with_dotlist(overrides)
     if overrides:
         check_settings(cfg)  # a bad value names its key before anything is built from it
     ckpt = Path(ckpt) if ckpt else run_dir / CKPT_NAME
