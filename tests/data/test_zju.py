@@ -53,3 +53,22 @@ def test_zju_missing_model_key_names_file(tmp_path, body):
     np.savez(f, **d)
     with pytest.raises(SceneFormatError, match=r"models/000001\.npz: the file lacks key 'pose_hand'"):
         read_zju(tmp_path / "CoreView_377", [1], [2], [0, 0, 1])
+
+
+def test_zju_gap_in_model_numbering_is_refused(tmp_path, body):
+    """Frame ids are positions in the sorted models/ list: with 000002.npz missing, 000001 and 000003 became
+    neighbouring frames of the pose windows without a word. Evenly spaced numbering (every 2nd frame) still reads."""
+    write_zju(tmp_path, "CoreView_377", body, n_frames=5, cams=("1", "2"))
+    (tmp_path / "CoreView_377" / "models" / "000002.npz").unlink()
+    with pytest.raises(SceneFormatError, match=r"models: the files are not evenly numbered \(000001\.npz is followed "
+                                               r"by 000003\.npz\)"):
+        read_zju(tmp_path / "CoreView_377", [1], [2], [0, 0, 1])
+    even = tmp_path / "even"
+    write_zju(even, "CoreView_377", body, n_frames=5, cams=("1", "2"))
+    for stem in ("000001", "000003"):
+        (even / "CoreView_377" / "models" / f"{stem}.npz").unlink()
+        for cam in ("1", "2"):
+            for ext in (".jpg", ".png"):
+                (even / "CoreView_377" / cam / f"{stem}{ext}").unlink()
+    scene = read_zju(even / "CoreView_377", [1], [2], [0, 0, 1])  # 000000, 000002, 000004
+    assert scene.frames("train").tolist() == [0, 1, 2]

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Sequence
+from itertools import pairwise
 from pathlib import Path
 
 import numpy as np
@@ -51,6 +52,13 @@ def read_models(subject_dir: Path) -> tuple[list[Path], PoseTable, np.ndarray]:
     files = sorted((subject_dir / "models").glob("*.npz"))
     if not files:
         raise FileNotFoundError(f"{subject_dir / 'models'}: no <idx:06d>.npz SMPL files")
+    idx = [int(f.stem) if f.stem.isdigit() else None for f in files]
+    steps = {b - a for a, b in pairwise(idx)} if None not in idx else set()
+    if len(steps) > 1:  # frame ids are positions in this list
+        a, b = next((a, b) for a, b in pairwise(idx) if b - a != min(steps))
+        raise SceneFormatError(f"{subject_dir / 'models'}: the files are not evenly numbered ({a:06d}.npz is followed "
+                               f"by {b:06d}.npz): frame ids are positions in the sorted list, and the pose windows "
+                               "would join the frames on both sides of a gap as if consecutive")
     poses, trans, betas = [], [], None
     for i, f in enumerate(files):
         try:
