@@ -109,6 +109,22 @@ def test_missing_pickle_file_and_truncated_pickle(i3d, body):
         read_i3d(root, "seq", body.rest_joints[0])
 
 
+@pytest.mark.parametrize("extrinsics, match", [
+    (np.zeros((4, 4)), r"is not a rotation \(\|R R\^T - I\| = 1\)"),        # a zeroed matrix was read as a camera
+    (np.diag([1.0, 1.0, -1.0, 1.0]), r"is a reflection \(det < 0\)"),           # a mirrored image
+    (np.vstack([np.eye(4)[:3], [0.0, 0.0, 1.0, 1.0]]), r"has a last row \[0\.0, 0\.0, 1\.0, 1\.0\]"),
+])
+def test_extrinsics_that_are_no_rigid_transform_name_the_entry(i3d, body, extrinsics, match):
+    root, _ = i3d
+    path = root / "seq-novelview" / "cameras.pkl"
+    cams = pickle.loads(path.read_bytes())
+    cams["frame_000001_view_02"]["extrinsics"] = extrinsics
+    path.write_bytes(pickle.dumps(cams))
+    with pytest.raises(SceneFormatError, match=r"seq-novelview/cameras\.pkl: entry 'frame_000001_view_02'\['extrinsics'\] "
+                                               + match):
+        read_i3d(root, "seq", body.rest_joints[0])
+
+
 def test_nan_pose_is_reported_at_load(i3d, body):
     root, _ = i3d
     path = root / "seq-train" / "mesh_infos.pkl"

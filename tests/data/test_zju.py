@@ -72,3 +72,15 @@ def test_zju_gap_in_model_numbering_is_refused(tmp_path, body):
                 (even / "CoreView_377" / cam / f"{stem}{ext}").unlink()
     scene = read_zju(even / "CoreView_377", [1], [2], [0, 0, 1])  # 000000, 000002, 000004
     assert scene.frames("train").tolist() == [0, 1, 2]
+
+
+def test_zju_camera_rotation_that_is_a_reflection_names_the_camera(tmp_path, body):
+    import json
+
+    write_zju(tmp_path, "CoreView_377", body, n_frames=2, cams=("1", "2"))
+    path = tmp_path / "CoreView_377" / "cam_params.json"
+    params = json.loads(path.read_text())
+    params["2"]["R"] = (-np.asarray(params["2"]["R"])).tolist()
+    path.write_text(json.dumps(params))
+    with pytest.raises(SceneFormatError, match=r"cam_params\.json: camera '2' R is a reflection \(det < 0\)"):
+        read_zju(tmp_path / "CoreView_377", [1], [2], [0, 0, 1])

@@ -21,6 +21,7 @@ import numpy as np
 import torch
 
 from realityavatar.data.i3d import I3DSplitWriter
+from realityavatar.data.records import rotation_problem
 
 IMAGE_EXTS = (".png", ".jpg", ".jpeg")
 
@@ -101,9 +102,9 @@ def scan(folder: str | Path, train_views: Sequence[int] | None = None, test_view
                 ok = False
             arrs[field] = a
         if ok and "R" in arrs:
-            R = arrs["R"]
-            if np.abs(R @ R.T - np.eye(3)).max() > 1e-3 or np.linalg.det(R) < 0:
-                problems.append(f"{where}: R is not a rotation (R R^T != I or det < 0)")
+            why = rotation_problem(arrs["R"])
+            if why:
+                problems.append(f"{where}: R {why}")
                 ok = False
         if ok:
             arrs.setdefault("D", np.zeros(5))

@@ -21,6 +21,7 @@ from realityavatar.data.records import (
     check_shape,
     load_pickle,
     require_key,
+    rotation_problem,
 )
 
 FOLDERS = {"train": "train", "novel_view": "novelview", "novel_pose": "novelpose"}
@@ -99,6 +100,10 @@ def read_cameras(folder: Path) -> dict[str, dict[str, np.ndarray]]:
                         f"{where}['intrinsics']")
         E = check_shape(require_key(cam, "extrinsics", path, where, "[4,4] world-to-camera"), (4, 4), path,
                         f"{where}['extrinsics']")
+        why = rotation_problem(E[:3, :3]) or (None if np.allclose(E[3], (0, 0, 0, 1)) else "has a last row "
+                                             f"{E[3].tolist()}, not [0, 0, 0, 1]")
+        if why:
+            raise SceneFormatError(f"{path}: {where}['extrinsics'] {why}: expected a rigid world-to-camera transform")
         dist = None
         if isinstance(cam, dict) and cam.get("distortions") is not None:
             dist = np.asarray(cam["distortions"], dtype=np.float64).reshape(-1)

@@ -77,6 +77,14 @@ def require_key(d: dict, key: str, path: Path, where: str, expected: str) -> np.
         raise SceneFormatError(f"{path}: {where}[{key!r}] is not numeric (expected {expected})") from e
 
 
+def rotation_problem(R: np.ndarray) -> str | None:
+    """Why R [3,3] is not a rotation (a camera's world-to-camera block), or None: R R^T = I to 1e-3, det R > 0."""
+    err = float(np.abs(R @ R.T - np.eye(3)).max())
+    if err > 1e-3:
+        return f"is not a rotation (|R R^T - I| = {err:.3g})"
+    return "is a reflection (det < 0), not a rotation" if np.linalg.det(R) < 0 else None
+
+
 def check_shape(a: np.ndarray, shape: tuple, path: Path, where: str) -> np.ndarray:
     if a.size == int(np.prod(shape)) and a.shape != shape:
         a = a.reshape(shape)  # e.g. T stored as [3,1] or D as [1,5]
