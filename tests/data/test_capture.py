@@ -89,17 +89,20 @@ def test_capture_validation_reports_every_problem_at_once(tmp_path, body, capsys
     np.savez(cap / "smpl" / "000002.npz", **d)  # a non-finite value
     cams = json.loads((cap / "cameras.json").read_text())
     del cams["0"]["K"]  # a camera without intrinsics
+    cams["1"]["K"][0][0] = 0.0  # a zero focal length
+    cams["2"]["R"] = (-np.asarray(cams["2"]["R"])).tolist()  # a mirrored camera
     (cap / "cameras.json").write_text(json.dumps(cams))
     (cap / "images" / "2" / "000001.jpg").write_bytes(b"not a jpeg")  # a corrupt image
     problems, *_ = scan(cap, train_views=[0, 1], test_views=[2, 7])
     text = "\n".join(problems)
     for needle in ("camera '0': missing K", "images/1: missing images for frames [3]",
                    "masks/2: missing masks for frames [5]", "camera 2: 6 images but 5 masks", "smpl/000002.npz: non-finite values",
-                   "images/2/000001.jpg: corrupt", "test_views: camera 7 is not in cameras.json"):
+                   "images/2/000001.jpg: corrupt", "test_views: camera 7 is not in cameras.json",
+                   "camera '1': K has focal lengths fx, fy = 0,", "camera '2': R is a reflection (det < 0)"):
         assert needle in text, (needle, text)
     with pytest.raises(CaptureError) as e:
         convert(cap, tmp_path / "out", "bad", [0, 1], [2, 7], body=body)
-    assert len(e.value.problems) == len(problems) >= 7
+    assert len(e.value.problems) == len(problems) >= 9
     assert not (tmp_path / "out").exists()  # nothing written for an invalid capture
     assert capture_main(["validate", str(cap)]) == 1
     assert "problem(s)" in capsys.readouterr().err

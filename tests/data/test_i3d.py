@@ -125,6 +125,17 @@ def test_extrinsics_that_are_no_rigid_transform_name_the_entry(i3d, body, extrin
         read_i3d(root, "seq", body.rest_joints[0])
 
 
+def test_intrinsics_without_positive_focal_lengths_name_the_entry(i3d, body):
+    root, _ = i3d
+    path = root / "seq-train" / "cameras.pkl"
+    cams = pickle.loads(path.read_bytes())
+    cams["frame_000002_view_01"]["intrinsics"] = np.diag([0.0, 0.0, 1.0])
+    path.write_bytes(pickle.dumps(cams))
+    with pytest.raises(SceneFormatError, match=r"seq-train/cameras\.pkl: entry 'frame_000002_view_01'\['intrinsics'\] "
+                                               r"has focal lengths fx, fy = 0, 0, expected both > 0"):
+        read_i3d(root, "seq", body.rest_joints[0])
+
+
 def test_nan_pose_is_reported_at_load(i3d, body):
     root, _ = i3d
     path = root / "seq-train" / "mesh_infos.pkl"

@@ -74,13 +74,17 @@ def test_zju_gap_in_model_numbering_is_refused(tmp_path, body):
     assert scene.frames("train").tolist() == [0, 1, 2]
 
 
-def test_zju_camera_rotation_that_is_a_reflection_names_the_camera(tmp_path, body):
+@pytest.mark.parametrize("field, value, match", [
+    ("R", lambda R: -np.asarray(R), r"R is a reflection \(det < 0\)"),
+    ("K", lambda K: np.asarray(K) * [[-1, 1, 1], [1, -1, 1], [1, 1, 1]], r"K has focal lengths fx, fy = -\d+"),
+])
+def test_zju_camera_that_is_no_pinhole_camera_names_it(tmp_path, body, field, value, match):
     import json
 
     write_zju(tmp_path, "CoreView_377", body, n_frames=2, cams=("1", "2"))
     path = tmp_path / "CoreView_377" / "cam_params.json"
     params = json.loads(path.read_text())
-    params["2"]["R"] = (-np.asarray(params["2"]["R"])).tolist()
+    params["2"][field] = value(params["2"][field]).tolist()
     path.write_text(json.dumps(params))
-    with pytest.raises(SceneFormatError, match=r"cam_params\.json: camera '2' R is a reflection \(det < 0\)"):
+    with pytest.raises(SceneFormatError, match=r"cam_params\.json: camera '2' " + match):
         read_zju(tmp_path / "CoreView_377", [1], [2], [0, 0, 1])

@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 from realityavatar.data.i3d import I3DSplitWriter
-from realityavatar.data.records import rotation_problem
+from realityavatar.data.records import intrinsics_problem, rotation_problem
 
 IMAGE_EXTS = (".png", ".jpg", ".jpeg")
 
@@ -102,10 +102,9 @@ def scan(folder: str | Path, train_views: Sequence[int] | None = None, test_view
                 ok = False
             arrs[field] = a
         if ok and "R" in arrs:
-            why = rotation_problem(arrs["R"])
-            if why:
-                problems.append(f"{where}: R {why}")
-                ok = False
+            # reported, the camera kept: its images are checked too (all problems at once; nothing is converted)
+            problems += [f"{where}: {field} {why}" for field, why in (("R", rotation_problem(arrs["R"])),
+                                                                     ("K", intrinsics_problem(arrs["K"]))) if why]
         if ok:
             arrs.setdefault("D", np.zeros(5))
             cams[cam_id] = arrs

@@ -19,6 +19,7 @@ from realityavatar.data.records import (
     SceneData,
     SceneFormatError,
     check_shape,
+    intrinsics_problem,
     load_pickle,
     require_key,
     rotation_problem,
@@ -104,6 +105,8 @@ def read_cameras(folder: Path) -> dict[str, dict[str, np.ndarray]]:
                                              f"{E[3].tolist()}, not [0, 0, 0, 1]")
         if why:
             raise SceneFormatError(f"{path}: {where}['extrinsics'] {why}: expected a rigid world-to-camera transform")
+        if why := intrinsics_problem(K):
+            raise SceneFormatError(f"{path}: {where}['intrinsics'] {why}")
         dist = None
         if isinstance(cam, dict) and cam.get("distortions") is not None:
             dist = np.asarray(cam["distortions"], dtype=np.float64).reshape(-1)

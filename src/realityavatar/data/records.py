@@ -85,6 +85,13 @@ def rotation_problem(R: np.ndarray) -> str | None:
     return "is a reflection (det < 0), not a rotation" if np.linalg.det(R) < 0 else None
 
 
+def intrinsics_problem(K: np.ndarray) -> str | None:
+    """Why K [3,3] is not a pinhole camera's intrinsics, or None: focal lengths > 0, last row [0, 0, 1]."""
+    if not (K[0, 0] > 0 and K[1, 1] > 0):
+        return f"has focal lengths fx, fy = {K[0, 0]:g}, {K[1, 1]:g}, expected both > 0"
+    return None if np.allclose(K[2], (0, 0, 1)) else f"has a last row {K[2].tolist()}, not [0, 0, 1]"
+
+
 def check_shape(a: np.ndarray, shape: tuple, path: Path, where: str) -> np.ndarray:
     if a.size == int(np.prod(shape)) and a.shape != shape:
         a = a.reshape(shape)  # e.g. T stored as [3,1] or D as [1,5]

@@ -21,6 +21,7 @@ from realityavatar.data.records import (
     SceneData,
     SceneFormatError,
     check_shape,
+    intrinsics_problem,
     require_key,
     rotation_problem,
 )
@@ -46,8 +47,9 @@ def read_cam_params(subject_dir: Path) -> dict[str, dict[str, np.ndarray]]:
         c, where = raw[name], f"camera {name!r}"
         K = check_shape(require_key(c, "K", path, where, "[3,3] intrinsics"), (3, 3), path, f"{where} K")
         R = check_shape(require_key(c, "R", path, where, "[3,3] world-to-camera rotation"), (3, 3), path, f"{where} R")
-        if why := rotation_problem(R):
-            raise SceneFormatError(f"{path}: {where} R {why}")
+        for field, why in (("R", rotation_problem(R)), ("K", intrinsics_problem(K))):
+            if why:
+                raise SceneFormatError(f"{path}: {where} {field} {why}")
         T = check_shape(require_key(c, "T", path, where, "[3] translation in metres"), (3,), path, f"{where} T")
         D = np.asarray(c.get("D", np.zeros(5)), dtype=np.float64).reshape(-1)
         E = np.eye(4)
