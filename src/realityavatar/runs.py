@@ -61,9 +61,12 @@ def _flat(d, prefix: str = "") -> dict:
 def config_changes(saved: DictConfig | dict, current: DictConfig) -> list[str]:
     """Settings that differ between a run's config.yaml and the resuming config, beyond RESUMABLE_CHANGES."""
     a = _flat(OmegaConf.to_container(saved, resolve=True) if isinstance(saved, DictConfig) else saved)
-    if "iterations" in a:  # more steps is allowed; what derives from it (schedules, LR decay) is compared as saved
-        current = current.copy()
-        current.iterations = a["iterations"]
+    # More steps are allowed, and so is a run folder moved or copied elsewhere; what derives from them (schedules and
+    # LR decay, the checkpoint and log folders) is compared as saved.
+    current = current.copy()
+    for key in ("iterations", "out_dir"):
+        if key in a:
+            current[key] = a[key]
     b = _flat(OmegaConf.to_container(current, resolve=True))
     keys = sorted(set(a) | set(b))
     return [f"{k}: {a.get(k, '<absent>')!r} -> {b.get(k, '<absent>')!r}" for k in keys

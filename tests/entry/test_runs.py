@@ -88,7 +88,8 @@ def test_interrupted_and_resumed_equals_uninterrupted(scenes_root, tmp_path, mon
     with one image per step in a uniform order and with frames drawn by their loss (hard_frames, the default: six
     one-camera training frames, so the crash falls in the second, loss-driven epoch). Both runs' samplers must end in
     the same state: with nearly equal scores a resume that lost them can still draw the same frames, so the draws
-    alone would not show it."""
+    alone would not show it. The uniform run's folder is moved before it resumes: its checkpoint and log folders
+    (derived from the folder) differed from the saved config, and resume=true refused."""
     hard = ["data.max_train_frames=6", "data.train_views=[0]", "data.sampler.mix=0", "data.sampler.power=8"]
     opts = ["iterations=12", f"sampler={sampler}", *(hard if sampler == "hard_frames" else [])]
     ref = tmp_path / "ref"
@@ -100,6 +101,8 @@ def test_interrupted_and_resumed_equals_uninterrupted(scenes_root, tmp_path, mon
             _run(cut, *opts)
     at6 = _state(cut / "last.ckpt")
     assert at6["global_step"] == 6
+    if sampler == "uniform":  # a run folder moved (renamed, copied to another disk) resumes where it is now
+        cut = Path(shutil.move(cut, tmp_path / "moved"))
     metrics = _run(cut, *opts, "resume=true")
     assert metrics["train_seconds"] > at6["callbacks"]["RunState"]["train_seconds"] > 0
     ref_ckpt, cut_ckpt = _state(ref / "last.ckpt"), _state(cut / "last.ckpt")
