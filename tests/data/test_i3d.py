@@ -136,6 +136,16 @@ def test_intrinsics_without_positive_focal_lengths_name_the_entry(i3d, body):
         read_i3d(root, "seq", body.rest_joints[0])
 
 
+def test_a_mask_without_its_image_names_it(i3d, body):
+    """An image lost in a copy: its mask, camera and pose entries are still there, and the split was read without that
+    frame and view, without a word."""
+    root, _ = i3d
+    (root / "seq-novelpose" / "images" / "frame_000005_view_02.png").unlink()
+    with pytest.raises(FileNotFoundError, match=r"seq-novelpose/images: no image for the mask\(s\) "
+                                                r"frame_000005_view_02\.png in .*seq-novelpose/masks"):
+        read_i3d(root, "seq", body.rest_joints[0])
+
+
 def test_nan_pose_is_reported_at_load(i3d, body):
     root, _ = i3d
     path = root / "seq-train" / "mesh_infos.pkl"

@@ -184,6 +184,10 @@ def read_split(folder: Path, split: str, pelvis: torch.Tensor) -> tuple[list[Ima
         records.append(ImageRecord(frame, view, img, mask, cam["K"], cam["viewmat"], cam["dist"], "threshold"))
     if not records:
         raise SceneFormatError(f"{img_dir}: no images (expected frame_XXXXXX_view_YY.png)")
+    orphans = sorted({m.stem for m in mask_dir.glob("*.png")} - {r.image_path.stem for r in records})
+    if orphans:  # an image lost in a copy or download: its frame and view would be left out without a word
+        raise FileNotFoundError(f"{img_dir}: no image for the mask(s) {', '.join(o + '.png' for o in orphans[:5])}"
+                                f"{f' and {len(orphans) - 5} more' if len(orphans) > 5 else ''} in {mask_dir}")
     records.sort(key=lambda r: (r.frame, r.view))
     return records, table
 
