@@ -182,7 +182,7 @@ def test_bad_network_sizes_weights_rates_and_density_settings_name_their_keys():
            "encoder.clothes_latent_dim": -1, "optim.lr.deformer": -1e-3, "optim.final_factor.means": -0.5,
            "loss.mask.weight": -1, "loss.skinning.weight_after": float("nan"), "loss.skinning.samples": 0,
            "silhouette.max_pixels": 0, "silhouette.covered_alpha": 2, "density.refine_every": 0,
-           "density.prune_opacity": 1.0, "trainer.log_every_n_steps": 0}
+           "density.prune_opacity": 1.0, "trainer.log_every_n_steps": 0, "trainer.precision": 16}
     with pytest.raises(ValueError) as e:
         check_settings(compose([f"{k}={v}" for k, v in bad.items()]))
     named = [k for k in bad if f"{k}=" in str(e.value)]

@@ -121,6 +121,8 @@ SETTINGS = {
     "resume": (lambda v: isinstance(v, bool), "true or false"),
     "overwrite": (lambda v: isinstance(v, bool), "true or false"),
     "trainer.log_every_n_steps": (lambda v: _is_int(v) and v >= 1, "a whole number >= 1"),
+    "trainer.precision": (lambda v: v in (32, "32", "32-true"), ("32: the renderers, kernels and losses compute in "
+                          "float32 (16 / bf16 stopped in the numba renderer with 'unsupported ScalarType BFloat16')")),
     "schedule.deform_start": (lambda v: _is_int(v) and v >= 0, "a whole number >= 0"),
     # the networks' sizes (a size torch cannot make fails deep in a constructor without the key's name)
     **{k: (lambda v: _is_int(v) and v >= 1, "a whole number >= 1") for k in (

@@ -147,8 +147,17 @@ def test_view_and_frame_selection(scene_root, body):
     # novel-view frames beyond max_train_frames are not training frames: frame_idx -1
     idx = {s["frame"]: s["frame_idx"] for s in (dm.datasets["novel_view"][i] for i in range(len(dm.datasets["novel_view"])))}
     assert idx[0] == 0 and idx[2] == 2 and idx[6] == -1
-    with pytest.raises(ValueError, match=r"no training images left after selecting views \[7\]"):
-        make(scene_root, body, train_views=[7])
+    with pytest.raises(ValueError, match=r"data\.train_views: camera\(s\) \[7\] not in .*seq's train images "
+                                         r"\(cameras \[0, 1, 3\]\)"):
+        make(scene_root, body, train_views=[0, 7])
+    # a test camera the scene has not: the splits were read without it, and evaluation tested fewer images or none
+    with pytest.raises(ValueError, match=r"data\.test_views: camera\(s\) \[7\] not in .*seq's novel_view, novel_pose "
+                                         r"images \(cameras \[2, 5\]\)"):
+        make(scene_root, body, test_views=[5, 7])
+    with pytest.raises(ValueError, match=r"no training images left after selecting views \[\]"):
+        make(scene_root, body, train_views=[])
+    with pytest.raises(ValueError, match=r"data\.background: expected 3 values in \[0,1\], got \[2, 0, 0\]"):
+        make(scene_root, body, background=[2, 0, 0])
 
 
 def test_novel_pose_window_looks_back_into_training_frames(scene_root, body):

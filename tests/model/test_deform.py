@@ -108,3 +108,13 @@ def test_training_opens_the_coarse_to_fine_window_and_a_checkpoint_keeps_it(scen
     assert [s for s in steps if s is not None][:4] == list(range(4))
     _, module, _ = load_run(tmp_path / "run")
     assert module.deformer.encoding.alpha == module.deformer.encoding.num_freqs * 4 / 8
+
+
+def test_a_box_fitted_to_points_flat_along_an_axis_gives_finite_offsets():
+    """fit_bounds pads each axis by at least 1 mm: one Gaussian (gaussians.num_points=1), or points on a plane, gave a
+    box of zero width and NaN offsets (the run stopped in the silhouette term's k-d tree, 'data must be finite')."""
+    dec = MotionTrendDecoder()
+    for points in (torch.tensor([[0.1, 0.2, 0.3]]), torch.tensor([[0.0, 0.0, 0.0], [1.0, 1.0, 0.0]])):
+        dec.fit_bounds(points)
+        out = dec(points, torch.zeros(1, 128))
+        assert all(torch.isfinite(v).all() for v in out.values()), points

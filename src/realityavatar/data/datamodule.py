@@ -431,8 +431,8 @@ class AvatarDataModule(pl.LightningDataModule):
             raise ValueError(f"data.views_per_step: expected >= 1 training cameras of one frame per step, got {views_per_step!r}")
         self.views_per_step = int(views_per_step)
         self.background = [float(c) for c in background]
-        if len(self.background) != 3:
-            raise ValueError(f"data.background: expected 3 values in [0,1], got {background}")
+        if len(self.background) != 3 or not all(0.0 <= c <= 1.0 for c in self.background):
+            raise ValueError(f"data.background: expected 3 values in [0,1], got {list(background)}")
         self.image_scale = float(image_scale)
         self.max_train_frames = max_train_frames
         self.train_frame_subsample, self.frame_subsample = int(train_frame_subsample), int(frame_subsample)
@@ -508,6 +508,12 @@ class AvatarDataModule(pl.LightningDataModule):
         )
 
     def _select(self, scene: SceneData) -> dict[str, list[ImageRecord]]:
+        for key, splits in (("train_views", ["train"]), ("test_views", [s for s in scene.splits if s != "train"])):
+            wanted, have = getattr(self, key), sorted({r.view for s in splits for r in scene.splits[s]})
+            missing = sorted(set(wanted or []) - set(have))
+            if missing and self.reader == "i3d":  # (the ZJU reader names its own)
+                raise ValueError(f"data.{key}: camera(s) {missing} not in {scene.source}'s {', '.join(splits)} "
+                                 f"images (cameras {have})")
         out = {}
         for split, records in scene.splits.items():
             views = self.train_views if split == "train" else self.test_views

@@ -73,9 +73,10 @@ class MotionTrendDecoder(nn.Module):
 
     @torch.no_grad()
     def fit_bounds(self, points: torch.Tensor, padding: float = 0.1) -> None:
-        """Set the normalisation box from points [P,3] with a relative padding per axis."""
+        """Set the normalisation box from points [P,3] with a relative padding per axis, at least 1 mm (a box flat
+        along an axis, e.g. of one point, would divide by zero: NaN offsets)."""
         lo, hi = points.min(0).values, points.max(0).values
-        pad = (hi - lo) * padding
+        pad = ((hi - lo) * padding).clamp_min(1e-3)
         self.bbox_min.copy_(lo - pad)
         self.bbox_max.copy_(hi + pad)
         self.bounds_fitted.fill_(1)
