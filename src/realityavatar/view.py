@@ -67,6 +67,8 @@ def camera_pose(viewmat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def check_port_free(host: str, port: int) -> None:
     """viser moves to the next port when the asked one is taken; the viewer says so instead."""
+    if not 0 <= port <= 65535:
+        raise ViewerError(f"port={port}: expected a TCP port 1-65535, or 0 for any free one")
     if port == 0:
         return
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:

@@ -246,6 +246,8 @@ def test_bad_input_gives_clear_messages(view_run, tmp_path, capsys):
         assert main([f"run_dir={view_run}", f"port={port}"], block=False) == 2
     err = capsys.readouterr().err
     assert f"port={port}" in err and "in use" in err, err
+    assert main([f"run_dir={view_run}", "port=-5"], block=False) == 2  # was the OS's OverflowError, no key named
+    assert "port=-5: expected a TCP port 1-65535, or 0 for any free one" in capsys.readouterr().err
 
     bad = tmp_path / "bad.npz"
     np.savez(bad, poses=np.zeros((5, 23, 3), np.float32))
