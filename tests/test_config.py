@@ -188,6 +188,10 @@ def test_bad_network_sizes_weights_rates_and_density_settings_name_their_keys():
     named = [k for k in bad if f"{k}=" in str(e.value)]
     assert named == list(bad), str(e.value)
     check_settings(compose(["encoder=no_zc", "optim.lr.deformer=0", "deformer.num_freqs=0", "density=off"]))
+    sheet = {"sheet.hull_voxel": 0, "sheet.normal_scale": -1, "sheet.max_stretch": -1, "sheet.top_offset": float("nan")}
+    with pytest.raises(ValueError) as e:  # each failed in numpy or math without the key ("math domain error")
+        check_settings(compose(["sheet=skirt", *(f"{k}={v}" for k, v in sheet.items())]))
+    assert [k for k in sheet if f"{k}=" in str(e.value)] == list(sheet), str(e.value)
 
 
 def test_spin_target_experiment_is_the_command_it_was_measured_with():

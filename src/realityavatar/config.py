@@ -142,7 +142,11 @@ SETTINGS = {
     "density.max_points": (lambda v: _is_int(v) and v >= 1, "a whole number >= 1"),
     "density.prune_opacity": (lambda v: _is_num(v) and 0 <= v < 1, "a number in [0, 1)"),
     **{k: (lambda v: _is_num(v) and v > 0, "a number > 0") for k in (
-        "density.grow_scale3d", "density.prune_scale3d", "density.scene_scale", "optim.optimizer.eps")},
+        "density.grow_scale3d", "density.prune_scale3d", "density.scene_scale", "optim.optimizer.eps",
+        "sheet.hull_voxel", "sheet.normal_scale")},
+    "sheet.max_stretch": (lambda v: _is_num(v) and v >= 0, "a number >= 0 (0: unbounded)"),
+    **{k: (lambda v: _is_num(v), "a finite number (metres)") for k in (
+        "sheet.top_offset", "sheet.bottom_offset", "sheet.margin")},
 }
 
 
