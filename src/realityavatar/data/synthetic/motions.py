@@ -35,10 +35,6 @@ class Motion:
         return self.num_train + self.num_novel
 
 
-def _aa(rot: Rotation) -> np.ndarray:
-    return rot.as_rotvec()
-
-
 def _smoothstep(u: np.ndarray) -> np.ndarray:
     u = np.clip(u, 0.0, 1.0)
     return u * u * (3 - 2 * u)
