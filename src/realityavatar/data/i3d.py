@@ -19,10 +19,10 @@ from realityavatar.data.records import (
     SceneData,
     SceneFormatError,
     check_shape,
+    extrinsics_problem,
     intrinsics_problem,
     load_pickle,
     require_key,
-    rotation_problem,
 )
 
 FOLDERS = {"train": "train", "novel_view": "novelview", "novel_pose": "novelpose"}
@@ -101,9 +101,7 @@ def read_cameras(folder: Path) -> dict[str, dict[str, np.ndarray]]:
                         f"{where}['intrinsics']")
         E = check_shape(require_key(cam, "extrinsics", path, where, "[4,4] world-to-camera"), (4, 4), path,
                         f"{where}['extrinsics']")
-        why = rotation_problem(E[:3, :3]) or (None if np.allclose(E[3], (0, 0, 0, 1)) else "has a last row "
-                                             f"{E[3].tolist()}, not [0, 0, 0, 1]")
-        if why:
+        if why := extrinsics_problem(E):
             raise SceneFormatError(f"{path}: {where}['extrinsics'] {why}: expected a rigid world-to-camera transform")
         if why := intrinsics_problem(K):
             raise SceneFormatError(f"{path}: {where}['intrinsics'] {why}")

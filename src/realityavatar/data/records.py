@@ -85,11 +85,22 @@ def rotation_problem(R: np.ndarray) -> str | None:
     return "is a reflection (det < 0), not a rotation" if np.linalg.det(R) < 0 else None
 
 
+def _last_row_problem(M: np.ndarray) -> str | None:
+    """Why M's last row is not that of the identity ([0, 0, 1] of K, [0, 0, 0, 1] of a rigid transform), or None."""
+    want = np.eye(M.shape[0])[-1]
+    return None if np.allclose(M[-1], want) else f"has a last row {M[-1].tolist()}, not {want.astype(int).tolist()}"
+
+
 def intrinsics_problem(K: np.ndarray) -> str | None:
     """Why K [3,3] is not a pinhole camera's intrinsics, or None: focal lengths > 0, last row [0, 0, 1]."""
     if not (K[0, 0] > 0 and K[1, 1] > 0):
         return f"has focal lengths fx, fy = {K[0, 0]:g}, {K[1, 1]:g}, expected both > 0"
-    return None if np.allclose(K[2], (0, 0, 1)) else f"has a last row {K[2].tolist()}, not [0, 0, 1]"
+    return _last_row_problem(K)
+
+
+def extrinsics_problem(E: np.ndarray) -> str | None:
+    """Why E [4,4] is not a rigid world-to-camera transform, or None: a rotation block, last row [0, 0, 0, 1]."""
+    return rotation_problem(E[:3, :3]) or _last_row_problem(E)
 
 
 def check_shape(a: np.ndarray, shape: tuple, path: Path, where: str) -> np.ndarray:
