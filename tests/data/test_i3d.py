@@ -158,6 +158,31 @@ def test_nan_pose_is_reported_at_load(i3d, body):
         read_i3d(root, "seq", body.rest_joints[0])
 
 
+def test_views_that_disagree_on_a_frames_fit_are_refused(i3d, body):
+    """Per-image entries of one frame carry one world-frame fit; a per-camera fit would be read as the first view's."""
+    root, _ = i3d
+    path = root / "seq-train" / "mesh_infos.pkl"
+    infos = pickle.loads(path.read_bytes())
+    name = "frame_000002_view_01"  # its own dict: the writer's views of a frame share one, and pickle keeps that
+    infos[name] = dict(infos[name], Th=infos[name]["Th"] + 0.01)
+    path.write_bytes(pickle.dumps(infos))
+    with pytest.raises(SceneFormatError, match=r"seq-train/mesh_infos\.pkl: entries 'frame_000002_view_00' and "
+                                               r"'frame_000002_view_01' give frame 2 different Th \(by up to 0\.01\)"):
+        read_i3d(root, "seq", body.rest_joints[0])
+
+
+def test_splits_that_disagree_on_a_frames_pose_are_refused(i3d, body):
+    root, _ = i3d
+    path = root / "seq-novelview" / "mesh_infos.pkl"
+    infos = pickle.loads(path.read_bytes())
+    for name in [n for n in infos if n.startswith("frame_000001")]:
+        infos[name]["poses"] = infos[name]["poses"] + 0.05
+    path.write_bytes(pickle.dumps(infos))
+    with pytest.raises(ValueError, match=r"frame 1 has different poses in .*seq-train/mesh_infos\.pkl and "
+                                         r".*seq-novelview/mesh_infos\.pkl"):
+        read_i3d(root, "seq", body.rest_joints[0])
+
+
 def test_corrupt_image_names_file(i3d, body):
     root, _ = i3d
     scene = read_i3d(root, "seq", body.rest_joints[0])

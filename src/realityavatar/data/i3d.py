@@ -117,14 +117,17 @@ def read_cameras(folder: Path) -> dict[str, dict[str, np.ndarray]]:
 def read_mesh_infos(folder: Path, pelvis: torch.Tensor) -> PoseTable:
     """mesh_infos.pkl -> PoseTable in the SMPL convention (pose[0] about the pelvis, transl), via rh_th_to_smpl.
 
-    Keys may be per image (frame_XXXXXX_view_YY, as in I3D-Human) or per frame; a frame keeps its first entry.
+    Keys may be per image (frame_XXXXXX_view_YY, as in I3D-Human) or per frame. A frame's entries must agree: one
+    SMPL fit per frame in world coordinates, shared by every camera (entries that differ, e.g. fits in each camera's
+    coordinates, are refused rather than one of them taken).
     """
     path = folder / "mesh_infos.pkl"
     raw = load_pickle(path, "every split folder needs mesh_infos.pkl {frame_name: {poses, Rh, Th, joints, tpose_joints}}")
     if not isinstance(raw, dict) or not raw:
         raise SceneFormatError(f"{path}: expected a non-empty dict keyed by frame name, got {type(raw).__name__}")
     frames, poses, Rh, Th = [], [], [], []
-    seen, bad_frames = set(), set()
+    first: dict[int, tuple[str, np.ndarray]] = {}  # frame -> (its first entry's name, poses ⊕ Rh ⊕ Th)
+    bad_frames = set()
     for name, info in raw.items():
         frame, _ = parse_frame_name(str(name), str(path))
         where = f"entry {name!r}"
@@ -135,11 +138,20 @@ def read_mesh_infos(folder: Path, pelvis: torch.Tensor) -> PoseTable:
             raise SceneFormatError(
                 f"{path}: {where} has poses {p.shape}, Rh {rh.shape}, Th {th.shape}; expected [72], [3], [3]"
             )
-        if not (np.isfinite(p).all() and np.isfinite(rh).all() and np.isfinite(th).all()):
+        row = np.concatenate([np.ravel(p), np.ravel(rh), np.ravel(th)]).astype(np.float64)
+        if not np.isfinite(row).all():
             bad_frames.add(frame)  # checked on every entry: a per-view duplicate may be the broken one
-        if frame in seen:
+        if frame in first:
+            name0, row0 = first[frame]
+            diff = np.abs(row - row0)
+            if frame not in bad_frames and diff.max() > 1e-4:
+                field = ("poses", "Rh", "Th")[int(np.searchsorted([72, 75], diff.argmax(), side="right"))]
+                raise SceneFormatError(
+                    f"{path}: entries {name0!r} and {name!r} give frame {frame} different {field} (by up to "
+                    f"{diff.max():.3g}); the reader takes one SMPL fit per frame, in world coordinates, shared by "
+                    "every camera")
             continue
-        seen.add(frame)
+        first[frame] = (str(name), row)
         frames.append(frame)
         poses.append(p.reshape(24, 3))
         Rh.append(rh.reshape(3))

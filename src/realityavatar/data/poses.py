@@ -31,6 +31,7 @@ class PoseTable:
         bad = (~torch.isfinite(poses).reshape(len(frames), -1).all(1)) | (~torch.isfinite(transl).all(1))
         if bad.any():
             raise ValueError(f"{source}: non-finite (NaN/inf) pose or translation at frames {frames[bad.numpy()][:10].tolist()}")
+        self.source = source
         order = np.argsort(frames)
         self.frames = frames[order]  # [F] sorted
         self.poses = poses[torch.as_tensor(order)]  # [F,24,3]
@@ -45,11 +46,16 @@ class PoseTable:
 
     @classmethod
     def union(cls, tables: Sequence[PoseTable]) -> PoseTable:
-        """Merge tables (e.g. all splits of one sequence); a frame present in several keeps its first occurrence."""
-        rows: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
+        """Merge tables (e.g. all splits of one sequence). A frame in several tables must have the same pose and
+        translation in each (to 1e-4): two fits of one frame are refused rather than one of them taken."""
+        rows: dict[int, tuple[torch.Tensor, torch.Tensor, str]] = {}
         for t in tables:
             for i, f in enumerate(t.frames):
-                rows.setdefault(int(f), (t.poses[i], t.transl[i]))
+                pose, transl, source = rows.setdefault(int(f), (t.poses[i], t.transl[i], t.source))
+                diff = max((pose - t.poses[i]).abs().max().item(), (transl - t.transl[i]).abs().max().item())
+                if diff > 1e-4:
+                    raise ValueError(f"frame {int(f)} has different poses in {source} and {t.source} (by up to "
+                                     f"{diff:.3g}): one fit per frame is expected across the splits")
         frames = sorted(rows)
         return cls(frames, torch.stack([rows[f][0] for f in frames]), torch.stack([rows[f][1] for f in frames]))
 
