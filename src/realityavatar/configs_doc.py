@@ -16,22 +16,22 @@ OUT = CONFIG_DIR.parent / "docs" / "configs.md"
 RESEARCH = "research/"  # relative to docs/
 _SWEEP = "sweep preset, 3 seeds"
 _DYN = f"{_SWEEP}, `f7cf8b9` / `82dd645`; [dynamics sweep]({RESEARCH}2026-11-26-dynamics-sweep-learnt-normals.md)"
-_PAPER = f"{_SWEEP}, `3b9168b`; [results](results.md), ablations/results/paper"
+_PAPER = f"{_SWEEP}, `a140910`; [results](results.md), ablations/results/paper"
 _BUDGET = "256², 3 seeds, `acbcff3`; [results](results.md#the-gaussian-budget)"
 
 # Measured effects, copied from README.md and the docs it links (each with its commit); "group/option" or
 # "group/option:key" (a key of that file) or "train:key". Δ NV / NP PSNR against the default unless stated; † within
 # the seed spread. An entry whose file or key no longer exists stops the generator.
 EFFECTS = {
-    "temporal/lstm": f"**kept, measured gain**: +1.29 / +1.58 dB NV / NP over `temporal=none` ({_PAPER})",
-    "temporal/none": f"−1.29 / −1.58 dB NV / NP ({_PAPER}); the paper's ablation axis",
+    "temporal/lstm": f"**kept, measured gain**: +1.30 / +1.58 dB NV / NP over `temporal=none` ({_PAPER})",
+    "temporal/none": f"−1.30 / −1.58 dB NV / NP ({_PAPER}); the paper's ablation axis",
     "temporal/gru": f"+0.01 † / +0.07 † dB ({_SWEEP}, `344e7ab`; [more candidates]({RESEARCH}2026-11-26-more-candidates.md))",
-    "variant/full": f"the reference row: NV / NP 31.54 ± 0.16 / 31.00 ± 0.06 dB ({_PAPER})",
-    "variant/no_lstm": f"−1.29 / −1.58 dB NV / NP ({_PAPER})",
-    "variant/no_zc": f"+0.06 † / −0.10 † dB ({_PAPER})",
-    "variant/no_split": f"+0.07 † / +0.02 † dB ({_PAPER})",
-    "encoder/no_zc": f"+0.06 † / −0.10 † dB ({_PAPER}); the paper's ablation axis",
-    "encoder/no_split": f"+0.07 † / +0.02 † dB ({_PAPER}); the paper's ablation axis",
+    "variant/full": f"the reference row: NV / NP 31.56 ± 0.15 / 31.01 ± 0.13 dB ({_PAPER})",
+    "variant/no_lstm": f"−1.30 / −1.58 dB NV / NP ({_PAPER})",
+    "variant/no_zc": f"+0.03 † / −0.08 † dB ({_PAPER})",
+    "variant/no_split": f"+0.04 † / +0.03 † dB ({_PAPER})",
+    "encoder/no_zc": f"+0.03 † / −0.08 † dB ({_PAPER}); the paper's ablation axis",
+    "encoder/no_split": f"+0.04 † / +0.03 † dB ({_PAPER}); the paper's ablation axis",
     "shading/irradiance": f"**kept, measured gain**: +0.97 / +0.89 dB over `shading=none` ({_DYN})",
     "shading/none": f"−0.97 / −0.89 dB ({_DYN})",
     "shading/irradiance:normals": f"learnt against body: +0.20 / +0.13 dB ({_DYN})",
