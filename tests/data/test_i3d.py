@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import pickle
+from contextlib import contextmanager
 
 import numpy as np
 import pytest
@@ -27,6 +28,12 @@ def i3d(tmp_path, body):
     return tmp_path, w
 
 
+@contextmanager
+def edited(path):
+    """A fixture pickle to change in place: yields its entries and writes them back."""
+    entries = pickle.loads(path.read_bytes())
+    yield entries
+    path.write_bytes(pickle.dumps(entries))
 
 
 def test_i3d_cameras_poses_splits_as_written(i3d, body):
@@ -91,10 +98,8 @@ def test_missing_scene_folder_names_it(tmp_path):
 ])
 def test_missing_pickle_key_names_file_and_field(i3d, body, file, key, match):
     root, _ = i3d
-    path = root / file
-    entries = pickle.loads(path.read_bytes())
-    del entries[next(iter(entries))][key]
-    path.write_bytes(pickle.dumps(entries))
+    with edited(root / file) as entries:
+        del entries[next(iter(entries))][key]
     with pytest.raises(SceneFormatError, match=match):
         read_i3d(root, "seq", body.rest_joints[0])
 
@@ -116,10 +121,8 @@ def test_missing_pickle_file_and_truncated_pickle(i3d, body):
 ])
 def test_extrinsics_that_are_no_rigid_transform_name_the_entry(i3d, body, extrinsics, match):
     root, _ = i3d
-    path = root / "seq-novelview" / "cameras.pkl"
-    cams = pickle.loads(path.read_bytes())
-    cams["frame_000001_view_02"]["extrinsics"] = extrinsics
-    path.write_bytes(pickle.dumps(cams))
+    with edited(root / "seq-novelview" / "cameras.pkl") as cams:
+        cams["frame_000001_view_02"]["extrinsics"] = extrinsics
     with pytest.raises(SceneFormatError, match=r"seq-novelview/cameras\.pkl: entry 'frame_000001_view_02'\['extrinsics'\] "
                                                + match):
         read_i3d(root, "seq", body.rest_joints[0])
@@ -127,10 +130,8 @@ def test_extrinsics_that_are_no_rigid_transform_name_the_entry(i3d, body, extrin
 
 def test_intrinsics_without_positive_focal_lengths_name_the_entry(i3d, body):
     root, _ = i3d
-    path = root / "seq-train" / "cameras.pkl"
-    cams = pickle.loads(path.read_bytes())
-    cams["frame_000002_view_01"]["intrinsics"] = np.diag([0.0, 0.0, 1.0])
-    path.write_bytes(pickle.dumps(cams))
+    with edited(root / "seq-train" / "cameras.pkl") as cams:
+        cams["frame_000002_view_01"]["intrinsics"] = np.diag([0.0, 0.0, 1.0])
     with pytest.raises(SceneFormatError, match=r"seq-train/cameras\.pkl: entry 'frame_000002_view_01'\['intrinsics'\] "
                                                r"has focal lengths fx, fy = 0, 0, expected both > 0"):
         read_i3d(root, "seq", body.rest_joints[0])
@@ -148,12 +149,10 @@ def test_a_mask_without_its_image_names_it(i3d, body):
 
 def test_nan_pose_is_reported_at_load(i3d, body):
     root, _ = i3d
-    path = root / "seq-train" / "mesh_infos.pkl"
-    infos = pickle.loads(path.read_bytes())
-    name = "frame_000002_view_01"
-    infos[name]["poses"] = infos[name]["poses"].copy()
-    infos[name]["poses"][10] = np.nan
-    path.write_bytes(pickle.dumps(infos))
+    with edited(root / "seq-train" / "mesh_infos.pkl") as infos:
+        name = "frame_000002_view_01"
+        infos[name]["poses"] = infos[name]["poses"].copy()
+        infos[name]["poses"][10] = np.nan
     with pytest.raises(SceneFormatError, match=r"seq-train/mesh_infos\.pkl: non-finite .* frames \[2\]"):
         read_i3d(root, "seq", body.rest_joints[0])
 
@@ -161,11 +160,9 @@ def test_nan_pose_is_reported_at_load(i3d, body):
 def test_views_that_disagree_on_a_frames_fit_are_refused(i3d, body):
     """Per-image entries of one frame carry one world-frame fit; a per-camera fit would be read as the first view's."""
     root, _ = i3d
-    path = root / "seq-train" / "mesh_infos.pkl"
-    infos = pickle.loads(path.read_bytes())
-    name = "frame_000002_view_01"  # its own dict: the writer's views of a frame share one, and pickle keeps that
-    infos[name] = dict(infos[name], Th=infos[name]["Th"] + 0.01)
-    path.write_bytes(pickle.dumps(infos))
+    with edited(root / "seq-train" / "mesh_infos.pkl") as infos:
+        name = "frame_000002_view_01"  # its own dict: the writer's views of a frame share one, and pickle keeps that
+        infos[name] = dict(infos[name], Th=infos[name]["Th"] + 0.01)
     with pytest.raises(SceneFormatError, match=r"seq-train/mesh_infos\.pkl: entries 'frame_000002_view_00' and "
                                                r"'frame_000002_view_01' give frame 2 different Th \(by up to 0\.01\)"):
         read_i3d(root, "seq", body.rest_joints[0])
@@ -173,11 +170,9 @@ def test_views_that_disagree_on_a_frames_fit_are_refused(i3d, body):
 
 def test_splits_that_disagree_on_a_frames_pose_are_refused(i3d, body):
     root, _ = i3d
-    path = root / "seq-novelview" / "mesh_infos.pkl"
-    infos = pickle.loads(path.read_bytes())
-    for name in [n for n in infos if n.startswith("frame_000001")]:
-        infos[name]["poses"] = infos[name]["poses"] + 0.05
-    path.write_bytes(pickle.dumps(infos))
+    with edited(root / "seq-novelview" / "mesh_infos.pkl") as infos:
+        for name in [n for n in infos if n.startswith("frame_000001")]:
+            infos[name]["poses"] = infos[name]["poses"] + 0.05
     with pytest.raises(ValueError, match=r"frame 1 has different poses in .*seq-train/mesh_infos\.pkl and "
                                          r".*seq-novelview/mesh_infos\.pkl"):
         read_i3d(root, "seq", body.rest_joints[0])
