@@ -13,7 +13,8 @@
 # PAPER_RESUME=1 continues that run (resume=true) towards its 15,000 steps. After training, paper_scale is evaluated
 # and probed on the 128 px sweep scene, 4x supersampled (beside the CPU sweep preset); PAPER_EVAL=1 does only that, for
 # a run an earlier call on the warm machine trained. COMPILE=<mode> trains this commit's sweep and paper_scale runs
-# with compile=<mode> (torch.compile of the networks' path and the losses). PAPER_ARGS="<overrides>" adds hydra
+# with compile=<mode> (torch.compile of the networks' path and the losses; unset: the configs' own, none for the sweep
+# preset, reduce-overhead for paper_scale). PAPER_ARGS="<overrides>" adds hydra
 # overrides to the paper_scale run (e.g. data.num_workers=2). LOADER=1 times the training process's work per paper_scale
 # batch moved to the GPU, with the training set on the host and kept on the GPU (data.device_cache).
 # COMPILE=auto: the STEP_COMPILE mode whose step was fastest in this call if 30 % faster than eager, else none.
@@ -134,7 +135,7 @@ PY
 if [ -n "${SWEEP:-}" ]; then
   el "sweep preset, 1000 steps (this commit)"
   run_train "$PWD" "$WORK/sweep" 300 +preset=sweep data=synthetic_sweep trainer=gpu render.backend=gsplat \
-    +trainer.profiler=simple compile=${COMPILE:-none}
+    +trainer.profiler=simple ${COMPILE:+compile=$COMPILE}
   if [ -n "${BASELINE:-}" ]; then
     el "sweep preset, 1000 steps ($BASELINE)"
     run_train "$BASELINE" "$WORK/sweep_baseline" 300 +preset=sweep data=synthetic_sweep trainer=gpu render.backend=gsplat
@@ -153,7 +154,7 @@ if [ -n "${PAPER_SCALE:-}" ]; then
   MAXT=$(printf '00:%02d:%02d:%02d' $((T / 3600)) $((T % 3600 / 60)) $((T % 60)))
   el "+experiment=paper_scale ${RESUME[*]} (training stops after ${PAPER_SCALE}s more: max_time $MAXT)"
   run_train "$PWD" "$WORK/paper_scale" $(( $(left) - 5 )) +experiment=paper_scale +trainer.max_time=$MAXT \
-    +trainer.profiler=simple compile=${COMPILE:-none} "${RESUME[@]}" ${PAPER_ARGS:-}
+    +trainer.profiler=simple ${COMPILE:+compile=$COMPILE} "${RESUME[@]}" ${PAPER_ARGS:-}
 fi
 if [ -n "${PAPER_SCALE:-}${PAPER_EVAL:-}" ] && [ -f "$WORK/paper_scale/metrics.json" ] && [ "$(left)" -gt 40 ]; then
   # Beside the CPU sweep preset on equal terms: the 512 px model on the sweep scene (the same sequence and cameras at

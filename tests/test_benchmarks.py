@@ -108,7 +108,7 @@ def test_device_script_trains_configs_that_compose():
     from realityavatar.config import compose
 
     text = (ROOT / "benchmarks" / "device.sh").read_text().replace("\\\n", " ")  # continuation lines joined
-    text = text.replace('"${RESUME[@]}"', "resume=true").replace("${COMPILE:-none}", "reduce-overhead")
+    text = text.replace('"${RESUME[@]}"', "resume=true").replace("${COMPILE:+compile=$COMPILE}", "compile=reduce-overhead")
     text = text.replace("${PAPER_ARGS:-}", "data.num_workers=2")  # the header's example
     calls = re.findall(r'^\s*run_train "\$\w+" "\$WORK/\w+" (?:\$\(\(.*?\)\)|\S+) (.+)$', text, re.MULTILINE)
     assert len(calls) == 3, calls
