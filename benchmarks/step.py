@@ -197,7 +197,7 @@ def step_parts(module, opt, sched, make_batch, step: int) -> dict:
     img_l, alpha_l = img.detach().requires_grad_(), alpha.detach().requires_grad_()
     t0 = c()
     one = {k: v[:1] for k, v in batch.items()}  # the sample rendered above (as training_step: no device reads)
-    total, _ = module.loss(TrainingRender(img_l, alpha_l, one, p, module, step))
+    total, _ = module.loss(TrainingRender(img_l, alpha_l, one, p, module))
     t["losses_fwd"] = c() - t0
     t0 = c()
     total.backward()

@@ -93,7 +93,7 @@ def _forward(group: str, obj, cfg, body) -> None:
         avatar = SimpleNamespace(body=body, skinning=instantiate(cfg.skinning))
         for term in obj.values():
             term.bind(avatar)  # as AvatarModule does when it is built
-        total, terms = total_loss(obj, TrainingRender(rgb, alpha, {"image": gt, "mask": mask}, {}, avatar, 0))
+        total, terms = total_loss(obj, TrainingRender(rgb, alpha, {"image": gt, "mask": mask}, {}, avatar))
         assert {"l1", "mask", "perceptual", "skin"} <= set(terms) and torch.isfinite(total)
         total.backward()
         assert rgb.grad.abs().sum() > 0
@@ -113,7 +113,7 @@ def _forward(group: str, obj, cfg, body) -> None:
 
         batch = {"viewmat": E[None], "K": K[None], "mask": mask, "mask_dist": mask_distance(mask[0, ..., 0])[None]}
         total, terms = obj(TrainingRender(torch.zeros(1, 32, 32, 3), torch.zeros(1, 32, 32, 1), batch,
-                                          {"means": means[None]}, None, 0))
+                                          {"means": means[None]}, None))
         assert torch.isfinite(total) and total.dim() == 0 and {"sil_outside", "sil_coverage"} <= set(terms)
         total.backward()
         assert means.grad.abs().sum() > 0

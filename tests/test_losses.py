@@ -32,31 +32,34 @@ def _batch(seed=0):
     return pred, alpha, gt, mask
 
 
-def _render(pred, alpha, gt, mask, step=0, skinning=None):
+def _render(pred, alpha, gt, mask, skinning=None):
     from types import SimpleNamespace
 
     from realityavatar.body import build_body
 
     avatar = SimpleNamespace(body=build_body("mannequin"), skinning=skinning)
-    return TrainingRender(pred, alpha, {"image": gt, "mask": mask}, {}, avatar, step)
+    return TrainingRender(pred, alpha, {"image": gt, "mask": mask}, {}, avatar)
 
 
 def test_loss_terms_dssim_fallback_weights_and_schedule():
     """The default terms sum in order with their weights: L1 + 0.1 mask + 0.2 D-SSIM (no VGG19 weights) +
-    λ_skin skinning, λ_skin 10 before the skinning term's switch step and 0.1 from it on."""
+    λ_skin skinning, λ_skin 10 before the skinning term's switch step and 0.1 from it on and for a finished run
+    (set_progress, as the module calls it before each step)."""
     terms = {"rgb": ColourL1(), "mask": MaskLoss(weight=0.1), "perceptual": PerceptualLoss(weight=0.01, dssim_weight=0.2),
              "skinning": SkinningLoss(weight=10.0, weight_after=0.1, switch=5, samples=32)}
     assert terms["perceptual"].kind == "dssim" and terms["perceptual"].weight == 0.2
     pred, alpha, gt, mask = _batch()
     field = SkinningField(hidden_dim=16, num_layers=1)
     with pytest.raises(RuntimeError, match="bind"):
-        total_loss(terms, _render(pred, alpha, gt, mask, 0, field))
+        total_loss(terms, _render(pred, alpha, gt, mask, field))
     for term in terms.values():
-        term.bind(_render(pred, alpha, gt, mask, 0, field).avatar)  # as AvatarModule does when it is built
+        term.bind(_render(pred, alpha, gt, mask, field).avatar)  # as AvatarModule does when it is built
     # the skinning term's pool: 20 x samples points with the body's 24 weights, not saved in checkpoints
     assert terms["skinning"].pool_weights.shape == (640, 24) and not terms["skinning"].state_dict()
-    for step, lam in ((4, 10.0), (5, 0.1)):
-        total, logs = total_loss(terms, _render(pred, alpha, gt, mask, step, field))
+    for step, lam in ((4, 10.0), (5, 0.1), (4, 10.0), (None, 0.1)):
+        for term in terms.values():
+            term.set_progress(step)
+        total, logs = total_loss(terms, _render(pred, alpha, gt, mask, field))
         expected = logs["l1"] + 0.1 * logs["mask"] + 0.2 * logs["perceptual"] + lam * logs["skin"]
         assert float(total.detach()) == pytest.approx(float(expected), rel=1e-6)
     assert float(logs["l1"]) == pytest.approx(float((pred - gt).abs().mean()), rel=1e-6)

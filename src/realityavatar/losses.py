@@ -63,7 +63,6 @@ class TrainingRender:
     batch: dict  # the DataModule's batch: image [B,H,W,3], mask [B,H,W,1], viewmat, K, ...
     posed: dict  # Avatar.deform's output: means [B,N,3], ... (sheet=skirt: sheet_verts [B,P,3])
     avatar: nn.Module  # model/avatar.py Avatar: body, skinning, sheet, ...
-    step: int
 
 
 def total_loss(terms: Mapping[str, nn.Module], out: TrainingRender) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
@@ -80,10 +79,15 @@ def total_loss(terms: Mapping[str, nn.Module], out: TrainingRender) -> tuple[tor
 class LossTerm(nn.Module):
     """A term of the training loss: forward(out) -> (its weighted value, {name: detached value to log}).
     bind(avatar) runs once, when the module is built: outside torch.compile's graphs, what a term draws from the
-    avatar ahead of training (a term that needs nothing keeps this one)."""
+    avatar ahead of training (a term that needs nothing keeps this one). set_progress(step) runs before every
+    training step, also outside the graphs: a term whose weight follows a schedule keeps it in a buffer, so that the
+    compiled loss reads a tensor and is not traced again when the weight changes."""
 
     def bind(self, avatar: nn.Module) -> None:
         """Nothing to prepare."""
+
+    def set_progress(self, step: int | None) -> None:
+        """Nothing follows the step (None: a finished run)."""
 
 
 class ColourL1(LossTerm):
@@ -154,6 +158,9 @@ class SkinningLoss(LossTerm):
         # The pool the samples are drawn from (bind): moved with the module, not saved in checkpoints.
         self.register_buffer("pool_points", torch.zeros(0, 3), persistent=False)
         self.register_buffer("pool_weights", torch.zeros(0, 0), persistent=False)
+        # The weight at the current step (set_progress), on the module's device.
+        self.register_buffer("weight_now", torch.tensor(self.weight), persistent=False)
+        self._weight_set = self.weight
 
     def bind(self, avatar: nn.Module) -> None:
         """A fixed pool of 20 x `samples` points on the canonical body surface and the body's weights there [P,24]."""
@@ -162,8 +169,13 @@ class SkinningLoss(LossTerm):
             body.canonical_vertices().detach(), body.faces, body.skin_weights, 20 * self.samples,
             torch.Generator().manual_seed(1234))
 
-    def weight_at(self, step: int) -> float:
-        return self.weight_after if step >= self.switch else self.weight
+    def set_progress(self, step: int | None) -> None:
+        """weight before step `switch`, weight_after from it on and for a finished run (None); the buffer is
+        written only when the weight changes (no launch in the other steps)."""
+        w = self.weight_after if step is None or step >= self.switch else self.weight
+        if w != self._weight_set:
+            self.weight_now.fill_(w)
+            self._weight_set = w
 
     def targets(self) -> tuple[torch.Tensor, torch.Tensor]:
         """`samples` surface points [S,3] and the body's weights there [S,24], drawn from the pool."""
@@ -175,7 +187,7 @@ class SkinningLoss(LossTerm):
     def forward(self, out: TrainingRender) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         pts, w = self.targets()
         v = skinning_loss(out.avatar.skinning, pts, w)
-        return self.weight_at(out.step) * v, {"skin": v.detach()}
+        return self.weight_now * v, {"skin": v.detach()}
 
 
 class SheetStrain(LossTerm):

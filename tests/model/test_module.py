@@ -382,6 +382,37 @@ def test_compiled_steps_on_a_gpu_replay_cuda_graphs(body, monkeypatch):
     assert 0 < module.deformer.encoding.alpha < module.deformer.encoding.num_freqs  # the window moved every step
 
 
+def test_a_compiled_run_traces_each_graph_once(body, monkeypatch):
+    """compile=...: `deform`, `shade` and `loss` are traced once for a whole run, across the skinning term's weight
+    switch, density refinements that change the Gaussians' count and the decoder's window opening fully. Each of
+    those recompiled the graphs, ~110 s of paper_scale's 387 s on an H100
+    (docs/research/2026-11-28-h100-cuda-graphs.md). Dynamo's guards do not depend on the backend: its eager one
+    traces without compiling."""
+    import functools
+
+    from torch._dynamo.utils import counters
+
+    monkeypatch.setattr(torch, "compile", functools.partial(torch.compile, backend="eager"))
+    module, make_batch = _stepping_module(
+        body, monkeypatch, "cpu", 5, "iterations=20", "density=default", "density.refine_start=4",
+        "density.refine_every=4", "density.grad_threshold=1e-12")  # skinning switch at 2, window open from 10
+    torch._dynamo.reset()
+    counters.clear()
+    module.compile_path("default")
+    counts, graphs = [], []
+    try:
+        for s in range(14):
+            module._test_step = s
+            module.training_step(make_batch(), 0)
+            counts.append(module.gaussians.num_points)
+            graphs.append(counters["stats"]["unique_graphs"])
+    finally:
+        torch._dynamo.reset()
+    assert len(set(counts)) >= 3, counts  # two refinements changed the count
+    assert module.losses["skinning"].switch == 2 and module.deformer.encoding.alpha == module.deformer.encoding.num_freqs
+    assert graphs[0] == 3 and graphs[-1] == graphs[0], graphs
+
+
 def test_a_loss_term_that_is_not_a_loss_term_is_named(body):
     """A configured loss that is not a losses.LossTerm (it could not bind to the avatar) stops the build, naming it."""
     from realityavatar.build import build_module

@@ -42,6 +42,8 @@ class NoDensityControl:
     an error naming it.
     """
 
+    changes_count = False  # the Gaussian count stays fixed: torch.compile may specialise on it
+
     def __init__(self, **settings) -> None:
         import inspect
 
@@ -72,6 +74,8 @@ class DensityControl:
     are pruned; growth stops at max_points. Every `reset_every` steps (0 = never) opacities are clamped to
     2 * prune_opacity. New rows of the optimizer state start at zero; the accumulators reset after each refine.
     """
+
+    changes_count = True  # refinements change the Gaussian count: compiled graphs treat it as dynamic
 
     def __init__(
         self,

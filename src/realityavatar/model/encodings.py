@@ -19,7 +19,9 @@ class FrequencyEncoding(nn.Module):
         self.out_dim = in_dim * (2 * num_freqs + int(include_input))
         self.in_dim = in_dim
         self.alpha = float(num_freqs)  # coarse-to-fine window (set_window); num_freqs: every band at full weight
-        self.windowed = False  # alpha < num_freqs: the bands are weighted by band_weights
+        # The bands are weighted by band_weights once the window has been narrower than every band, and stay so when
+        # it opens fully (the weights reach exactly 1): a compiled graph is not traced again when the window opens.
+        self.windowed = False
         # The window's weight per band and axis, made by set_window on the module's device: under torch.compile the
         # graph reads a tensor, not alpha (a float that changes every step would be a host scalar input of the graph,
         # which CUDA graphs skip).
@@ -31,7 +33,7 @@ class FrequencyEncoding(nn.Module):
         alpha = float(min(max(alpha, 0.0), self.num_freqs))
         if alpha == self.alpha:
             return
-        self.alpha, self.windowed = alpha, alpha < self.num_freqs
+        self.alpha, self.windowed = alpha, self.windowed or alpha < self.num_freqs
         with torch.no_grad():
             k = torch.arange(self.num_freqs, device=self.freqs.device, dtype=self.freqs.dtype)
             w = (1 - torch.cos(math.pi * (alpha - k).clamp(0, 1))) / 2

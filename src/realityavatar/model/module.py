@@ -15,19 +15,18 @@ from torch import nn
 from realityavatar.body.base import BodyModel
 from realityavatar.data.datamodule import composite
 from realityavatar.losses import LossTerm, TrainingRender, total_loss
-from realityavatar.model.avatar import Avatar
+from realityavatar.model.avatar import PER_POINT, Avatar
 
 # Networks whose gradient norm optim.grad_clip bounds (not the Gaussians', nor the sheet's), in this order.
 CLIPPED = ("encoder", "temporal", "deformer", "skinning", "color", "shading")
 # torch.compile modes of the `compile` setting (AvatarModule.compile_path); "none": eager.
 COMPILE_MODES = ("none", "default", "reduce-overhead", "max-autotune")
 # Dynamo's settings for it. Density control replaces the Gaussians' parameters with more or fewer rows, so their first
-# dimension must be allowed to vary (else every refinement recompiles until dynamo's cache limit turns the path
-# eager); the LSTM is traced too (experimental in dynamo; without it the networks are 3 graphs around an eager LSTM,
-# with it one: values and gradients equal eager to 1e-9 on the CPU). A training run makes up to 6 versions of `deform`
-# (the decoder's window closed, opening and open, the first change of the Gaussian count, evaluation's grad mode and
-# inference tensors: ci, TORCH_LOGS=recompiles); dynamo's limit of 8 is raised so that a version more stays compiled.
-DYNAMO_CONFIG = {"force_parameter_static_shapes": False, "allow_rnn": True, "recompile_limit": 16}
+# dimension must be allowed to vary (compile_path marks it dynamic from the first call); the LSTM is traced too
+# (experimental in dynamo; without it the networks are 3 graphs around an eager LSTM, with it one: values and gradients
+# equal eager to 1e-9 on the CPU). Training traces each graph once (the step-dependent state is in tensors:
+# set_progress); evaluation adds versions for its grad mode and inference tensors (TORCH_LOGS=recompiles shows them).
+DYNAMO_CONFIG = {"force_parameter_static_shapes": False, "allow_rnn": True}
 # The sheet's optimizer groups take the free Gaussians' rates of the same name, its motion basis the decoder's.
 SHEET_RATES = {"sheet_normal_offset": "means", "sheet_basis": "deformer", "sheet_coeff": "deformer"}
 
@@ -115,10 +114,13 @@ class AvatarModule(Avatar, pl.LightningModule):
         self.register_load_state_dict_post_hook(_ignore_frozen_networks)
 
     def set_progress(self, step: int | None) -> None:
-        """Put the step-dependent state of the networks where training step `step` has it (None: a finished run):
-        the decoder's coarse-to-fine window (schedule.deform_anneal). Called every training step, and by `load_run`
-        with the checkpoint's step, so a checkpoint saved mid-anneal renders as it trained."""
+        """Put the step-dependent state where training step `step` has it (None: a finished run): the decoder's
+        coarse-to-fine window (schedule.deform_anneal) and the loss terms' scheduled weights. Called every training
+        step, and by `load_run` with the checkpoint's step, so a checkpoint saved mid-anneal renders as it trained.
+        Outside the compiled graphs: they read tensors this writes, and are not traced again as the step advances."""
         self.deformer.set_window(self.schedule.deform_window(step))
+        for term in self.losses.values():
+            term.set_progress(step)
 
     # ------------------------------------------------------------------ training
     def setup(self, stage: str) -> None:
@@ -164,7 +166,7 @@ class AvatarModule(Avatar, pl.LightningModule):
         check: the rasterizer's input checks, which read the device (training runs them on log steps only)."""
         self.set_progress(step)
         rgb, alpha, metas, posed = self.render_batch(batch, deform=self.schedule.deform_on(step), check_finite=check)
-        out = TrainingRender(rgb, alpha, batch, posed, self, step)
+        out = TrainingRender(rgb, alpha, batch, posed, self)
         total, terms = self.loss(out)
         return total, terms, out, metas
 
@@ -185,8 +187,30 @@ class AvatarModule(Avatar, pl.LightningModule):
             setattr(torch._dynamo.config, key, value)
         kw = {} if mode == "default" else {"mode": mode}
         self.deform, self.shade, self.loss = (torch.compile(f, **kw) for f in (self.deform, self.shade, self.loss))
+        if self.density.changes_count:
+            self.deform, self.shade = self._count_dynamic(self.deform, self.shade)
         if mode == "reduce-overhead":
             self.mark_step = torch.compiler.cudagraph_mark_step_begin
+
+    def _count_dynamic(self, compiled_deform, compiled_shade):
+        """`deform` and `shade` with the Gaussian count marked dynamic in their inputs (the free Gaussians'
+        parameters, the posed Gaussians' per-point entries) before each call, so that dynamo traces them for any count
+        from the first call. Otherwise the first refinement that changes the count traces `deform`, `shade` and `loss`
+        again (45 s on an H100). `loss` reads the same tensors."""
+        mark = torch._dynamo.maybe_mark_dynamic
+
+        def deform_any_count(inputs: dict, deform: bool = True) -> dict:
+            for p in self.gaussians.parameters():
+                mark(p, 0)
+            return compiled_deform(inputs, deform=deform)
+
+        def shade_any_count(posed: dict, viewmats: torch.Tensor, frame_idx: torch.Tensor) -> torch.Tensor:
+            for k in PER_POINT:
+                mark(posed[k], 1)
+            mark(posed["opacities"], 0)
+            return compiled_shade(posed, viewmats, frame_idx)
+
+        return deform_any_count, shade_any_count
 
     def mark_step(self) -> None:
         """A new training iteration begins (compile=reduce-overhead: of the CUDA graphs; eager: nothing)."""
