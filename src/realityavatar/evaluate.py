@@ -35,6 +35,8 @@ def write_outputs(records: list[dict], out_dir: Path, save_images: int = 8, save
     split. Returns written paths."""
     import imageio.v2 as imageio
 
+    from realityavatar.animate import check_video_writer
+
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = {}
     csv_path = out_dir / "per_frame.csv"
@@ -67,6 +69,7 @@ def write_outputs(records: list[dict], out_dir: Path, save_images: int = 8, save
             frames = [(np.clip(fr, 0, 1) * 255).round().astype(np.uint8) for fr in frames]
             p = out_dir / "videos" / f"{split}.mp4"
             try:
+                check_video_writer(p)  # without ffmpeg imageio takes a TIFF writer for .mp4 (TypeError on fps)
                 imageio.mimwrite(p, frames, fps=fps, macro_block_size=1)
                 paths[f"{split}_video"] = str(p)
             except Exception as e:  # noqa: BLE001 (no ffmpeg, or a writer error: keep the metrics, say why)

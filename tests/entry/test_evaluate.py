@@ -107,3 +107,21 @@ def test_a_bad_setting_given_to_evaluate_or_the_probe_names_its_key(trained_run)
     with pytest.raises(ValueError, match=r"^data\.image_scale"):
         probe.probe_run(out, kinds=("heldout",), overrides=["data.image_scale=-1"])
     assert {p: p.read_bytes() for p in before} == before
+
+
+def test_evaluation_without_ffmpeg_keeps_its_outputs_and_says_why_no_video(tmp_path, monkeypatch, capsys):
+    """No imageio-ffmpeg (a GPU image without it): the per-frame CSV and grids are written, and the missing video
+    names the package, not imageio's TIFF writer's TypeError on `fps` (what the H100 printed on 2026-11-28)."""
+    import sys
+
+    import torch
+
+    from realityavatar.evaluate import write_outputs
+
+    monkeypatch.setitem(sys.modules, "imageio_ffmpeg", None)
+    img = torch.rand(8, 8, 3)
+    records = [{"split": "novel_view", "frame": f, "view": 0, "psnr": 30.0, "_pred": img, "_gt": img} for f in range(3)]
+    paths = write_outputs(records, tmp_path, save_images=2, save_video=True)
+    assert set(paths) == {"per_frame_csv", "novel_view_grid"}
+    err = capsys.readouterr().err
+    assert "video for novel_view not written" in err and "imageio-ffmpeg" in err and "TiffWriter" not in err, err
