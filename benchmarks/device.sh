@@ -18,6 +18,8 @@
 # overrides to the paper_scale run (e.g. data.num_workers=2). LOADER=1 times the training process's work per paper_scale
 # batch moved to the GPU, with the training set on the host and kept on the GPU (data.device_cache).
 # COMPILE=auto: the STEP_COMPILE mode whose step was fastest in this call if 30 % faster than eager, else none.
+# STEP_ARGS="<step.py arguments>" adds them to every step row (e.g. "--override density=off": a fixed Gaussian count,
+# which compiled graphs specialise on; with density control they take it as dynamic).
 #
 # Wheels (Python 3.12, x86_64; on a machine with pip and network):
 #   python3 -m pip download --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
@@ -75,7 +77,7 @@ if [ "${GPU_TESTS:-1}" != 0 ]; then  # GPU_TESTS=0: a later call on the warm mac
   echo "pytest rc $?"; grep -E "passed|failed|^FAILED|^E " "$WORK/pytest_gpu.log" | tail -8
 fi
 if [ -n "${SCENES_PID:-}" ]; then wait "$SCENES_PID"; el "scenes built (rc $?; $WORK/scenes.log)"; fi
-STEP="benchmarks/step.py --device cuda --backends gsplat"
+STEP="benchmarks/step.py --device cuda --backends gsplat ${STEP_ARGS:-}"  # STEP_ARGS: e.g. "--override density=off"
 IFS=";" read -ra SIZES <<< "${STEP_SIZES-7000 128;35000 512}"   # "N size;N size"; STEP_SIZES="" profiles nothing
 for NS in "${SIZES[@]}"; do set -- $NS
   el "step profile ($1 / $2)"
