@@ -148,7 +148,7 @@ if [ -n "${PAPER_SCALE:-}" ]; then
   # seconds for set-up and evaluation (metrics.json's iterations: the steps reached); the hard limit is the deadline.
   # PAPER_RESUME=1 (a later call on the warm machine): the run in $WORK/paper_scale goes on (resume=true) for
   # PAPER_SCALE more seconds; Lightning's limit counts the earlier part's training time, so it is raised by that.
-  S=$(( $(left) - ${PAPER_RESERVE:-90} )); [ "$S" -lt "$PAPER_SCALE" ] && PAPER_SCALE=$S  # set-up + evaluation
+  S=$(( $(left) - ${PAPER_RESERVE:-110} )); [ "$S" -lt "$PAPER_SCALE" ] && PAPER_SCALE=$S  # set-up + evaluation
   RESUME=(); T=$PAPER_SCALE
   if [ -n "${PAPER_RESUME:-}" ] && [ -f "$WORK/paper_scale/last.ckpt" ]; then
     RESUME=(resume=true); T=$(( T + $(python3 -c "import json; print(int(json.load(open('$WORK/paper_scale/metrics.json'))['train_seconds']))") ))
