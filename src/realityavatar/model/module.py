@@ -188,16 +188,22 @@ class AvatarModule(Avatar, pl.LightningModule):
         kw = {} if mode == "default" else {"mode": mode}
         self.deform, self.shade, self.loss = (torch.compile(f, **kw) for f in (self.deform, self.shade, self.loss))
         if self.density.changes_count:
-            self.deform, self.shade = self._count_dynamic(self.deform, self.shade)
+            self.deform, self.shade, self.loss = self._count_dynamic(self.deform, self.shade, self.loss)
         if mode == "reduce-overhead":
             self.mark_step = torch.compiler.cudagraph_mark_step_begin
 
-    def _count_dynamic(self, compiled_deform, compiled_shade):
-        """`deform` and `shade` with the Gaussian count marked dynamic in their inputs (the free Gaussians'
+    def _count_dynamic(self, compiled_deform, compiled_shade, compiled_loss):
+        """`deform`, `shade` and `loss` with the Gaussian count marked dynamic in their inputs (the free Gaussians'
         parameters, the posed Gaussians' per-point entries) before each call, so that dynamo traces them for any count
-        from the first call. Otherwise the first refinement that changes the count traces `deform`, `shade` and `loss`
-        again (45 s on an H100). `loss` reads the same tensors."""
+        from the first call. Otherwise the first refinement that changes the count traces all three again (45 s on an
+        H100). A graph traced with marked inputs is traced again for unmarked ones: every caller's are marked here."""
         mark = torch._dynamo.maybe_mark_dynamic
+
+        def mark_posed(posed: dict) -> None:
+            for k, v in posed.items():
+                if k in PER_POINT:
+                    mark(v, 1)  # [B,N,...]
+            mark(posed["opacities"], 0)  # [N]
 
         def deform_any_count(inputs: dict, deform: bool = True) -> dict:
             for p in self.gaussians.parameters():
@@ -205,12 +211,14 @@ class AvatarModule(Avatar, pl.LightningModule):
             return compiled_deform(inputs, deform=deform)
 
         def shade_any_count(posed: dict, viewmats: torch.Tensor, frame_idx: torch.Tensor) -> torch.Tensor:
-            for k in PER_POINT:
-                mark(posed[k], 1)
-            mark(posed["opacities"], 0)
+            mark_posed(posed)
             return compiled_shade(posed, viewmats, frame_idx)
 
-        return deform_any_count, shade_any_count
+        def loss_any_count(out: TrainingRender) -> tuple[torch.Tensor, dict]:
+            mark_posed(out.posed)
+            return compiled_loss(out)
+
+        return deform_any_count, shade_any_count, loss_any_count
 
     def mark_step(self) -> None:
         """A new training iteration begins (compile=reduce-overhead: of the CUDA graphs; eager: nothing)."""
