@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 from realityavatar.data.i3d import I3DSplitWriter
-from realityavatar.data.records import intrinsics_problem, rotation_problem
+from realityavatar.data.records import camera_problems
 
 IMAGE_EXTS = (".png", ".jpg", ".jpeg")
 
@@ -103,8 +103,7 @@ def scan(folder: str | Path, train_views: Sequence[int] | None = None, test_view
             arrs[field] = a
         if ok and "R" in arrs:
             # reported, the camera kept: its images are checked too (all problems at once; nothing is converted)
-            problems += [f"{where}: {field} {why}" for field, why in (("R", rotation_problem(arrs["R"])),
-                                                                     ("K", intrinsics_problem(arrs["K"]))) if why]
+            problems += [f"{where}: {p}" for p in camera_problems(arrs["R"], arrs["K"])]
         if ok:
             arrs.setdefault("D", np.zeros(5))
             cams[cam_id] = arrs

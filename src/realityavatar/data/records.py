@@ -98,6 +98,11 @@ def intrinsics_problem(K: np.ndarray) -> str | None:
     return _last_row_problem(K)
 
 
+def camera_problems(R: np.ndarray, K: np.ndarray) -> list[str]:
+    """What is wrong with a camera's world-to-camera rotation R [3,3] and intrinsics K [3,3], each "<field> <why>"."""
+    return [f"{field} {why}" for field, why in (("R", rotation_problem(R)), ("K", intrinsics_problem(K))) if why]
+
+
 def extrinsics_problem(E: np.ndarray) -> str | None:
     """Why E [4,4] is not a rigid world-to-camera transform, or None: a rotation block, last row [0, 0, 0, 1]."""
     return rotation_problem(E[:3, :3]) or _last_row_problem(E)

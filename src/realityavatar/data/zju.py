@@ -20,10 +20,9 @@ from realityavatar.data.records import (
     ImageRecord,
     SceneData,
     SceneFormatError,
+    camera_problems,
     check_shape,
-    intrinsics_problem,
     require_key,
-    rotation_problem,
 )
 
 MODEL_KEYS = {"root_orient": 3, "pose_body": 63, "pose_hand": 6, "trans": 3}
@@ -47,9 +46,8 @@ def read_cam_params(subject_dir: Path) -> dict[str, dict[str, np.ndarray]]:
         c, where = raw[name], f"camera {name!r}"
         K = check_shape(require_key(c, "K", path, where, "[3,3] intrinsics"), (3, 3), path, f"{where} K")
         R = check_shape(require_key(c, "R", path, where, "[3,3] world-to-camera rotation"), (3, 3), path, f"{where} R")
-        for field, why in (("R", rotation_problem(R)), ("K", intrinsics_problem(K))):
-            if why:
-                raise SceneFormatError(f"{path}: {where} {field} {why}")
+        if problems := camera_problems(R, K):
+            raise SceneFormatError(f"{path}: {where} {problems[0]}")
         T = check_shape(require_key(c, "T", path, where, "[3] translation in metres"), (3,), path, f"{where} T")
         D = np.asarray(c.get("D", np.zeros(5)), dtype=np.float64).reshape(-1)
         E = np.eye(4)
