@@ -14,19 +14,28 @@ import torch
 
 from realityavatar.build import build_data, load_run, run_device, write_json
 
-METRIC_KEYS = ("psnr", "ssim", "iou", "lpips", "psnr_masked", "ssim_masked", "lpips_masked")
+# metrics.image_metrics's scores: the whole image, the mask's box ("masked"), the garment's pixels ("garment")
+METRIC_KEYS = ("psnr", "ssim", "iou", "flip", "lpips", "psnr_masked", "ssim_masked", "flip_masked", "lpips_masked",
+               "detail_masked", "psnr_garment", "ssim_garment", "flip_garment", "detail_garment")
+PHASES = ("rest", "spin", "after", "settled")  # data.poses.PoseTable.motion_phases
 
 
 def summarise(records: list[dict]) -> dict:
-    """Mean of every metric per split: {"test/<split>/<metric>": value}; absent metrics stay absent."""
+    """Mean of every metric per split, "test/<split>/<metric>", and per motion phase of the split (records with a
+    "phase" other than "all"), "test/<split>/<phase>/<metric>"; absent metrics stay absent."""
     out: dict = {}
     for split in sorted({r["split"] for r in records}):
         rows = [r for r in records if r["split"] == split]
-        out[f"test/{split}/num_images"] = len(rows)
-        for k in METRIC_KEYS:
-            vals = [r[k] for r in rows if k in r and np.isfinite(r[k])]
-            if vals:
-                out[f"test/{split}/{k}"] = float(np.mean(vals))
+        groups = [(f"test/{split}", rows)] + [(f"test/{split}/{ph}", [r for r in rows if r.get("phase") == ph])
+                                              for ph in PHASES]
+        for prefix, sel in groups:
+            if not sel:
+                continue
+            out[f"{prefix}/num_images"] = len(sel)
+            for k in METRIC_KEYS:
+                vals = [r[k] for r in sel if k in r and np.isfinite(r[k])]
+                if vals:
+                    out[f"{prefix}/{k}"] = float(np.mean(vals))
     return out
 
 
@@ -42,9 +51,10 @@ def write_outputs(records: list[dict], out_dir: Path, save_images: int = 8, save
     csv_path = out_dir / "per_frame.csv"
     with open(csv_path, "w", newline="") as f:
         w = csv.writer(f)
-        w.writerow(["split", "frame", "view", *METRIC_KEYS])
+        w.writerow(["split", "frame", "view", "phase", *METRIC_KEYS])
         for r in records:
-            w.writerow([r["split"], r["frame"], r["view"], *[f"{r[k]:.6f}" if k in r else "" for k in METRIC_KEYS]])
+            w.writerow([r["split"], r["frame"], r["view"], r.get("phase", "all"),
+                        *[f"{r[k]:.6f}" if k in r else "" for k in METRIC_KEYS]])
     paths["per_frame_csv"] = str(csv_path)
     (out_dir / "images").mkdir(exist_ok=True)
     (out_dir / "videos").mkdir(exist_ok=True)
@@ -88,6 +98,15 @@ def split_loader(dm, split: str, max_frames: int | None = None):
     return dm._loader(torch.utils.data.Subset(ds, idx), shuffle=False)
 
 
+def motion_phases(dm, split: str) -> dict[int, str]:
+    """{frame: phase} of a split's frames from its poses (PoseTable.motion_phases); every frame "all" when the data
+    has no frame rate (a config from before data.fps)."""
+    frames = sorted({r.frame for r in dm.datasets[split].records})
+    if not dm.fps:
+        return dict.fromkeys(frames, "all")
+    return dm.scene.poses.motion_phases(frames, dm.fps)
+
+
 def evaluate_module(module, dm, trainer, cfg, out_dir: Path) -> dict:
     """Test every split (novel_view, novel_pose), write outputs, return the metric dict.
 
@@ -103,7 +122,8 @@ def evaluate_module(module, dm, trainer, cfg, out_dir: Path) -> dict:
         module.test_records = []
         try:
             trainer.test(module, dataloaders=split_loader(dm, split, ev.get("max_frames_per_split")), verbose=False)
-            records += module.test_records
+            phases = motion_phases(dm, split)
+            records += [{**r, "phase": phases.get(r["frame"], "all")} for r in module.test_records]
         except Exception as e:  # noqa: BLE001 - recorded; the other split still runs
             errors[f"test/{split}"] = f"{type(e).__name__}: {e}"
     module.test_records = []
@@ -145,18 +165,38 @@ def undersampled(info: dict, supersample: int, width: int) -> str | None:
 
 
 def format_table(metrics: dict) -> str:
-    """A short results table for the terminal."""
-    lines = [f"{'split':<12}{'PSNR':>8}{'SSIM':>8}{'IoU':>7}{'LPIPS':>9}{'PSNR(box)':>11}{'SSIM(box)':>11}{'images':>8}"]
-    for split in ("novel_view", "novel_pose"):
-        def g(k, split=split):
-            return metrics.get(f"test/{split}/{k}")
+    """A short results table for the terminal: per split, then per split and motion phase where the data has
+    phases (the garment's columns where it has garment labels)."""
+    def g(key):
+        return metrics.get(key)
 
-        if g("psnr") is None:
+    def num(v, fmt):
+        return f"{v:{fmt}}" if v is not None and np.isfinite(v) else f"{'-':>{int(fmt.split('.')[0])}}"
+
+    lines = [f"{'split':<12}{'PSNR':>8}{'SSIM':>8}{'IoU':>7}{'FLIP':>8}{'LPIPS':>9}{'PSNR(box)':>11}{'SSIM(box)':>11}"
+             f"{'images':>8}"]
+    for split in ("novel_view", "novel_pose"):
+        p = f"test/{split}"
+        if g(f"{p}/psnr") is None:
             continue
-        lp = f"{g('lpips'):9.2f}" if g("lpips") is not None else f"{'n/c':>9}"
-        lines.append(
-            f"{split:<12}{g('psnr'):8.2f}{g('ssim'):8.4f}{g('iou') if g('iou') is not None else float('nan'):7.3f}{lp}{g('psnr_masked'):11.2f}{g('ssim_masked'):11.4f}{g('num_images'):8d}"
-        )
+        lp = f"{g(f'{p}/lpips'):9.2f}" if g(f"{p}/lpips") is not None else f"{'n/c':>9}"
+        lines.append(f"{split:<12}{num(g(f'{p}/psnr'), '8.2f')}{num(g(f'{p}/ssim'), '8.4f')}"
+                     f"{num(g(f'{p}/iou'), '7.3f')}{num(g(f'{p}/flip'), '8.4f')}{lp}{num(g(f'{p}/psnr_masked'), '11.2f')}"
+                     f"{num(g(f'{p}/ssim_masked'), '11.4f')}{g(f'{p}/num_images'):8d}")
+    phased = [(split, ph) for split in ("novel_view", "novel_pose") for ph in PHASES
+              if g(f"test/{split}/{ph}/num_images")]
+    if phased:
+        garment = any(g(f"test/{s}/{ph}/psnr_garment") is not None for s, ph in phased)
+        cols = [("PSNR", "psnr", "8.2f"), ("PSNR(box)", "psnr_masked", "11.2f"), ("detail", "detail_masked", "8.2f")]
+        if garment:
+            cols += [("PSNR(garm)", "psnr_garment", "12.2f"), ("SSIM(garm)", "ssim_garment", "12.4f"),
+                     ("FLIP(garm)", "flip_garment", "12.4f"), ("detail(garm)", "detail_garment", "14.2f")]
+        lines.append(f"{'phase':<21}" + "".join(f"{name:>{int(fmt.split('.')[0])}}" for name, _, fmt in cols)
+                     + f"{'images':>8}")
+        for split, ph in phased:
+            p = f"test/{split}/{ph}"
+            lines.append(f"{split + ' ' + ph:<21}" + "".join(num(g(f"{p}/{k}"), fmt) for _, k, fmt in cols)
+                         + f"{g(f'{p}/num_images'):8d}")
     lines.append(
         f"Gaussians {metrics.get('num_gaussians')}  parameters {metrics.get('num_parameters')}  "
         f"train {metrics.get('train_seconds', float('nan')):.0f} s / {metrics.get('iterations')} it  "

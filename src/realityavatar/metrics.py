@@ -1,4 +1,5 @@
-"""Image metrics: PSNR, SSIM, LPIPS (pure torch from weight files, or the lpips package), mask-box crops, flicker.
+"""Image metrics: PSNR, SSIM, FLIP, LPIPS (pure torch from weight files, or the lpips package), mask-box crops, the
+garment's region and its detail (image_metrics: every score of a held-out image), flicker.
 
 Images are float [H,W,3] or [B,H,W,3] in [0,1]; batched inputs give one value per image.
 """
@@ -51,17 +52,10 @@ def _gaussian_1d(size: int = 11, sigma: float = 1.5, device=None) -> torch.Tenso
     return g / g.sum()  # [size] float64
 
 
-def ssim(pred: torch.Tensor, gt: torch.Tensor, window: int = 11, sigma: float = 1.5) -> torch.Tensor:
-    """Mean SSIM (Wang et al. 2004) with an 11x11 Gaussian window (sigma 1.5), K1=0.01, K2=0.03, data range 1.
-
-    Convention: local statistics use population (not sample) covariance and the mean is taken over 'valid'
-    window positions only, averaged over channels. This equals skimage's
-    structural_similarity(gaussian_weights=True, sigma=1.5, use_sample_covariance=False, data_range=1,
-    channel_axis=-1) (its filter is 11 wide for sigma 1.5 and it crops 5 border pixels before averaging).
-    3DGS's training SSIM zero-pads instead and reads slightly lower near borders. Images smaller than the
-    window are edge-padded up to it.
-    """
-    p, single = _batched(pred, "pred")
+def ssim_map(pred: torch.Tensor, gt: torch.Tensor, window: int = 11, sigma: float = 1.5) -> torch.Tensor:
+    """Local SSIM of each 'valid' window position, averaged over channels: [B,H-2r,W-2r] float64 (r = window // 2;
+    `ssim` is its mean). Images smaller than the window are edge-padded up to it first."""
+    p, _ = _batched(pred, "pred")
     g, _ = _batched(gt, "gt")
     # float64: convolutions on CUDA would otherwise run in TF32 (cudnn's default) and change the metric
     x = p.double().permute(0, 3, 1, 2)  # [B,C,H,W]
@@ -92,8 +86,21 @@ def ssim(pred: torch.Tensor, gt: torch.Tensor, window: int = 11, sigma: float = 
     sxy = filt(x * y) - mx * my
     c1, c2 = 0.01**2, 0.03**2
     s = ((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx * mx + my * my + c1) * (sxx + syy + c2))
-    out = s.flatten(1).mean(1)
-    return out[0] if single else out
+    return s.mean(1)
+
+
+def ssim(pred: torch.Tensor, gt: torch.Tensor, window: int = 11, sigma: float = 1.5) -> torch.Tensor:
+    """Mean SSIM (Wang et al. 2004) with an 11x11 Gaussian window (sigma 1.5), K1=0.01, K2=0.03, data range 1.
+
+    Convention: local statistics use population (not sample) covariance and the mean is taken over 'valid'
+    window positions only, averaged over channels. This equals skimage's
+    structural_similarity(gaussian_weights=True, sigma=1.5, use_sample_covariance=False, data_range=1,
+    channel_axis=-1) (its filter is 11 wide for sigma 1.5 and it crops 5 border pixels before averaging).
+    3DGS's training SSIM zero-pads instead and reads slightly lower near borders. Images smaller than the
+    window are edge-padded up to it.
+    """
+    out = ssim_map(pred, gt, window, sigma).flatten(1).mean(1)
+    return out[0] if pred.ndim == 3 else out
 
 
 def silhouette_iou(alpha: torch.Tensor, mask: torch.Tensor, threshold: float = 0.5) -> torch.Tensor:
@@ -131,6 +138,92 @@ def ssim_masked(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor) -> tor
     if pred.ndim == 3:
         return ssim(*masked_bbox(pred, gt, mask))
     return torch.stack([ssim(*masked_bbox(p, g, m)) for p, g, m in zip(pred, gt, mask)])
+
+
+REGION_ERODE = 2  # pixels taken off a region's edge before it is scored: its outline is the silhouette's, not texture
+
+
+def erode(region: torch.Tensor, pixels: int = REGION_ERODE) -> torch.Tensor:
+    """region [H,W,1] (> 0.5 inside) -> bool [H,W,1] without the pixels within `pixels` of its edge (a square
+    structuring element: a pixel stays when its (2 pixels + 1)^2 neighbourhood is inside; the image's edge counts as
+    outside)."""
+    inside = (region > 0.5).double().permute(2, 0, 1)[None]  # [1,1,H,W]
+    k = 2 * pixels + 1
+    kept = -F.max_pool2d(-F.pad(inside, (pixels,) * 4, value=0.0), k, stride=1)
+    return kept[0].permute(1, 2, 0) > 0.5
+
+
+def laplacian_energy(image: torch.Tensor) -> torch.Tensor:
+    """|discrete Laplacian| of image [H,W,3], averaged over channels: [H,W] float64 (edge-replicated), the fine
+    detail that blur removes."""
+    x = image.double().permute(2, 0, 1)[:, None]  # [3,1,H,W]
+    k = torch.tensor([[0.0, 1.0, 0.0], [1.0, -4.0, 1.0], [0.0, 1.0, 0.0]], dtype=torch.float64, device=x.device)
+    return F.conv2d(F.pad(x, (1, 1, 1, 1), mode="replicate"), k.view(1, 1, 3, 3)).abs().mean(0)[0]
+
+
+def flip_map(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
+    """NVIDIA's FLIP error (Andersson et al. 2020, LDR, default 67 pixels per degree) of pred against gt [H,W,3] in
+    [0,1]: [H,W] float64 in [0,1], 0 where they look alike. A perceptual error that needs no downloaded weights
+    (the flip-evaluator package computes it)."""
+    import flip_evaluator
+    import numpy as np
+
+    def arr(t: torch.Tensor):
+        return np.ascontiguousarray(t.detach().clamp(0, 1).cpu().numpy(), dtype=np.float32)
+
+    err, _, _ = flip_evaluator.evaluate(arr(gt), arr(pred), "LDR", applyMagma=False, computeMeanError=False)
+    return torch.from_numpy(np.asarray(err, dtype=np.float64).reshape(gt.shape[0], gt.shape[1]))
+
+
+def region_metrics(pred: torch.Tensor, gt: torch.Tensor, region: torch.Tensor, flip: torch.Tensor,
+                   ssim_local: torch.Tensor) -> dict[str, float]:
+    """Scores of pred against gt [H,W,3] inside `region` [H,W,1] (bool, already eroded), from the whole image's FLIP
+    map [H,W] and SSIM map (ssim_map's [H-10,W-10] valid positions): psnr (over the region's pixels), ssim and flip
+    (their maps' means there), detail (mean |Laplacian| of pred over gt's: 1 keeps the texture, < 1 blurs it).
+    {} for an empty region."""
+    m = region[..., 0]
+    n = int(m.sum())
+    if n == 0:
+        return {}
+    diff = (pred.double() - gt.double())[m]  # [n,3]
+    mse = float((diff**2).mean())
+    r = (m.shape[0] - ssim_local.shape[0]) // 2
+    m_valid = m[r : m.shape[0] - r, r : m.shape[1] - r].to(ssim_local.device)
+    lap_gt = float(laplacian_energy(gt)[m].mean())
+    out = {"psnr": -10.0 * math.log10(mse) if mse > 0 else math.inf,
+           "flip": float(flip.to(m.device)[m].mean()),
+           "detail": float(laplacian_energy(pred)[m].mean()) / lap_gt if lap_gt > 0 else math.nan}
+    if m_valid.any():
+        out["ssim"] = float(ssim_local[m_valid].mean())
+    return out
+
+
+def image_metrics(pred: torch.Tensor, gt: torch.Tensor, alpha: torch.Tensor, mask: torch.Tensor,
+                  garment: torch.Tensor | None = None, lpips: nn.Module | None = None) -> dict[str, float]:
+    """Every score of one held-out image: pred, gt [H,W,3] in [0,1], alpha, mask [H,W,1], garment [H,W,1] (the
+    pixels that show the garment, synthetic scenes) or None.
+
+    Whole image: psnr, ssim, flip, iou (alpha > 0.5 against the mask), lpips (x1000, when given). Inside the mask's
+    bounding box: psnr_masked, ssim_masked, flip_masked, lpips_masked. Inside the mask, eroded by REGION_ERODE:
+    detail_masked. Inside the garment label, eroded likewise: psnr_garment, ssim_garment, flip_garment,
+    detail_garment (absent when the label is empty after erosion)."""
+    flip = flip_map(pred, gt)
+    local = ssim_map(pred, gt)[0]
+    rec = {"psnr": float(psnr(pred, gt)), "ssim": float(local.mean()), "flip": float(flip.mean()),
+           "iou": float(silhouette_iou(alpha, mask))}
+    y0, y1, x0, x1 = mask_bbox(mask)
+    pb, gb = pred[y0:y1, x0:x1], gt[y0:y1, x0:x1]
+    rec["psnr_masked"], rec["ssim_masked"] = float(psnr(pb, gb)), float(ssim(pb, gb))
+    rec["flip_masked"] = float(flip[y0:y1, x0:x1].mean())
+    inner = region_metrics(pred, gt, erode(mask), flip, local)
+    if "detail" in inner:
+        rec["detail_masked"] = inner["detail"]
+    if garment is not None:
+        rec.update({f"{k}_garment": v for k, v in region_metrics(pred, gt, erode(garment), flip, local).items()})
+    if lpips is not None:
+        rec["lpips"] = float(lpips(pred, gt)) * 1000.0
+        rec["lpips_masked"] = float(lpips(pb, gb)) * 1000.0
+    return rec
 
 
 def temporal_flicker(frames_pred: torch.Tensor, frames_gt: torch.Tensor) -> float:

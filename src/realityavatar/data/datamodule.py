@@ -23,6 +23,7 @@ from realityavatar.data.records import (
     SceneData,
     SceneFormatError,
     image_size,
+    load_garment,
     load_record,
     mask_distance,
 )
@@ -37,7 +38,9 @@ class AvatarDataset(Dataset):
     """Image records of one split -> sample dicts. Images decode lazily; `cache_images` keeps decoded uint8 copies
     (and the masks' distance fields). Every sample carries the model's pose inputs (model/avatar.py pose_inputs:
     the encoder's features of its pose window and the body's bone transforms), made here on the host by `body`, once
-    per frame (the poses are fixed: every camera of a frame and every epoch reuse them)."""
+    per frame (the poses are fixed: every camera of a frame and every epoch reuse them). With `garment_labels` (the
+    held-out splits) and records that have them (synthetic scenes), a sample carries `garment` bool [H,W,1]: the
+    pixels that show the garment, which evaluation scores on their own; training samples never carry it."""
 
     def __init__(
         self,
@@ -52,8 +55,10 @@ class AvatarDataset(Dataset):
         image_scale: float = 1.0,
         undistort: bool = True,
         cache_images: bool = False,
+        garment_labels: bool = False,
     ) -> None:
         self.records = list(records)
+        self.garment_labels = garment_labels and bool(self.records) and all(r.garment_path for r in self.records)
         self.poses = poses
         self.split = split
         self.body = body
@@ -65,6 +70,7 @@ class AvatarDataset(Dataset):
         self.cache_images = cache_images
         self._cache: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
         self._dist_cache: dict[int, torch.Tensor] = {}
+        self._garment_cache: dict[int, np.ndarray] = {}
         self._pose_cache: dict[int, tuple] = {}  # frame -> (poses, transl, pose_inputs): ~7 kB each (T=6)
 
     def __len__(self) -> int:
@@ -116,6 +122,16 @@ class AvatarDataset(Dataset):
             "view": int(rec.view),
             "split": self.split,
         }
+        if self.garment_labels:
+            label = self._garment_cache.get(i)
+            if label is None:
+                label = load_garment(rec, self.image_scale, self.undistort)
+                if self.cache_images:
+                    self._garment_cache[i] = label
+            if label.shape != mask_b.shape:
+                raise SceneFormatError(f"garment label {rec.garment_path} is {label.shape[1]}x{label.shape[0]} but "
+                                       f"image {rec.image_path} is {mask_b.shape[1]}x{mask_b.shape[0]}")
+            out["garment"] = torch.from_numpy(label)[..., None]  # bool [H,W,1]
         return out
 
 
@@ -559,7 +575,8 @@ class AvatarDataModule(pl.LightningDataModule):
             raise ValueError(f"{scene.source}: AvatarDataModule needs the body model (body=...) to serve samples: "
                              "each carries the pose window's bone transforms")
         body = self.body.host_copy()  # the samples' pose inputs are made on the host, in the workers
-        self.datasets = {s: AvatarDataset(recs, scene.poses, s, body, **kw) for s, recs in selected.items() if recs}
+        self.datasets = {s: AvatarDataset(recs, scene.poses, s, body, garment_labels=s != "train", **kw)
+                         for s, recs in selected.items() if recs}
         self.test_split_names = [s for s in ("novel_view", "novel_pose") if s in self.datasets]
         if self.shuffle_seed is None:
             self.shuffle_seed = int(torch.initial_seed()) % (2**31)

@@ -26,6 +26,9 @@ from realityavatar.data.records import (
 )
 
 FOLDERS = {"train": "train", "novel_view": "novelview", "novel_pose": "novelpose"}
+# Synthetic scenes only: the pixels whose surface is the garment (the scene builder's ray hits on the cloth mesh), which
+# evaluation scores on their own (metrics.garment_metrics). Never read for training: a real capture has none.
+GARMENT_FOLDER = "garment_masks"
 FRAME_NAME = re.compile(r"^frame_(\d+)(?:_view_(\d+))?$")
 
 
@@ -56,12 +59,17 @@ class I3DSplitWriter:
         self.infos: dict = {}
 
     def add(self, frame: int, view: int, image: np.ndarray, mask: np.ndarray, K: np.ndarray, viewmat: np.ndarray,
-            info: dict, distortions: np.ndarray | None = None) -> str:
+            info: dict, distortions: np.ndarray | None = None, garment: np.ndarray | None = None) -> str:
         """image uint8 [H,W,3], mask uint8 [H,W] (0 / 255), K [3,3], viewmat [4,4] world-to-camera, info: the
-        frame's {poses, Rh, Th, joints, tpose_joints}. Returns the frame name."""
+        frame's {poses, Rh, Th, joints, tpose_joints}; garment uint8 [H,W] (0 / 255), the pixels that show the
+        garment, into garment_masks/. Returns the frame name."""
         from PIL import Image
 
         name = frame_name(frame, view)
+        if garment is not None:
+            (self.folder / GARMENT_FOLDER).mkdir(exist_ok=True)
+            Image.fromarray(garment).save(self.folder / GARMENT_FOLDER / f"{name}.png", format="PNG",
+                                          compress_level=self.png_compress_level)
         # PIL writes no timestamps into PNGs: the same arrays give the same bytes (scene caches rely on it).
         Image.fromarray(image).save(self.folder / "images" / f"{name}.png", format="PNG",
                                     compress_level=self.png_compress_level)
@@ -191,7 +199,12 @@ def read_split(folder: Path, split: str, pelvis: torch.Tensor) -> tuple[list[Ima
         mask = mask_dir / f"{img.stem}.png"
         if not mask.is_file():
             raise FileNotFoundError(f"mask {mask} not found for image {img}")
-        records.append(ImageRecord(frame, view, img, mask, cam["K"], cam["viewmat"], cam["dist"], "threshold"))
+        garment = folder / GARMENT_FOLDER / f"{img.stem}.png"
+        if (folder / GARMENT_FOLDER).is_dir() and not garment.is_file():
+            raise FileNotFoundError(f"garment label {garment} not found for image {img} (every image of a split with "
+                                    f"{GARMENT_FOLDER}/ needs one)")
+        records.append(ImageRecord(frame, view, img, mask, cam["K"], cam["viewmat"], cam["dist"], "threshold",
+                                   garment if garment.is_file() else None))
     if not records:
         raise SceneFormatError(f"{img_dir}: no images (expected frame_XXXXXX_view_YY.png)")
     orphans = sorted({m.stem for m in mask_dir.glob("*.png")} - {r.image_path.stem for r in records})

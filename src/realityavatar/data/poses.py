@@ -1,4 +1,5 @@
-"""Per-frame pose tables and the clamped pose-window lookup t-(T-1)s, ..., t-s, t used by datasets and `animate`."""
+"""Per-frame pose tables, the clamped pose-window lookup t-(T-1)s, ..., t-s, t used by datasets and `animate`, and the
+motion phases (rest, spin, after the stop, settled) that evaluation reports on."""
 
 from __future__ import annotations
 
@@ -8,6 +9,9 @@ import numpy as np
 import torch
 
 from realityavatar.body.base import NUM_JOINTS
+
+# Turning faster than this (degrees per second about the body's axis) is a spin; ~0.6 degrees a frame at 25 fps.
+TURNING_DEG_S = 15.0
 
 
 class PoseTable:
@@ -92,3 +96,28 @@ class PoseTable:
         """Batched windows: poses [N,T,24,3], transl [N,T,3]."""
         rows = torch.as_tensor(np.stack([self.window_rows(f, window_len, window_step) for f in frames]))
         return self.poses[rows], self.transl[rows]
+
+    def motion_phases(self, frames: Sequence[int], fps: float, still_deg_s: float = TURNING_DEG_S) -> dict[int, str]:
+        """The motion phase of each of `frames` (a split's, sorted here) from how fast the body turns about its own
+        axis between consecutive ones: "rest" before it first turns faster than `still_deg_s` degrees per second,
+        "spin" while it does, "after" for the second that follows the turning's end, "settled" later (a new turn
+        is "spin" again). A sequence that never turns (a walk) is "all". Real captures have no event list, so the
+        phases come from the poses, for every dataset alike."""
+        from realityavatar.geometry import axis_angle_to_matrix, matrix_to_axis_angle
+
+        frames = sorted(int(f) for f in frames)
+        R = axis_angle_to_matrix(torch.stack([self.get(f)[0][0] for f in frames]).double())  # [F,3,3]
+        dt = np.maximum(np.diff(frames), 1) / float(fps)  # [F-1] seconds
+        step = torch.rad2deg(matrix_to_axis_angle(R[1:] @ R[:-1].transpose(-1, -2)).norm(dim=-1)).numpy()
+        turning = np.concatenate([[False], step / dt > still_deg_s])  # [F]: turning since the previous frame
+        if not turning.any():
+            return dict.fromkeys(frames, "all")
+        out, state, stopped = {}, "rest", None
+        for f, turns in zip(frames, turning):
+            if turns:
+                state, stopped = "spin", None
+            elif state != "rest":
+                stopped = f if stopped is None else stopped
+                state = "after" if (f - stopped) / float(fps) < 1.0 else "settled"
+            out[f] = state
+        return out

@@ -34,6 +34,7 @@ class ImageRecord:
     viewmat: np.ndarray
     dist: np.ndarray | None = None  # [5] OpenCV (k1, k2, p1, p2, k3) or None
     mask_rule: str = "threshold"  # "threshold": >= 128 of 0..255 (or 1 of 0/1); "nonzero": any label != 0
+    garment_path: Path | None = None  # synthetic scenes: the pixels that show the garment (evaluation only)
 
 
 @dataclass
@@ -212,23 +213,46 @@ def load_record(rec: ImageRecord, scale: float = 1.0, undistort: bool = True):
     H, W = img.shape[:2]
     K = np.array(rec.K, dtype=np.float64)
     t_img = torch.from_numpy(img).permute(2, 0, 1)[None].float()  # [1,3,H,W]
-    t_mask = torch.from_numpy(mask)[None, None].float()  # [1,1,H,W]
-    if undistort and rec.dist is not None and np.abs(rec.dist).max() > 0:
-        key = (K.tobytes(), np.asarray(rec.dist, dtype=np.float64).tobytes(), H, W)
-        if key not in _GRID_CACHE:
-            _GRID_CACHE[key] = undistort_grid(K, rec.dist, H, W)
-        grid = _GRID_CACHE[key]
+    grid = _undistortion(rec, K, H, W) if undistort else None
+    if grid is not None:
         t_img = F.grid_sample(t_img, grid, mode="bilinear", padding_mode="zeros", align_corners=True)
-        t_mask = F.grid_sample(t_mask, grid, mode="nearest", padding_mode="zeros", align_corners=True)
     if scale != 1.0:
         h2, w2 = max(1, round(H * scale)), max(1, round(W * scale))
         t_img = F.interpolate(t_img, size=(h2, w2), mode="bilinear", antialias=True, align_corners=False)
-        t_mask = F.interpolate(t_mask, size=(h2, w2), mode="bilinear", antialias=True, align_corners=False)
         K[0] *= w2 / W  # pixel-area convention (gsplat): scaling the image scales fx, cx exactly
         K[1] *= h2 / H
     img_u8 = t_img[0].permute(1, 2, 0).round().clamp(0, 255).to(torch.uint8).numpy()
-    mask_b = (t_mask[0, 0] > 0.5).numpy()
-    return img_u8, mask_b, K
+    return img_u8, _region(mask, grid, scale), K
+
+
+def load_garment(rec: ImageRecord, scale: float = 1.0, undistort: bool = True) -> np.ndarray:
+    """The record's garment label (synthetic scenes: the pixels that show the garment) as bool [H',W'], undistorted
+    and resized as load_record does its mask."""
+    label = mask_from_array(read_image(rec.garment_path), "threshold", rec.garment_path)
+    H, W = label.shape
+    return _region(label, _undistortion(rec, np.asarray(rec.K, dtype=np.float64), H, W) if undistort else None, scale)
+
+
+def _undistortion(rec: ImageRecord, K: np.ndarray, H: int, W: int) -> torch.Tensor | None:
+    """The sampling grid that undistorts record `rec`'s images (cached per camera), None without distortion."""
+    if rec.dist is None or not np.abs(rec.dist).max() > 0:
+        return None
+    key = (K.tobytes(), np.asarray(rec.dist, dtype=np.float64).tobytes(), H, W)
+    if key not in _GRID_CACHE:
+        _GRID_CACHE[key] = undistort_grid(K, rec.dist, H, W)
+    return _GRID_CACHE[key]
+
+
+def _region(region: np.ndarray, grid: torch.Tensor | None, scale: float) -> np.ndarray:
+    """A bool [H,W] mask undistorted (nearest) and resized (area-weighted, then > 0.5) like its image."""
+    t = torch.from_numpy(region)[None, None].float()  # [1,1,H,W]
+    if grid is not None:
+        t = F.grid_sample(t, grid, mode="nearest", padding_mode="zeros", align_corners=True)
+    if scale != 1.0:
+        H, W = region.shape
+        t = F.interpolate(t, size=(max(1, round(H * scale)), max(1, round(W * scale))), mode="bilinear",
+                          antialias=True, align_corners=False)
+    return (t[0, 0] > 0.5).numpy()
 
 
 def mask_distance(mask: torch.Tensor | np.ndarray) -> torch.Tensor:

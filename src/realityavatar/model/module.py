@@ -330,32 +330,21 @@ class AvatarModule(Avatar, pl.LightningModule):
 
     # ------------------------------------------------------------------ evaluation
     def test_step(self, batch, batch_idx, dataloader_idx: int = 0):
-        from realityavatar.metrics import masked_bbox, psnr, silhouette_iou, ssim
+        from realityavatar.metrics import image_metrics
 
         split = batch["split"][0]
         with torch.no_grad():
             rgb, alpha, _, _ = self.render_batch(batch, supersample=self.eval_supersample)
         rgb = rgb.clamp(0, 1)
+        garment = batch.get("garment")  # synthetic scenes: the pixels that show the garment
         for b in range(rgb.shape[0]):
-            pred, gt, mask = rgb[b], batch["image"][b], batch["mask"][b]
-            rec = {
-                "split": split,
-                "frame": int(batch["frame"][b]),
-                "view": int(batch["view"][b]),
-                "psnr": float(psnr(pred, gt)),
-                "ssim": float(ssim(pred, gt)),
-            }
-            rec["iou"] = float(silhouette_iou(alpha[b], mask))
-            pb, gb = masked_bbox(pred, gt, mask)
-            rec["psnr_masked"] = float(psnr(pb, gb))
-            rec["ssim_masked"] = float(ssim(pb, gb))
-            if self.lpips is not None:
-                rec["lpips"] = float(self.lpips(pred, gt)) * 1000.0
-                rec["lpips_masked"] = float(self.lpips(pb, gb)) * 1000.0
+            pred, gt = rgb[b], batch["image"][b]
+            rec = image_metrics(pred, gt, alpha[b], batch["mask"][b], None if garment is None else garment[b],
+                                self.lpips)
+            for k, v in rec.items():
+                self.log(f"test/{split}/{k}", v, add_dataloader_idx=False, batch_size=1)
+            rec = {"split": split, "frame": int(batch["frame"][b]), "view": int(batch["view"][b]), **rec}
             self.test_records.append({**rec, "_pred": pred.cpu(), "_gt": gt.cpu()})
-            for k in ("psnr", "ssim", "iou", "psnr_masked", "ssim_masked", "lpips", "lpips_masked"):
-                if k in rec:
-                    self.log(f"test/{split}/{k}", rec[k], add_dataloader_idx=False, batch_size=1)
 
     @torch.no_grad()
     def measure_fps(self, batch: dict, warmup: int = 3, repeats: int = 20) -> float:

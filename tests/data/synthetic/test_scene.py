@@ -206,8 +206,8 @@ def test_light_parameters_shade_the_images(tmp_path):
     E = np.eye(4)[None].copy()
     E[0, 2, 3] = 2.0
     tex = lambda f, bary: np.full((len(f), 3), 0.5)  # a flat grey albedo
-    lit, m1 = render_views([(V, F, tex)], K, E, 32, 32, ambient=0.4, diffuse=0.6)
-    flat, m2 = render_views([(V, F, tex)], K, E, 32, 32, ambient=1.0, diffuse=0.0)
+    lit, m1, _ = render_views([(V, F, tex)], K, E, 32, 32, ambient=0.4, diffuse=0.6)
+    flat, m2, _ = render_views([(V, F, tex)], K, E, 32, 32, ambient=1.0, diffuse=0.0)
     assert (m1 == m2).all() and m1.any()
     inside = m1 > 0
     assert (flat[inside] == 128).all()  # 0.5 albedo x 1.0
@@ -237,8 +237,8 @@ def test_supersample_integrates_each_pixel():
     from realityavatar.data.synthetic.render import render_views
 
     parts, K, E = _striped_quad(period_px=0.5)
-    one, m1 = render_views(parts, K, E, 16, 16, ambient=1.0, diffuse=0.0, supersample=1)
-    four, m4 = render_views(parts, K, E, 16, 16, ambient=1.0, diffuse=0.0, supersample=4)
+    one, m1, _ = render_views(parts, K, E, 16, 16, ambient=1.0, diffuse=0.0, supersample=1)
+    four, m4, _ = render_views(parts, K, E, 16, 16, ambient=1.0, diffuse=0.0, supersample=4)
     assert m1.all() and m4.all()
     assert np.unique(one).size == 1 and one.max() in (26, 255)  # every centre hits the same stripe
     assert np.abs(four.astype(float) - 0.55 * 255).max() <= 1.0  # (1.0 + 0.1) / 2 per pixel
@@ -257,8 +257,9 @@ def test_supersample_masks_half_covered_pixels():
     E = np.eye(4)[None].copy()
     E[0, 2, 3] = 2.0
     tex = lambda f, bary: np.full((len(f), 3), 1.0)
-    rgb, mask = render_views([(V, F, tex)], K, E, 16, 16, ambient=1.0, diffuse=0.0, supersample=4)
+    rgb, mask, part = render_views([(V, F, tex)], K, E, 16, 16, ambient=1.0, diffuse=0.0, supersample=4)
     assert (mask[0, :, :8] == 255).all() and (mask[0, :, 8:] == 0).all()
+    assert ((part[0] == 1) == (mask[0] == 255)).all()  # one part: its label is the mask
     assert (rgb[0, :, :8] == 255).all() and (rgb[0, :, 9:] == 0).all()
     assert np.abs(rgb[0, :, 8].astype(float) - 0.25 * 255).max() <= 1.0  # 4 x 4 grid: 1 of 4 columns inside
 
@@ -269,6 +270,49 @@ def test_unknown_preset_and_short_spin(tmp_path):
     with pytest.raises(ValueError, match="too short"):
         build_scene("ci", tmp_path / "x", overrides={"train_frames": 8}, progress=False)
     assert not (tmp_path / "x").exists()
+
+
+@pytest.mark.parametrize("supersample", [1, 4])
+def test_part_labels_name_the_first_surface_hit(supersample):
+    """Two parts, the second (the 'garment') a square in front of the left half of the first: each pixel is labelled
+    with the part its rays see first (1 + index), the garment where it covers the first part too, 0 off both; with
+    s x s rays a pixel goes to the part that covers at least half of it."""
+    from realityavatar.data.synthetic.render import render_views
+
+    back = (np.array([[-1.0, -1.0, 0.0], [1.0, -1.0, 0.0], [1.0, 1.0, 0.0], [-1.0, 1.0, 0.0]]),
+            np.array([[0, 1, 2], [0, 2, 3]]), lambda f, b: np.full((len(f), 3), 0.5))
+    # in front (z = -0.5: nearer the camera at z = -2), x in [-0.6, -0.1) m at z = 0 maps to columns 3.2 .. 7.2
+    front = (np.array([[-0.45, -0.45, -0.5], [-0.075, -0.45, -0.5], [-0.075, 0.45, -0.5], [-0.45, 0.45, -0.5]]),
+             np.array([[0, 1, 2], [0, 2, 3]]), lambda f, b: np.full((len(f), 3), 0.9))
+    K = np.array([[[8.0, 0, 8], [0, 8.0, 8], [0, 0, 1]]])  # 2 m away: a pixel is 1/4 m at z = 0
+    E = np.eye(4)[None].copy()
+    E[0, 2, 3] = 2.0
+    rgb, mask, part = render_views([back, front], K, E, 16, 16, ambient=1.0, diffuse=0.0, supersample=supersample)
+    assert (part[0][mask[0] == 0] == 0).all()
+    assert (part[0][rgb[0, ..., 0] == 230] == 2).all() and (part[0] == 2).sum() > 0  # 0.9 albedo: the front square
+    assert (part[0][rgb[0, ..., 0] == 128] == 1).all() and (part[0] == 1).sum() > (part[0] == 2).sum()
+    assert set(np.unique(part[0])) == {0, 1, 2}
+
+
+def test_scene_writes_garment_labels_inside_the_masks(tmp_path):
+    """Every image of a built scene has a garment label (garment_masks/), inside its mask, showing the skirt in every
+    held-out image; the reader attaches it to each record."""
+    from PIL import Image
+
+    from realityavatar.data.i3d import read_i3d
+
+    prefix = build_scene("ci", tmp_path, seed=0, progress=False)
+    scene = read_i3d(tmp_path, prefix.name)
+    for split in ("train", "novel_view", "novel_pose"):
+        for rec in scene.splits[split]:
+            g = np.asarray(Image.open(rec.garment_path)) > 0
+            m = np.asarray(Image.open(rec.mask_path)) > 0
+            assert not (g & ~m).any(), rec.garment_path
+            assert split == "train" or g.sum() > 20, rec.garment_path
+    missing = scene.splits["novel_view"][0].garment_path
+    missing.unlink()
+    with pytest.raises(FileNotFoundError, match="garment label .* not found"):
+        read_i3d(tmp_path, prefix.name)
 
 
 def test_failure_mid_write_leaves_no_scene(tmp_path, monkeypatch):

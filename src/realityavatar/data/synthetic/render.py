@@ -115,8 +115,10 @@ def render_views(parts: list[tuple[np.ndarray, np.ndarray, object]], Ks: np.ndar
     supersample: s > 1 integrates each pixel as a camera does: s x s rays on a regular grid inside the pixel, averaged
     (misses count as the black background). Only pixels within one pixel of a centre-ray hit take them (the rest is
     background); s = 1 is one ray through each pixel centre, whose sub-pixel texture detail aliases.
-    Returns rgb [C,H,W,3] uint8 (black background) and mask [C,H,W] uint8 (0/255): 255 where at least half of the
-    pixel is covered (s > 1), or where the centre ray hits (s = 1).
+    Returns rgb [C,H,W,3] uint8 (black background), mask [C,H,W] uint8 (0/255): 255 where at least half of the
+    pixel is covered (s > 1), or where the centre ray hits (s = 1), and part [C,H,W] uint8: 1 + the index of the part
+    whose surface is the first hit of at least half of the pixel's rays (the centre ray's, s = 1), 0 where none is
+    (the evaluation's garment labels: which pixels show the cloth).
     """
     if isinstance(supersample, bool) or int(supersample) != supersample or not 1 <= supersample <= 8:
         raise ValueError(f"supersample: expected an integer 1..8 (rays per pixel side), got {supersample!r}")
@@ -135,10 +137,10 @@ def render_views(parts: list[tuple[np.ndarray, np.ndarray, object]], Ks: np.ndar
     origins, dirs = rays if rays is not None else all_camera_rays(Ks, viewmats, width, height)
 
     def shade(o: np.ndarray, d: np.ndarray):
-        """Colour of every ray's first hit: (ray index [P], albedo x light [P,3])."""
+        """Colour of every ray's first hit: (ray index [P], albedo x light [P,3], part index [P])."""
         tri, ray, bary = first_hits(caster, V, Fc, o, d)
         if not len(ray):
-            return ray, np.zeros((0, 3))
+            return ray, np.zeros((0, 3)), np.zeros(0, np.int64)
         d = d[ray]
         normal = np.einsum("pk,pkc->pc", bary, vn[Fc[tri]])
         normal /= np.linalg.norm(normal, axis=1, keepdims=True).clip(1e-12)
@@ -149,13 +151,15 @@ def render_views(parts: list[tuple[np.ndarray, np.ndarray, object]], Ks: np.ndar
             sel = owner[tri] == i
             if sel.any():
                 albedo[sel] = tex(np.asarray(f)[tri[sel] - _face_offset(parts, i)], bary[sel])
-        return ray, albedo * light[:, None]
+        return ray, albedo * light[:, None], owner[tri]
 
     rgb = np.zeros((C * width * height, 3))
     mask = np.zeros(C * width * height, dtype=np.uint8)
-    ray, col = shade(origins, dirs)
+    part = np.zeros(C * width * height, dtype=np.uint8)
+    ray, col, own = shade(origins, dirs)
     rgb[ray] = col
     mask[ray] = 255
+    part[ray] = own + 1
     if s > 1:
         # Pixels within one pixel of a centre hit (a 3x3 dilation of the centre mask), each camera on its own.
         hit = mask.reshape(C, height, width) > 0
@@ -171,17 +175,20 @@ def render_views(parts: list[tuple[np.ndarray, np.ndarray, object]], Ks: np.ndar
             if not len(ys):
                 continue
             o, d = pixel_rays(Ks[c], viewmats[c], (xs[:, None] + su[None]).ravel(), (ys[:, None] + sv[None]).ravel())
-            r, col = shade(o, d)
+            r, col, own = shade(o, d)
             acc = np.zeros((len(ys) * s * s, 3))
             acc[r] = col
-            covered = np.zeros(len(ys) * s * s)
-            covered[r] = 1.0
+            hit_part = np.zeros(len(ys) * s * s, dtype=np.int64)  # 0: background, else 1 + part index
+            hit_part[r] = own + 1
             idx = c * width * height + ys * width + xs
             rgb[idx] = acc.reshape(len(ys), s * s, 3).mean(1)
-            mask[idx] = np.where(covered.reshape(len(ys), s * s).mean(1) >= 0.5, 255, 0)
+            hit_part = hit_part.reshape(len(ys), s * s)
+            mask[idx] = np.where((hit_part > 0).mean(1) >= 0.5, 255, 0)
+            share = np.stack([(hit_part == k + 1).mean(1) for k in range(len(parts))], 1)  # [P,parts]
+            part[idx] = np.where(share.max(1) >= 0.5, share.argmax(1) + 1, 0)
     rgb8 = np.clip(np.round(rgb * 255), 0, 255).astype(np.uint8)
     rgb8[mask > 0] = np.maximum(rgb8[mask > 0], 1)
-    return rgb8.reshape(C, height, width, 3), mask.reshape(C, height, width)
+    return rgb8.reshape(C, height, width, 3), mask.reshape(C, height, width), part.reshape(C, height, width)
 
 
 def first_hits(caster, V: np.ndarray, Fc: np.ndarray, o: np.ndarray, d: np.ndarray):

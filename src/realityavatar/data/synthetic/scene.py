@@ -1,7 +1,7 @@
 """Write a synthetic loose-clothing scene in the I3D-Human/HumanNeRF layout (see docs/CONTRACTS.md).
 
 Pipeline: motion (body poses + Rh/Th) -> MuJoCo garment (cloth.simulate_garment) -> ray-cast RGB + masks per camera
--> `<root>/<scene>-{train,novelview,novelpose}`, `<scene>-meta.json`, `<scene>-garment.npz`. Deterministic per seed,
+-> `<root>/<scene>-{train,novelview,novelpose}` (with garment_masks/: the pixels that show the cloth, for evaluation), `<scene>-meta.json`, `<scene>-garment.npz`. Deterministic per seed,
 cached by a hash of the parameters, written to a temporary folder and moved into place at the end.
 """
 
@@ -25,7 +25,7 @@ from realityavatar.data.synthetic.motions import MOTIONS, Motion, make_motion
 from realityavatar.data.synthetic.presets import PRESETS, SEQUENCES
 from realityavatar.data.synthetic.render import BodyTexture, GarmentTexture, all_camera_rays, render_views
 
-GENERATOR_VERSION = 1  # bump when the output changes for the same parameters (invalidates caches)
+GENERATOR_VERSION = 2  # bump when the output changes for the same parameters (invalidates caches)
 SPLITS = {"train": "train", "novel_view": "novelview", "novel_pose": "novelpose"}
 PICKLE_PROTOCOL = 4
 PNG_COMPRESS = 6
@@ -266,8 +266,9 @@ def remove_stale_builds(root: Path, name: str, max_age_s: float = 24 * 3600) -> 
 _FRAME_JOB: dict | None = None  # what _render_frame needs, inherited by the forked workers (not pickled per frame)
 
 
-def _render_frame(f: int) -> tuple[np.ndarray, np.ndarray]:
-    """Frame f of the scene being written: rgb [C,H,W,3], mask [C,H,W] (uint8) of every camera."""
+def _render_frame(f: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Frame f of the scene being written: rgb [C,H,W,3], mask [C,H,W], part [C,H,W] (uint8; 2: the garment) of every
+    camera."""
     j = _FRAME_JOB
     verts_w, body_faces, body_tex, garment_verts, garment_faces, garm_tex = j["parts"]
     return render_views([(verts_w[f], body_faces, body_tex), (garment_verts[f], garment_faces, garm_tex)], j["Ks"],
@@ -321,7 +322,7 @@ def _write(tmp: Path, p: dict, seed: int, phash: str, body, motion: Motion, Ks, 
     job = {"parts": (verts_w, body_faces, body_tex, garment.vertices, garment.faces, garm_tex), "Ks": Ks,
            "viewmats": viewmats, "width": p["width"], "height": p["height"], "rays": rays, "ambient": p["ambient"],
            "diffuse": p["diffuse"], "supersample": p["supersample"]}
-    for f, (rgb, mask) in enumerate(tqdm(_rendered_frames(job, F), total=F, desc=f"scene {name}",
+    for f, (rgb, mask, part) in enumerate(tqdm(_rendered_frames(job, F), total=F, desc=f"scene {name}",
                                          disable=not progress, unit="frame")):
         poses = motion.pose[f].reshape(72).astype(np.float32)
         info = {"poses": poses, "Rh": motion.Rh[f].astype(np.float32), "Th": motion.Th[f].astype(np.float32),
@@ -331,7 +332,8 @@ def _write(tmp: Path, p: dict, seed: int, phash: str, body, motion: Motion, Ks, 
         else:
             targets = [("novel_pose", c) for c in all_ids]
         for split, c in targets:
-            writers[split].add(f, c, rgb[c], mask[c], Ks[c].astype(np.float32), viewmats[c].astype(np.float32), info)
+            writers[split].add(f, c, rgb[c], mask[c], Ks[c].astype(np.float32), viewmats[c].astype(np.float32), info,
+                               garment=np.where(part[c] == 2, 255, 0).astype(np.uint8))
     for w in writers.values():
         w.close()
     frames = np.arange(F, dtype=np.int64)
