@@ -173,8 +173,8 @@ def format_table(metrics: dict) -> str:
     def num(v, fmt):
         return f"{v:{fmt}}" if v is not None and np.isfinite(v) else f"{'-':>{int(fmt.split('.')[0])}}"
 
-    lines = [f"{'split':<12}{'PSNR':>8}{'SSIM':>8}{'IoU':>7}{'FLIP':>8}{'LPIPS':>9}{'PSNR(box)':>11}{'SSIM(box)':>11}"
-             f"{'images':>8}"]
+    lines = [(f"{'split':<12}{'PSNR':>8}{'SSIM':>8}{'IoU':>7}{'FLIP':>8}{'LPIPS':>9}{'PSNR(box)':>11}"
+              f"{'SSIM(box)':>11}{'images':>8}")]
     for split in ("novel_view", "novel_pose"):
         p = f"test/{split}"
         if g(f"{p}/psnr") is None:
