@@ -1,11 +1,14 @@
 """Reader for the HumanNeRF-style layout of I3D-Human (Dyco) and of our synthetic scenes: <seq>-train/-novelview/-novelpose.
 
 Each folder holds images/ and masks/ (frame_XXXXXX_view_YY.png), cameras.pkl and mesh_infos.pkl keyed by frame name,
-and (in -train) canonical_joints.pkl. Poses use EasyMocap placement (Rh, Th) and are converted to the SMPL convention.
+(in -train) canonical_joints.pkl, and in a release frameid_pose.pkl: the motion's poses for every frame from 0 (the
+image folders are subsampled), which the pose windows read. Poses use EasyMocap placement (Rh, Th) and are converted
+to the SMPL convention.
 """
 
 from __future__ import annotations
 
+import logging
 import re
 from pathlib import Path
 
@@ -25,7 +28,12 @@ from realityavatar.data.records import (
     require_key,
 )
 
+log = logging.getLogger(__name__)
+
 FOLDERS = {"train": "train", "novel_view": "novelview", "novel_pose": "novelpose"}
+# The dense poses of a split (Dyco's and SeqAvatar's layout): a list whose entry k is frame k * frame_interval,
+# {'poses': [23,3] (joints 1..23; the root's rotation is Rh) or [72], 'Rh': [3], 'Th': [3]}.
+FRAMEID_POSE = "frameid_pose.pkl"
 # Synthetic scenes only: the pixels whose surface is the garment (the scene builder's ray hits on the cloth mesh), which
 # evaluation scores on their own (metrics.garment_metrics). Never read for training: a real capture has none.
 GARMENT_FOLDER = "garment_masks"
@@ -90,6 +98,93 @@ class I3DSplitWriter:
             with open(self.folder / "canonical_joints.pkl", "wb") as fh:
                 pickle.dump({"joints": self.canonical_joints}, fh, protocol=self.pickle_protocol)
         return self.folder
+
+
+def frameid_pose_entries(infos: dict[int, dict]) -> list[dict]:
+    """{frame: {poses [72], Rh, Th, ...}} covering frames 0..F-1 -> frameid_pose.pkl's list in Dyco's format
+    ({'poses': [23,3] joints 1..23, 'Rh': [3], 'Th': [3]}, float32). The root's rotation must be in Rh (poses[:3]
+    zero, as HumanNeRF-style fits and our scenes write it): [23,3] has no room for it."""
+    frames = sorted(infos)
+    if frames != list(range(len(frames))):
+        gap = next(f for i, f in enumerate(frames) if f != i)
+        raise ValueError(f"frameid_pose: the poses must cover frames 0..{frames[-1]} without a gap (frame {gap} "
+                         "follows a missing one)")
+    out = []
+    for f in frames:
+        pose = np.asarray(infos[f]["poses"], np.float32).reshape(24, 3)
+        if np.abs(pose[0]).max() > 0:
+            raise ValueError(f"frameid_pose: frame {f} has a non-zero root rotation in poses[:3]; Dyco's [23,3] "
+                             "entries keep it in Rh only")
+        out.append({"poses": pose[1:].copy(), "Rh": np.asarray(infos[f]["Rh"], np.float32).reshape(3),
+                    "Th": np.asarray(infos[f]["Th"], np.float32).reshape(3)})
+    return out
+
+
+def write_release(source: str | Path, dest_root: str | Path, train_every: int = 5, novel_every: int = 5,
+                  frameid_pose: bool = True) -> Path:
+    """A built scene `<root>/<name>` (every frame in its image folders) rewritten as I3D-Human is released, under
+    `<dest_root>/<name>`: -train keeps every `train_every`-th training frame, -novelview and -novelpose every
+    `novel_every`-th frame of their ranges (I3D-Human: training every 5th frame of 100 fps, held-out sets every 30th
+    or 50th; Dyco issues #1, #2), each with the cameras.pkl / mesh_infos.pkl entries of its images, and (with
+    `frameid_pose`) every split's frameid_pose.pkl holding the whole motion's poses. Files are hard links where the
+    file system allows (copies otherwise). Returns the new prefix."""
+    import json
+    import os
+    import pickle
+    import shutil
+
+    for k, v in (("train_every", train_every), ("novel_every", novel_every)):
+        if isinstance(v, bool) or int(v) != v or v < 1:
+            raise ValueError(f"{k}: expected a whole number >= 1, got {v!r}")
+    source, dest_root = Path(source), Path(dest_root)
+    meta_path = source.with_name(f"{source.name}-meta.json")
+    if not meta_path.is_file():
+        raise FileNotFoundError(f"{meta_path} not found: write_release takes a scene built by realityavatar-make-scene")
+    meta = json.loads(meta_path.read_text())
+    dest = dest_root / source.name
+    if dest.resolve() == source.resolve():
+        raise ValueError(f"write_release: the release would overwrite its source {source}")
+    (t0, t1), (p0, p1) = meta["frames"]["train"], meta["frames"]["novel_pose"]
+    keep = {"train": set(range(t0, t1, int(train_every))), "novel_view": set(range(t0, t1, int(novel_every))),
+            "novel_pose": set(range(p0, p1, int(novel_every)))}
+    infos: dict[int, dict] = {}
+    for split in FOLDERS:
+        src = split_folder(source.parent, source.name, split)
+        for name, info in load_pickle(src / "mesh_infos.pkl", "the built scene's poses").items():
+            infos.setdefault(parse_frame_name(name, str(src))[0], info)
+    entries = frameid_pose_entries(infos) if frameid_pose else None
+    dest_root.mkdir(parents=True, exist_ok=True)
+    for split in FOLDERS:
+        src, out = split_folder(source.parent, source.name, split), split_folder(dest_root, source.name, split)
+        if out.exists():
+            shutil.rmtree(out)
+        names = sorted(p.stem for p in (src / "images").glob("*.png")
+                       if parse_frame_name(p.stem, str(src))[0] in keep[split])
+        for sub in ("images", "masks", GARMENT_FOLDER):
+            if not (src / sub).is_dir():
+                continue
+            (out / sub).mkdir(parents=True)
+            for n in names:
+                try:
+                    os.link(src / sub / f"{n}.png", out / sub / f"{n}.png")
+                except OSError:
+                    shutil.copy2(src / sub / f"{n}.png", out / sub / f"{n}.png")
+        for fname in ("cameras.pkl", "mesh_infos.pkl"):
+            table = load_pickle(src / fname, "the built scene's split file")
+            with open(out / fname, "wb") as fh:
+                pickle.dump({n: table[n] for n in names}, fh, protocol=4)
+        if (src / "canonical_joints.pkl").is_file():
+            shutil.copy2(src / "canonical_joints.pkl", out / "canonical_joints.pkl")
+        if entries is not None:
+            with open(out / FRAMEID_POSE, "wb") as fh:
+                pickle.dump(entries, fh, protocol=4)
+    garment = source.with_name(f"{source.name}-garment.npz")
+    if garment.is_file():
+        shutil.copy2(garment, dest.with_name(garment.name))
+    meta["release"] = {"source": str(source), "train_every": int(train_every), "novel_every": int(novel_every),
+                       "frameid_pose": bool(frameid_pose)}
+    dest.with_name(meta_path.name).write_text(json.dumps(meta, indent=1, sort_keys=True) + "\n")
+    return dest
 
 
 def split_folder(root: Path, sequence: str, split: str) -> Path:
@@ -172,6 +267,43 @@ def read_mesh_infos(folder: Path, pelvis: torch.Tensor) -> PoseTable:
     return PoseTable(frames, pose_smpl.float(), transl.float(), source=str(path))
 
 
+def read_frameid_pose(folder: Path, pelvis: torch.Tensor, frame_interval: int = 1) -> PoseTable | None:
+    """frameid_pose.pkl -> a dense PoseTable (entry k at frame k * frame_interval) in the SMPL convention, converted
+    like mesh_infos.pkl (a [23,3] `poses` is joints 1..23 under a zero root: Rh holds the global rotation, as
+    SeqAvatar's reader builds it); None when the folder has none."""
+    path = folder / FRAMEID_POSE
+    if not path.is_file():
+        return None
+    raw = load_pickle(path, "a list indexed by frame / frame_interval of {poses, Rh, Th}")
+    if isinstance(raw, dict) and raw and all(isinstance(k, (int, np.integer)) for k in raw):
+        if sorted(raw) != list(range(len(raw))):
+            raise SceneFormatError(f"{path}: a dict keyed by integers must hold entries 0..{len(raw) - 1} (entry k is "
+                                   f"frame k * frame_interval), got keys {sorted(raw)[:5]}...")
+        raw = [raw[k] for k in range(len(raw))]
+    if not isinstance(raw, (list, tuple)) or not raw:
+        raise SceneFormatError(f"{path}: expected a non-empty list of {{poses, Rh, Th}} indexed by frame / "
+                               f"frame_interval, got {type(raw).__name__}")
+    poses = np.zeros((len(raw), 24, 3))
+    Rh, Th = np.zeros((len(raw), 3)), np.zeros((len(raw), 3))
+    for k, entry in enumerate(raw):
+        where = f"entry {k} (frame {k * frame_interval})"
+        p = require_key(entry, "poses", path, where, "[23,3] joints 1..23 or [72] axis-angle SMPL pose")
+        rh = require_key(entry, "Rh", path, where, "[3] global rotation (axis-angle)")
+        th = require_key(entry, "Th", path, where, "[3] global translation")
+        if p.size not in (69, 72) or rh.size != 3 or th.size != 3:
+            raise SceneFormatError(f"{path}: {where} has poses {p.shape}, Rh {rh.shape}, Th {th.shape}; expected "
+                                   "[23,3] or [72], [3], [3]")
+        poses[k, 24 - p.size // 3:] = np.reshape(p, (-1, 3))
+        Rh[k], Th[k] = np.ravel(rh), np.ravel(th)
+    bad = ~(np.isfinite(poses).all((1, 2)) & np.isfinite(Rh).all(1) & np.isfinite(Th).all(1))
+    if bad.any():
+        raise SceneFormatError(f"{path}: non-finite (NaN/inf) poses/Rh/Th at entries {np.flatnonzero(bad)[:10].tolist()}")
+    pose_smpl, transl = rh_th_to_smpl(torch.as_tensor(poses), torch.as_tensor(Rh), torch.as_tensor(Th),
+                                      pelvis.to(torch.float64))
+    frames = np.arange(len(raw)) * int(frame_interval)
+    return PoseTable(frames, pose_smpl.float(), transl.float(), source=str(path), dense_every=frame_interval)
+
+
 def read_canonical_pelvis(folder: Path) -> np.ndarray:
     """canonical_joints.pkl['joints'][0]: the rest pelvis of the body that produced the data (fallback without a body)."""
     path = folder / "canonical_joints.pkl"
@@ -179,13 +311,16 @@ def read_canonical_pelvis(folder: Path) -> np.ndarray:
     return check_shape(require_key(raw, "joints", path, "the pickle", "[24,3] rest joints"), (24, 3), path, "joints")[0]
 
 
-def read_split(folder: Path, split: str, pelvis: torch.Tensor) -> tuple[list[ImageRecord], PoseTable]:
-    """One split folder -> image records (sorted by frame, view) and its pose table."""
+def read_split(folder: Path, split: str, pelvis: torch.Tensor,
+               frame_interval: int = 1) -> tuple[list[ImageRecord], PoseTable, PoseTable | None]:
+    """One split folder -> image records (sorted by frame, view), its images' pose table (mesh_infos.pkl) and its
+    dense pose table (frameid_pose.pkl; None without one)."""
     img_dir, mask_dir = folder / "images", folder / "masks"
     if not img_dir.is_dir():
         raise FileNotFoundError(f"{img_dir} not found (expected images/frame_XXXXXX_view_YY.png)")
     cams = read_cameras(folder)
     table = read_mesh_infos(folder, pelvis)
+    dense = read_frameid_pose(folder, pelvis, frame_interval)
     records = []
     for img in sorted(img_dir.glob("*.png")) + sorted(img_dir.glob("*.jpg")):
         frame, view = parse_frame_name(img.stem, str(img_dir))
@@ -212,14 +347,21 @@ def read_split(folder: Path, split: str, pelvis: torch.Tensor) -> tuple[list[Ima
         raise FileNotFoundError(f"{img_dir}: no image for the mask(s) {', '.join(o + '.png' for o in orphans[:5])}"
                                 f"{f' and {len(orphans) - 5} more' if len(orphans) > 5 else ''} in {mask_dir}")
     records.sort(key=lambda r: (r.frame, r.view))
-    return records, table
+    return records, table, dense
 
 
-def read_i3d(root: str | Path, sequence: str, pelvis: torch.Tensor | None = None, build_hint: str = "") -> SceneData:
+def read_i3d(root: str | Path, sequence: str, pelvis: torch.Tensor | None = None, build_hint: str = "",
+             frame_interval: int = 1) -> SceneData:
     """Read all splits of `sequence` under `root`. The -train folder is required; -novelview/-novelpose are optional.
 
     pelvis: [3] rest pelvis of the body model in use (for Rh/Th -> SMPL); None takes it from canonical_joints.pkl.
+    frame_interval: frames between frameid_pose.pkl's entries (Dyco's `frame_interval`: 1 for ID1_x, 3 for ID2_x
+    and ID3_x). With every split's frameid_pose.pkl the pose windows are exact (PoseTable.dense_every); without
+    any, they take the latest image frame at or before each target, which the reader warns about.
     """
+    if isinstance(frame_interval, bool) or int(frame_interval) != frame_interval or frame_interval < 1:
+        raise ValueError(f"data.frame_interval: expected a whole number >= 1 (frames between {FRAMEID_POSE}'s "
+                         f"entries), got {frame_interval!r}")
     root = Path(root)
     train = split_folder(root, sequence, "train")
     if not train.is_dir():
@@ -229,15 +371,33 @@ def read_i3d(root: str | Path, sequence: str, pelvis: torch.Tensor | None = None
         pelvis = torch.as_tensor(read_canonical_pelvis(train))
     else:
         pelvis = torch.as_tensor(pelvis, dtype=torch.float64).reshape(3)
-    splits, tables = {}, []
+    splits, tables, lacking = {}, [], []
     for split in FOLDERS:
         folder = split_folder(root, sequence, split)
         if split != "train" and not folder.is_dir():
             continue
-        records, table = read_split(folder, split, pelvis)
+        records, table, dense = read_split(folder, split, pelvis, int(frame_interval))
         splits[split] = records
-        tables.append(table)
-    meta = {"reader": "i3d", "pelvis": pelvis.float().tolist()}
+        tables += [table] if dense is None else [table, dense]
+        if dense is None:
+            lacking.append(folder.name)
+    exact = len(lacking) < len(splits)
+    poses = PoseTable.union(tables)
+    every_frame = not exact and np.array_equal(poses.frames, np.arange(len(poses)))  # images of every frame from 0
+    if every_frame:
+        meta_windows = "exact (the image folders hold every frame from 0)"
+    elif exact:
+        meta_windows = f"exact ({FRAMEID_POSE}, frame_interval {int(frame_interval)})"
+    else:
+        meta_windows = "approximate (no frameid_pose.pkl: latest image frame at or before each target)"
+    if lacking and not exact and not every_frame:
+        log.warning("%s: no %s in %s: the pose windows are approximate, each target taking the latest image frame at "
+                    "or before it (up to a subsampling step off; every target before the first frame takes that "
+                    "frame), not the exact pose", root / sequence, FRAMEID_POSE, ", ".join(lacking))
+    elif lacking and exact:
+        log.warning("%s: no %s in %s: their windows read the other splits' files (a frame those do not cover is an "
+                    "error)", root / sequence, FRAMEID_POSE, ", ".join(lacking))
+    meta = {"reader": "i3d", "pelvis": pelvis.float().tolist(), "pose_windows": meta_windows}
     scene_meta = root / f"{sequence}-meta.json"  # written by the synthetic scene generator (motion events, fps)
     if scene_meta.is_file():
         import json
@@ -246,4 +406,4 @@ def read_i3d(root: str | Path, sequence: str, pelvis: torch.Tensor | None = None
             meta.update({k: v for k, v in json.loads(scene_meta.read_text()).items() if k not in meta})
         except json.JSONDecodeError as e:
             raise SceneFormatError(f"{scene_meta}: not valid JSON ({e})") from e
-    return SceneData(splits=splits, poses=PoseTable.union(tables), source=str(root / sequence), meta=meta)
+    return SceneData(splits=splits, poses=poses, source=str(root / sequence), meta=meta)

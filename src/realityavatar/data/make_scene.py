@@ -30,6 +30,13 @@ def parse_args(argv=None) -> argparse.Namespace:
                     help="override a parameter, e.g. --set width=192 --set train_frames=80")
     ap.add_argument("--force", action="store_true", help="rebuild even when the cached scene matches")
     ap.add_argument("--quiet", action="store_true", help="no progress bar")
+    ap.add_argument("--release", default=None, metavar="TRAIN,NOVEL",
+                    help="also write the scene as I3D-Human is released, under --release-root: every TRAIN-th "
+                         "training frame, every NOVEL-th novel-view / novel-pose frame, and each split's dense "
+                         "frameid_pose.pkl (e.g. 5,5)")
+    ap.add_argument("--release-root", default=None, help="folder of the release (required with --release)")
+    ap.add_argument("--no-frameid-pose", action="store_true",
+                    help="a release without frameid_pose.pkl (the reader's approximate windows, for comparison)")
     return ap.parse_args(argv)
 
 
@@ -41,6 +48,16 @@ def main(argv=None) -> int:
             raise SystemExit(f"--set: expected KEY=VALUE, got {item!r}")
         k, v = item.split("=", 1)
         overrides[k.strip()] = _value(v)
+    release = None
+    if args.release is not None:
+        try:
+            release = [int(x) for x in args.release.split(",")]
+        except ValueError:
+            release = []
+        if len(release) != 2 or min(release) < 1:
+            raise SystemExit(f"--release: expected TRAIN,NOVEL (two whole numbers >= 1), got {args.release!r}")
+        if not args.release_root:
+            raise SystemExit("--release needs --release-root (a folder other than the scene's)")
     seqs = args.sequence or [PRESETS[args.preset]["sequence"]]
     if "all" in seqs:
         seqs = sorted(SEQUENCES)
@@ -55,6 +72,12 @@ def main(argv=None) -> int:
         meta = json.loads(scene_paths(prefix)["meta"].read_text())
         print(f"{prefix.name}: {prefix.parent} ({time.perf_counter() - t0:.1f} s, hash {meta['params_hash']}, "
               f"train cams {meta['cameras']['train']}, novel-view cams {meta['cameras']['novel_view']})")
+        if release is not None:
+            from realityavatar.data.i3d import write_release
+
+            out = write_release(prefix, args.release_root, *release, frameid_pose=not args.no_frameid_pose)
+            print(f"{out.name}: released under {out.parent} (training every {release[0]}th frame, held-out every "
+                  f"{release[1]}th, frameid_pose.pkl {'no' if args.no_frameid_pose else 'yes'})")
     return 0
 
 
