@@ -33,15 +33,16 @@ def test_pareto_chart_and_csv(tmp_path):
 
 def write_fake_budget(root: Path) -> Path:
     """A `+ablation=budget` multirun: num_points x density x 2 seeds, with final counts and PSNRs chosen so that the
-    answer is known: 10000/off is the best (30.3), 5000/default (final 7000) is the smallest within 0.2 dB (30.15)."""
+    answer is known: 10000/off is the best (30.3), 5000/default (final 7000) is the smallest within 0.2 dB (30.15);
+    by the garment's PSNR, 10000/default is the best (25.1) and 10000/off the smallest within 0.2 dB (25.0)."""
     root.mkdir(parents=True)
     (root / "multirun.yaml").write_text(yaml.safe_dump({"hydra": {"overrides": {"task": ["+ablation=budget"]}}}))
-    # (num_points, density) -> (final Gaussians, NV PSNR mean, train seconds)
-    table = {(2000, "off"): (2000, 29.0, 50.0), (2000, "default"): (4000, 29.9, 60.0),
-             (5000, "off"): (5000, 29.7, 70.0), (5000, "default"): (7000, 30.15, 80.0),
-             (10000, "off"): (10000, 30.3, 100.0), (10000, "default"): (12000, 30.25, 110.0)}
+    # (num_points, density) -> (final Gaussians, NV PSNR mean, train seconds, NV garment PSNR mean)
+    table = {(2000, "off"): (2000, 29.0, 50.0, 22.0), (2000, "default"): (4000, 29.9, 60.0, 23.0),
+             (5000, "off"): (5000, 29.7, 70.0, 23.5), (5000, "default"): (7000, 30.15, 80.0, 24.0),
+             (10000, "off"): (10000, 30.3, 100.0, 25.0), (10000, "default"): (12000, 30.25, 110.0, 25.1)}
     job = 0
-    for (n, dens), (final, psnr, secs) in table.items():
+    for (n, dens), (final, psnr, secs, garment) in table.items():
         for seed in (0, 1):
             d = root / str(job)
             (d / ".hydra").mkdir(parents=True)
@@ -52,7 +53,8 @@ def write_fake_budget(root: Path) -> Path:
                  "overrides": overrides, "seed": seed, "commit": "abc1234", "scene": "skirt_spin",
                  "train_seconds": secs, "iterations": 1000, "num_gaussians": final, "num_parameters": 1,
                  "render_fps": 30.0, "perceptual": "dssim", "lpips": "not computed",
-                 "test/novel_view/psnr": psnr + (0.05 if seed else -0.05), "test/novel_pose/psnr": psnr - 1}
+                 "test/novel_view/psnr": psnr + (0.05 if seed else -0.05), "test/novel_pose/psnr": psnr - 1,
+                 "test/novel_view/psnr_garment": garment + (0.05 if seed else -0.05)}
             (d / "metrics.json").write_text(json.dumps(m))
             job += 1
     return root
@@ -72,7 +74,11 @@ def test_budget_choice_is_the_smallest_within_tolerance(tmp_path, capsys):
     # the size panel's frontier: no row is both smaller and more accurate than 4000/29.9
     front = df[df.pareto_size].sort_values("num_gaussians_mean")["num_gaussians_mean"].tolist()
     assert front == [2000, 4000, 7000, 10000]
+    # by the garment the budget is larger: 10000/off is within 0.2 dB of 10000/default's 25.1
+    by_garment = smallest_within(df, 0.2, "novel_view_psnr_garment_mean")
+    assert by_garment["choice"]["num_gaussians_mean"] == 10000 and by_garment["best"]["num_gaussians_mean"] == 12000
     assert pareto_main([str(sweep), "--out", str(tmp_path / "cli")]) == 0
     saved = json.loads((tmp_path / "cli" / "choice.json").read_text())
-    assert saved["choice"]["num_gaussians_mean"] == 7000
-    assert "choice (fewest Gaussians within 0.2 dB of the best)" in capsys.readouterr().out
+    assert saved["whole_image"]["choice"]["num_gaussians_mean"] == 7000
+    assert saved["local"]["choice"]["num_gaussians_mean"] == 10000
+    assert "choice by novel_view_psnr_mean (fewest Gaussians within 0.2 dB of the best)" in capsys.readouterr().out

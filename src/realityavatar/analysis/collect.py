@@ -24,6 +24,9 @@ import yaml
 
 SPLITS = ("novel_view", "novel_pose")
 METRICS = ("psnr", "ssim", "lpips", "psnr_masked", "ssim_masked", "lpips_masked")
+# The garment's scores (synthetic scenes' labels; evaluate.METRIC_KEYS) and the motion phases they are reported in.
+GARMENT = ("psnr_garment", "ssim_garment", "flip_garment", "detail_garment")
+PHASES = ("rest", "spin", "after", "settled")
 # Keys every run file must carry; the rest (render_fps, metric keys) may be absent or null.
 REQUIRED = ("config", "overrides", "seed", "commit", "train_seconds", "num_gaussians", "num_parameters")
 RUN_NUMBERS = ("train_seconds", "iterations", "num_gaussians", "num_parameters", "render_fps")
@@ -195,12 +198,11 @@ def read_run(path: Path) -> dict:
     for k in RUN_NUMBERS:
         row[k] = _float(m.get(k), str(path), k)
     lpips_ok = row["lpips_status"].startswith("computed")  # "computed (<where the weights came from>)"
-    for split in SPLITS:
-        for name in METRICS:
-            key = metric_key(split, name)
-            v = _float(m.get(key), str(path), key)
-            # a number next to a "not computed" status is not trusted: LPIPS is n/c, never a number
-            row[key] = v if (lpips_ok or not name.startswith("lpips")) else math.nan
+    keys = [metric_key(split, name) for split in SPLITS for name in (*METRICS, *GARMENT)]
+    for key in dict.fromkeys(keys + [q for q in EXTRA if q.startswith("test/")]):
+        v = _float(m.get(key), str(path), key)
+        # a number next to a "not computed" status is not trusted: LPIPS is n/c, never a number
+        row[key] = v if (lpips_ok or "/lpips" not in key) else math.nan
     return row
 
 
@@ -387,6 +389,10 @@ def _columns() -> list[dict]:
             header = f"{SPLIT_SHORT[split]} {name.upper()}{'↑' if up else '↓'}"
             tex = f"{name.upper()}$\\{'uparrow' if up else 'downarrow'}$"
             cols.append(_column(metric_key(split, name), short, header, tex, split, scale, dec, True, name == "lpips"))
+        # the garment where the scene labels it (n/a on real data): PSNR and the detail kept (1: all of it)
+        for name, label in (("psnr_garment", "PSNR garm"), ("detail_garment", "detail garm")):
+            cols.append(_column(metric_key(split, name), f"{split}_{name}", f"{SPLIT_SHORT[split]} {label}↑",
+                                label.replace("garm", "garm.") + "$\\uparrow$", split, 1.0, 2, True))
     cols += [
         _column("train_seconds", "train_seconds", "Train time (s)", "Train (s)", dec=1),
         _column("num_gaussians", "num_gaussians", "Gaussians", "Gaussians"),
@@ -395,8 +401,11 @@ def _columns() -> list[dict]:
     return cols
 
 
-# Also in the CSV (not in the printed table): masked metrics and render speed.
-EXTRA = [metric_key(s, n) for s in SPLITS for n in ("psnr_masked", "ssim_masked", "lpips_masked")] + ["render_fps"]
+# Also in the CSV (not in the printed table): box metrics, FLIP, the garment's scores per motion phase, render speed.
+EXTRA = ([metric_key(s, n) for s in SPLITS for n in ("psnr_masked", "ssim_masked", "lpips_masked", "flip",
+                                                        "flip_masked", "detail_masked", *GARMENT)]
+         + [metric_key(s, f"{ph}/{n}") for s in SPLITS for ph in PHASES
+            for n in ("psnr", "psnr_masked", "detail_masked", *GARMENT)] + ["render_fps"])
 
 
 def _num(x: float, dec: int) -> str:
