@@ -114,6 +114,40 @@ def write_i3d(root, sequence, body, train_frames=(0, 1, 2, 3), pose_frames=(4, 5
     return written
 
 
+def write_i3d_release(root, sequence, body, n_frames=60, start=10, split_at=40, train_every=5, novel_every=10,
+                      train_views=(0, 1), test_views=(2,), seed=0, frame_interval=1, frameid_pose=True):
+    """Write <root>/<sequence>-train/-novelview/-novelpose as I3D-Human is released: the image folders hold every
+    `train_every`-th frame of [start, split_at) (-train), every `novel_every`-th of it (-novelview) and of
+    [split_at, n_frames) (-novelpose); with `frameid_pose`, each split's frameid_pose.pkl holds the whole motion in
+    Dyco's format, a list whose entry k is frame k * frame_interval ({'poses': [23,3], 'Rh', 'Th'}).
+    Returns the dense motion (poses [F,72], Rh, Th over frames 0..n_frames-1) and each split's frames."""
+    import pickle
+
+    root = Path(root)
+    frames = list(range(n_frames))
+    poses, Rh, Th = motion(frames, seed)
+    pelvis_w = world_pelvis(body, poses, Rh, Th)
+    layout = {"train": (list(range(start, split_at, train_every)), train_views),
+              "novelview": (list(range(start, split_at, novel_every)), test_views),
+              "novelpose": (list(range(split_at, n_frames, novel_every)), test_views)}
+    dense = [{"poses": poses[f].reshape(24, 3)[1:].astype(np.float32), "Rh": Rh[f].astype(np.float32),
+              "Th": Th[f].astype(np.float32)} for f in range(0, n_frames, frame_interval)]
+    for folder, (fr, views) in layout.items():
+        out = I3DSplitWriter(root / f"{sequence}-{folder}", body.rest_joints.numpy() if folder == "train" else None)
+        for f in fr:
+            info = {"poses": poses[f], "Rh": Rh[f], "Th": Th[f], "joints": np.zeros((24, 3)),
+                    "tpose_joints": body.rest_joints.numpy()}
+            for v in views:
+                K, E = camera(v)
+                img, mask = draw(project(K, E, pelvis_w[f]), (200, (100 + 20 * v) % 256, 50))
+                out.add(f, v, img, mask, K, E, info)
+        out.close()
+        if frameid_pose:
+            with open(root / f"{sequence}-{folder}" / "frameid_pose.pkl", "wb") as fh:
+                pickle.dump(dense, fh)
+    return {"poses": poses, "Rh": Rh, "Th": Th, "frames": {k: v[0] for k, v in layout.items()}}
+
+
 def write_zju(root, subject="CoreView_377", body=None, n_frames=6, cams=("1", "2", "3"), seed=0, size=SIZE):
     """Write <root>/<subject> in the ARAH layout: cam_params.json, <cam>/<idx:06d>.jpg|.png, models/<idx:06d>.npz."""
     d = Path(root) / subject

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import pickle
 from contextlib import contextmanager
 
@@ -13,7 +14,7 @@ from PIL import Image
 from realityavatar.body.base import rh_th_to_smpl
 from realityavatar.data.i3d import read_i3d
 from realityavatar.data.records import SceneFormatError, load_record, undistort_grid
-from tests.fixtures_data import RandomBody, pixel_in_mask, project, write_i3d
+from tests.fixtures_data import RandomBody, pixel_in_mask, project, write_i3d, write_i3d_release
 
 
 @pytest.fixture(scope="module")
@@ -203,3 +204,136 @@ def test_undistort_grid_identity_and_barrel():
     g1 = undistort_grid(K, np.array([0.2, 0, 0, 0, 0]), 64, 64)[0]
     assert g1[0, 0, 0] < g0[0, 0, 0] and g1[0, 0, 1] < g0[0, 0, 1]  # corners sample further out (k1 > 0)
     torch.testing.assert_close(g1[32, 32], g0[32, 32], atol=0.02, rtol=0)  # centre barely moves
+
+
+# ---------------------------------------------------------------------- the release layout: dense frameid_pose.pkl
+
+def _dense_smpl(w, body, frames):
+    """The fixture's dense motion at `frames`, converted as the reader converts it: poses [N,24,3], transl [N,3]."""
+    idx = np.asarray(frames)
+    p, t = rh_th_to_smpl(torch.as_tensor(w["poses"][idx]).reshape(-1, 24, 3), torch.as_tensor(w["Rh"][idx]),
+                         torch.as_tensor(w["Th"][idx]), body.rest_joints[0].double())
+    return p.float(), t.float()
+
+
+@pytest.mark.parametrize("frame_interval", [1, 3])
+def test_release_windows_hold_the_dense_poses(tmp_path, body, frame_interval):
+    """Image folders every 5th / 10th frame, frameid_pose.pkl dense: every window of every split holds the poses of
+    frames t - k*s (read as Dyco reads the file: entry (t - k*s) // frame_interval, targets before 0 on frame 0;
+    the last entry the frame's own fit), where snapping to the stored image frames would give other poses."""
+    w = write_i3d_release(tmp_path, "rel", body, frame_interval=frame_interval)
+    write_i3d_release(tmp_path / "sparse", "rel", body, frameid_pose=False)  # the same motion, without the file
+    scene = read_i3d(tmp_path, "rel", body.rest_joints[0], frame_interval=frame_interval)
+    snapped = read_i3d(tmp_path / "sparse", "rel", body.rest_joints[0]).poses
+    assert scene.meta["pose_windows"].startswith("exact") and snapped.dense_every is None
+    T, s = 6, 7
+    differs = 0
+    for split, recs in scene.splits.items():
+        for f in sorted({r.frame for r in recs}):
+            targets = np.maximum(f - s * np.arange(T - 1, -1, -1), 0) // frame_interval * frame_interval
+            targets[-1] = f
+            p_ref, t_ref = _dense_smpl(w, body, targets)
+            p, t = scene.poses.window(f, T, s)
+            where = f"{split} frame {f}"
+            assert torch.allclose(p, p_ref, atol=1e-5, rtol=0), (where, (p - p_ref).abs().max())
+            assert torch.allclose(t, t_ref, atol=1e-5, rtol=0), (where, (t - t_ref).abs().max())
+            differs += not torch.allclose(snapped.window(f, T, s)[0], p_ref, atol=1e-5)
+    assert differs > 0, "the fixture cannot tell exact windows from snapped ones"
+
+
+def test_release_without_frameid_pose_warns_windows_are_approximate(tmp_path, body, caplog):
+    write_i3d_release(tmp_path, "rel", body, frameid_pose=False)
+    with caplog.at_level(logging.WARNING, logger="realityavatar.data.i3d"):
+        scene = read_i3d(tmp_path, "rel", body.rest_joints[0])
+    assert scene.poses.dense_every is None and scene.meta["pose_windows"].startswith("approximate")
+    assert "no frameid_pose.pkl in rel-train, rel-novelview, rel-novelpose" in caplog.text
+    assert "approximate" in caplog.text
+
+
+def test_folders_holding_every_frame_need_no_frameid_pose(i3d, body, caplog):
+    """The synthetic scenes' folders hold every frame from 0: their windows are exact without the file, no warning."""
+    root, _ = i3d
+    with caplog.at_level(logging.WARNING, logger="realityavatar.data.i3d"):
+        scene = read_i3d(root, "seq", body.rest_joints[0])
+    assert scene.meta["pose_windows"].startswith("exact") and "frameid_pose" not in caplog.text
+
+
+def test_a_window_target_without_a_pose_names_the_file_and_frame(tmp_path, body):
+    """frameid_pose.pkl cut short: the window of a later frame reads a frame the file does not hold."""
+    write_i3d_release(tmp_path, "rel", body)
+    for folder in ("rel-train", "rel-novelview", "rel-novelpose"):
+        with edited(tmp_path / folder / "frameid_pose.pkl") as entries:
+            del entries[30:]
+    scene = read_i3d(tmp_path, "rel", body.rest_joints[0])
+    scene.poses.window(35, 6, 7)  # targets 0, 1, 14, 21, 28 and the frame's own fit: all there
+    with pytest.raises(KeyError, match=r"rel-train/frameid_pose\.pkl.*no pose for frame 33, which the pose window of "
+                                       r"frame 40 reads"):
+        scene.poses.window(40, 6, 7)
+
+
+@pytest.mark.parametrize("entry, match", [
+    ({"poses": np.zeros((22, 3)), "Rh": np.zeros(3), "Th": np.zeros(3)}, r"entry 4 \(frame 4\) has poses \(22, 3\)"),
+    ({"poses": np.zeros((23, 3)), "Th": np.zeros(3)}, r"entry 4 \(frame 4\).*lacks key 'Rh'"),
+])
+def test_bad_frameid_pose_entry_names_file_and_entry(tmp_path, body, entry, match):
+    write_i3d_release(tmp_path, "rel", body)
+    with edited(tmp_path / "rel-novelpose" / "frameid_pose.pkl") as entries:
+        entries[4] = entry
+    with pytest.raises(SceneFormatError, match=r"rel-novelpose/frameid_pose\.pkl.*" + match):
+        read_i3d(tmp_path, "rel", body.rest_joints[0])
+
+
+def test_frameid_pose_that_disagrees_with_mesh_infos_is_refused(tmp_path, body):
+    """A file of another sequence (or shifted by a frame_interval mistake) gives the images' frames other poses."""
+    write_i3d_release(tmp_path, "rel", body)
+    with edited(tmp_path / "rel-train" / "frameid_pose.pkl") as entries:
+        entries[15] = dict(entries[15], Th=entries[15]["Th"] + 0.2)
+    with pytest.raises(ValueError, match=r"frame 15 has different poses in .*rel-train/mesh_infos\.pkl and "
+                                         r".*rel-train/frameid_pose\.pkl"):
+        read_i3d(tmp_path, "rel", body.rest_joints[0])
+    with pytest.raises(ValueError, match=r"data\.frame_interval: expected a whole number >= 1"):
+        read_i3d(tmp_path, "rel", body.rest_joints[0], frame_interval=0)
+
+
+def test_frameid_pose_in_72_values_reads_like_23_by_3(tmp_path, body):
+    w = write_i3d_release(tmp_path, "rel", body)
+    a = read_i3d(tmp_path, "rel", body.rest_joints[0]).poses.window(45, 6, 7)
+    for folder in ("rel-train", "rel-novelview", "rel-novelpose"):
+        with edited(tmp_path / folder / "frameid_pose.pkl") as entries:
+            for k, e in enumerate(entries):
+                e["poses"] = w["poses"][k].astype(np.float32)  # [72], root zero
+    b = read_i3d(tmp_path, "rel", body.rest_joints[0]).poses.window(45, 6, 7)
+    torch.testing.assert_close(a, b)
+
+
+def test_write_release_keeps_the_chosen_frames_and_the_whole_motion(i3d, body, tmp_path):
+    """A scene of every frame (the builder's) written as a release: sparse image folders, the same windows."""
+    import json
+
+    from realityavatar.data.i3d import write_release
+
+    root, _ = i3d
+    (root / "seq-meta.json").write_text(json.dumps({"frames": {"train": [0, 4], "novel_pose": [4, 6]}}))
+    out = write_release(root / "seq", tmp_path / "release", train_every=2, novel_every=3)
+    full = read_i3d(root, "seq", body.rest_joints[0])
+    rel = read_i3d(out.parent, "seq", body.rest_joints[0])
+    assert rel.frames("train").tolist() == [0, 2] and rel.frames("novel_view").tolist() == [0, 3]
+    assert rel.frames("novel_pose").tolist() == [4]
+    assert rel.poses.dense_every == 1 and json.loads((out.parent / "seq-meta.json").read_text())["release"]
+    for f in (2, 3, 4):
+        torch.testing.assert_close(rel.poses.window(f, 3, 1), full.poses.window(f, 3, 1))
+    with pytest.raises(ValueError, match="train_every: expected a whole number >= 1"):
+        write_release(root / "seq", tmp_path / "release", train_every=0)
+
+
+def test_i3d_datamodule_passes_frame_interval(tmp_path, body):
+    from realityavatar.data.i3d import I3DDataModule
+
+    w = write_i3d_release(tmp_path, "rel", body, frame_interval=3)
+    dm = I3DDataModule(str(tmp_path), "rel", body=body, window_len=3, window_step=4, frame_interval=3)
+    dm.setup("fit")
+    item = next(it for it in dm.datasets["novel_pose"] if it["frame"] == 50)
+    p_ref, _ = _dense_smpl(w, body, [42, 45, 50])  # 42 // 3 * 3, 46 // 3 * 3, the frame itself
+    torch.testing.assert_close(item["poses"], p_ref, atol=1e-5, rtol=0)
+    with pytest.raises(ValueError, match=r"data\.frame_interval: expected a whole number >= 1"):
+        I3DDataModule(str(tmp_path), "rel", body=body, frame_interval=0)

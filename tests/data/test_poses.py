@@ -37,3 +37,48 @@ def test_pose_table_rejects_nan():
     poses[1, 4, 2] = float("nan")
     with pytest.raises(ValueError, match=r"non-finite .* frames \[8\]"):
         PoseTable([7, 8, 9], poses, torch.zeros(3, 3), source="test")
+
+
+def _ramp(frames, dense_every=None, source="ramp.pkl"):
+    """A table whose pose[...,0] is its frame id, so a window reads as the frames it took."""
+    frames = np.asarray(frames)
+    poses = torch.as_tensor(frames, dtype=torch.float32)[:, None, None].expand(len(frames), 24, 3)
+    return PoseTable(frames, poses, torch.zeros(len(frames), 3), source=source, dense_every=dense_every)
+
+
+def test_dense_window_reads_exact_frames_and_clamps_at_frame_zero_only():
+    """A dense table (frameid_pose.pkl) gives t - k*s exactly; targets before frame 0 read frame 0 (Dyco's
+    max(t - i, 0)); the same table without the dense flag snaps the same targets to its stored frames."""
+    table = _ramp(range(60), dense_every=1)
+    p, _ = table.window(52, window_len=6, window_step=25)
+    assert p[:, 0, 0].tolist() == [0, 0, 0, 2, 27, 52]
+    sparse = _ramp([0, 5, 10, 15, 20, 25, 30])
+    assert sparse.window(30, 3, 7)[0][:, 0, 0].tolist() == [15, 20, 30]  # 16 -> 15, 23 -> 20: today's snapping
+    exact = _ramp(range(31), dense_every=1)
+    assert exact.window(30, 3, 7)[0][:, 0, 0].tolist() == [16, 23, 30]
+
+
+def test_dense_window_every_k_frames_reads_the_sample_at_or_before():
+    """frame_interval 3 (I3D-Human ID2_x / ID3_x): entry k is frame 3k; a target reads entry target // 3, the frame
+    itself its own fit (an image frame between samples)."""
+    table = PoseTable.union([_ramp(range(0, 61, 3), dense_every=3), _ramp([50], source="mesh_infos.pkl")])
+    assert table.dense_every == 3
+    assert table.window(50, 4, 8)[0][:, 0, 0].tolist() == [24, 33, 42, 50]
+
+
+def test_dense_window_missing_target_names_file_and_frame():
+    table = _ramp(list(range(20)) + [40], dense_every=1, source="seq-train/frameid_pose.pkl")
+    with pytest.raises(KeyError, match=r"seq-train/frameid_pose\.pkl: no pose for frame 20, which the pose window of "
+                                       r"frame 40 reads \(T=3, s=10"):
+        table.window(40, 3, 10)
+
+
+def test_union_keeps_dense_sampling_and_refuses_two_samplings():
+    a, b = _ramp(range(10), dense_every=1, source="a.pkl"), _ramp([3, 12], source="b.pkl")
+    u = PoseTable.union([b, a])
+    assert u.dense_every == 1 and u.source == "a.pkl" and len(u) == 11
+    assert PoseTable.union([b]).dense_every is None
+    with pytest.raises(ValueError, match="dense pose tables sampled differently: a.pkl every 1 frames, c.pkl every 3"):
+        PoseTable.union([a, _ramp([0, 3], dense_every=3, source="c.pkl")])
+    with pytest.raises(ValueError, match="dense_every must be None or a whole number >= 1"):
+        _ramp([0], dense_every=0)

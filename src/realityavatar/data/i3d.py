@@ -407,3 +407,39 @@ def read_i3d(root: str | Path, sequence: str, pelvis: torch.Tensor | None = None
         except json.JSONDecodeError as e:
             raise SceneFormatError(f"{scene_meta}: not valid JSON ({e})") from e
     return SceneData(splits=splits, poses=poses, source=str(root / sequence), meta=meta)
+
+
+def _i3d_datamodule_class():
+    """AvatarDataModule for I3D-Human with `frame_interval` (Dyco's: frames between frameid_pose.pkl's entries),
+    which the I3D configs set per sequence. Built on first use: the DataModule's imports (Lightning, the model's
+    pose inputs) stay out of the scene builder's and the fixtures' way."""
+    from realityavatar.data.datamodule import AvatarDataModule
+
+    class I3DDataModule(AvatarDataModule):
+        """AvatarDataModule(reader="i3d") whose reader takes `frame_interval` (conf/data/i3d_base.yaml)."""
+
+        def __init__(self, *args, frame_interval: int = 1, **kwargs) -> None:
+            super().__init__(*args, **kwargs)
+            if isinstance(frame_interval, bool) or not isinstance(frame_interval, int) or frame_interval < 1:
+                raise ValueError(f"data.frame_interval: expected a whole number >= 1 (frames between "
+                                 f"{FRAMEID_POSE}'s entries; Dyco's frame_interval), got {frame_interval!r}")
+            if self.reader != "i3d":
+                raise ValueError(f"data.reader: I3DDataModule reads the I3D-Human layout, got {self.reader!r}")
+            self.frame_interval = frame_interval
+
+        def read_scene(self) -> SceneData:
+            hint = "I3D-Human: download it (Dyco's layout, docs/data.md) and set I3D_ROOT or data.root"
+            return read_i3d(self.root, self.sequence, self._pelvis(), build_hint=hint,
+                            frame_interval=self.frame_interval)
+
+    I3DDataModule.__module__ = __name__
+    I3DDataModule.__qualname__ = "I3DDataModule"
+    return I3DDataModule
+
+
+def __getattr__(name: str):
+    """`realityavatar.data.i3d.I3DDataModule` (hydra's `_target_`), made on first access and kept."""
+    if name == "I3DDataModule":
+        cls = globals()[name] = _i3d_datamodule_class()
+        return cls
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
