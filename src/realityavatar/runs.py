@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import os
+import pickle
 import random
 import shutil
 import signal
@@ -31,12 +32,23 @@ RESUMABLE_CHANGES = ("iterations", "trainer.max_time", "trainer.profiler", "comp
 
 
 def read_checkpoint(path: str | Path) -> dict:
-    """torch.load a Lightning checkpoint; a missing, truncated or foreign file raises an error naming it."""
+    """torch.load a Lightning checkpoint as data only (tensors and plain types); a missing, truncated or foreign file,
+    or one that holds anything else, raises an error naming it."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"checkpoint {path} not found")
     try:
-        state = torch.load(path, map_location="cpu", weights_only=False)
+        # Run folders are shared: unpickling an arbitrary object runs code its author chose, so only data is read.
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as e:
+        if "Weights only load failed" not in str(e):
+            raise ValueError(f"checkpoint {path} is truncated or corrupt and cannot be read ({e})") from e
+        found = next((ln.split("GLOBAL", 1)[1].split()[0] for ln in str(e).splitlines() if "GLOBAL" in ln), "an object")
+        raise ValueError(
+            f"checkpoint {path} refused: it holds {found}, which is neither a tensor nor a plain type, and loading it "
+            "would run code the file names. realityavatar-train writes only tensors and plain types, so this file "
+            "was written or changed by something else; use a checkpoint you trained or trust"
+        ) from None
     except Exception as e:
         raise ValueError(
             f"checkpoint {path} is truncated or corrupt and cannot be read ({type(e).__name__}: {str(e).splitlines()[0]}); "

@@ -108,7 +108,8 @@ def _run(cfg: DictConfig, choices: dict | None, out_dir: Path, resume_from: Path
     trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False)
     check_single_process(trainer)  # before fit: a DDP launch would start the other ranks
     try:
-        trainer.fit(module, datamodule=dm, ckpt_path=str(resume_from) if resume_from else None)
+        # data only, as read_checkpoint read it above
+        trainer.fit(module, datamodule=dm, ckpt_path=str(resume_from) if resume_from else None, weights_only=True)
     except SystemExit:
         if trainer.interrupted:  # Lightning turns a KeyboardInterrupt inside a step into exit(1)
             _interrupted(out_dir, trainer, saved=False)

@@ -43,7 +43,7 @@ def _run(out: Path, *overrides: str) -> dict:
 
 
 def _state(path: Path) -> dict:
-    return torch.load(path, map_location="cpu", weights_only=False)
+    return torch.load(path, map_location="cpu", weights_only=True)
 
 
 def _log_steps(out: Path) -> list[int]:
