@@ -264,3 +264,157 @@ def test_metrics_do_not_depend_on_float32_accumulation():
     assert float(ssim(x, y)) == pytest.approx(float(ssim(x.double(), y.double())), abs=1e-12)
     assert float(psnr(x, y)) == pytest.approx(float(psnr(x.double(), y.double())), abs=1e-12)
     assert ssim(x, y).dtype == torch.float64
+
+
+# ---------------------------------------------------------------------- published protocols (eval.protocol)
+
+def _scene_pair(h=40, w=36, seed=3):
+    """A structured ground truth (a disc on black, uint8-quantised like a PNG) and a noisy, shifted prediction."""
+    g = torch.Generator().manual_seed(seed)
+    yy, xx = torch.meshgrid(torch.arange(h), torch.arange(w), indexing="ij")
+    disc = ((yy - h / 2) ** 2 + (xx - w / 2) ** 2 < (h / 3) ** 2).float()[..., None]
+    gt = torch.round(disc * torch.rand(h, w, 3, generator=g) * 255) / 255
+    pred = (torch.roll(gt, 1, 1) + 0.05 * torch.randn(h, w, 3, generator=g)).clamp(0, 1)
+    return pred, gt, disc
+
+
+def _ssim_3dgs_loop(pred, gt, window=11, sigma=1.5):
+    """3DGS's SSIM written out per pixel: Gaussian-weighted sums over each pixel's window, zero outside the image,
+    averaged over all pixels and channels."""
+    x, y = pred.double().numpy(), gt.double().numpy()
+    H, W, C = x.shape
+    r = window // 2
+    g1 = np.exp(-((np.arange(window) - r) ** 2) / (2 * sigma**2))
+    g1 /= g1.sum()
+    wgt = np.outer(g1, g1)
+    xp, yp = (np.pad(a, ((r, r), (r, r), (0, 0))) for a in (x, y))
+    total = 0.0
+    for i in range(H):
+        for j in range(W):
+            for c in range(C):
+                a, b = xp[i:i + window, j:j + window, c], yp[i:i + window, j:j + window, c]
+                mx, my = (wgt * a).sum(), (wgt * b).sum()
+                vx, vy, vxy = (wgt * a * a).sum() - mx**2, (wgt * b * b).sum() - my**2, (wgt * a * b).sum() - mx * my
+                total += ((2 * mx * my + 1e-4) * (2 * vxy + 9e-4)) / ((mx**2 + my**2 + 1e-4) * (vx + vy + 9e-4))
+    return total / (H * W * C)
+
+
+def test_dyco_ssim_equals_skimage_structural_similarity():
+    """Dyco calls skimage's structural_similarity(pred, gt, channel_axis=-1, data_range=1) with its defaults."""
+    metrics_ssim = pytest.importorskip("skimage.metrics").structural_similarity
+    from realityavatar.metrics import PROTOCOLS, ssim_skimage
+
+    assert PROTOCOLS["dyco"].ssim_fn is ssim_skimage
+    for seed in range(3):
+        pred, gt, _ = _scene_pair(seed=seed)
+        ref = metrics_ssim(pred.double().numpy(), gt.double().numpy(), channel_axis=-1, data_range=1)
+        assert float(ssim_skimage(pred, gt)) == pytest.approx(ref, abs=1e-10)
+        assert float(ssim(pred, gt)) != pytest.approx(ref, abs=1e-3)  # ours is another convention
+    batch = ssim_skimage(torch.stack([pred, gt]), torch.stack([gt, gt]))
+    assert batch.shape == (2,) and float(batch[1]) == pytest.approx(1.0)
+
+
+def test_seqavatar_ssim_equals_a_direct_3dgs_ssim():
+    from realityavatar.metrics import PROTOCOLS, ssim_3dgs
+
+    assert PROTOCOLS["seqavatar"].ssim_fn is ssim_3dgs
+    pred, gt, _ = _scene_pair(h=17, w=15)
+    assert float(ssim_3dgs(pred, gt)) == pytest.approx(_ssim_3dgs_loop(pred, gt), abs=1e-10)
+    assert float(ssim_3dgs(gt, gt)) == pytest.approx(1.0)
+
+
+def test_seqavatar_psnr_averages_the_channels_psnr():
+    """3DGS's psnr on a [3,H,W] image, then .mean(): channel errors 0.1, 0.01, 0.001 give 20, 40, 60 dB -> 40."""
+    from realityavatar.metrics import psnr_per_channel
+
+    gt = torch.zeros(6, 5, 3)
+    pred = gt + torch.tensor([0.1, 0.01, 0.001])
+    assert float(psnr_per_channel(pred, gt)) == pytest.approx(40.0, abs=1e-6)
+    assert float(psnr(pred, gt)) == pytest.approx(-10 * math.log10((0.01 + 1e-4 + 1e-6) / 3), abs=1e-6)
+
+
+def test_floor_uint8_truncates_like_dyco_and_keeps_png_values():
+    from realityavatar.metrics import floor_uint8
+
+    levels = torch.arange(256, dtype=torch.float32) / 255  # a PNG's values survive (float32, as numpy computes)
+    assert torch.equal(floor_uint8(levels), levels)
+    x = torch.tensor([0.9999, 0.5, 1.5, -0.2])
+    assert (floor_uint8(x) * 255).round().tolist() == [254, 127, 255, 0]  # truncation, not rounding (0.5 -> 127)
+
+
+def test_mask_box_is_seqavatars_rect_bound_mask():
+    """get_rect_bound_mask: the mask's box grown by 5 px (inclusive ends), clipped to the image."""
+    from realityavatar.metrics import mask_box_mask
+
+    mask = torch.zeros(30, 40, 1)
+    mask[10:13, 2:20] = 1  # rows 10..12, columns 2..19
+    box = mask_box_mask(mask)[..., 0]
+    ys, xs = box.any(1).nonzero().squeeze(-1), box.any(0).nonzero().squeeze(-1)
+    assert (int(ys[0]), int(ys[-1]), int(xs[0]), int(xs[-1])) == (5, 17, 0, 24)
+    assert int(box.sum()) == 13 * 25
+
+
+def test_smpl_box_is_the_rays_through_the_body_box():
+    """A camera at the origin looking along +z and a box of joints 5 m ahead: the rays that meet it are those through
+    the front face's projection (u = cx + f x / z_near at integer pixels, Dyco's rays); a body turned 45 degrees turns the box."""
+    from realityavatar.geometry import axis_angle_to_matrix
+    from realityavatar.metrics import smpl_box_mask
+
+    f, cx, cy, H, W = 40.0, 32.0, 24.0, 48, 64
+    K = torch.tensor([[f, 0, cx], [0, f, cy], [0, 0, 1.0]])
+    joints = torch.tensor([[-0.2, -0.5, 5.0], [0.2, 0.5, 5.2], [0.0, 0.0, 5.1]])
+    mask = smpl_box_mask(joints, torch.eye(3), K, torch.eye(4), H, W, offset=0.3)[..., 0]
+    lo, hi, z = torch.tensor([-0.51, -0.81]), torch.tensor([0.51, 0.81]), 5.0 - 0.31
+    u, v = torch.arange(W, dtype=torch.float64), torch.arange(H, dtype=torch.float64)
+    ux, vy = (u - cx) / f * z, (v - cy) / f * z
+    ref = ((vy >= lo[1]) & (vy <= hi[1]))[:, None] & ((ux >= lo[0]) & (ux <= hi[0]))[None, :]
+    assert torch.equal(mask, ref) and 0 < int(mask.sum()) < H * W
+    turned = smpl_box_mask(joints, axis_angle_to_matrix(torch.tensor([0.0, 0.0, math.pi / 4])), K, torch.eye(4), H, W)
+    assert not torch.equal(turned[..., 0], mask)
+
+
+class _RecordLPIPS(torch.nn.Module):
+    """Stands in for LPIPS: records what it is given (our LPIPS maps [0,1] to the network's [-1,1] inside)."""
+
+    def forward(self, pred, gt):
+        self.seen = (pred.clone(), gt.clone())
+        return (pred - gt).abs().mean()
+
+
+@pytest.mark.parametrize("name", ["ours", "dyco", "seqavatar"])
+def test_protocols_mask_quantise_and_score_as_specified(name):
+    from realityavatar.metrics import eval_protocol, floor_uint8, psnr_per_channel, ssim_3dgs, ssim_skimage
+
+    pred, gt, disc = _scene_pair()
+    pred = pred + 0.3 * (1 - disc)  # a halo outside the person, which masking removes
+    keep = torch.zeros_like(disc, dtype=torch.bool)
+    keep[5:35, 4:32] = True
+    proto = eval_protocol(name)
+    lp = _RecordLPIPS()
+    out = proto.scores(pred, gt, keep, lp)
+    if name == "ours":
+        p, g = pred, gt
+        assert out["psnr"] == pytest.approx(float(psnr(p, g))) and out["ssim"] == pytest.approx(float(ssim(p, g)))
+    elif name == "dyco":  # prediction and ground truth both background outside the SMPL box, then floored to uint8
+        p, g = floor_uint8(torch.where(keep, pred, 0.0)), floor_uint8(torch.where(keep, gt, 0.0))
+        assert out["psnr"] == pytest.approx(float(psnr(p, g)))
+        assert out["ssim"] == pytest.approx(float(ssim_skimage(p, g)))
+    else:  # the prediction only zeroed outside the mask box; the image as stored (already uint8)
+        p, g = torch.where(keep, pred, 0.0), gt
+        assert out["psnr"] == pytest.approx(float(psnr_per_channel(p, g)))
+        assert out["ssim"] == pytest.approx(float(ssim_3dgs(p, g)))
+        p, g = (p + 1) / 2, (g + 1) / 2  # SeqAvatar feeds [0,1] where the network expects [-1,1]
+    torch.testing.assert_close(lp.seen[0], p.to(lp.seen[0].dtype))
+    torch.testing.assert_close(lp.seen[1], g.to(lp.seen[1].dtype))
+    assert out["lpips"] == pytest.approx(float((p - g).abs().mean()) * 1000)
+    assert proto.describe()["name"] == name
+
+
+def test_unknown_protocol_and_missing_pixels_are_named():
+    from realityavatar.metrics import eval_protocol
+
+    with pytest.raises(ValueError, match="eval.protocol: expected one of ours, dyco, seqavatar, got 'dyko'"):
+        eval_protocol("dyko")
+    pred, gt, _ = _scene_pair()
+    with pytest.raises(ValueError, match="eval.protocol=dyco: needs the smpl_box pixels"):
+        eval_protocol("dyco").scores(pred, gt, None)

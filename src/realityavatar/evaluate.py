@@ -107,6 +107,36 @@ def motion_phases(dm, split: str) -> dict[int, str]:
     return dm.scene.poses.motion_phases(frames, dm.fps)
 
 
+def protocol_scores(records: list[dict], dm, body, protocol, lpips=None) -> list[dict]:
+    """`records` (test_step's, with their `_pred`/`_gt` images) with psnr, ssim and lpips rescored as `protocol`
+    (metrics.EvalProtocol) scores them; the other scores stay ours. The pixels a protocol keeps come from each
+    image's sample: its mask (SeqAvatar's box) or its pose and camera (Dyco's SMPL box, from `body`'s joints)."""
+    from realityavatar.geometry import axis_angle_to_matrix
+    from realityavatar.metrics import mask_box_mask, smpl_box_mask
+
+    if protocol.name == "ours":
+        return records
+    index = {split: {(r.frame, r.view): i for i, r in enumerate(ds.records)} for split, ds in dm.datasets.items()}
+    host = body.host_copy().double() if protocol.masking == "smpl_box" else None  # the samples are on the host
+    out = []
+    for r in records:
+        ds = dm.datasets[r["split"]]
+        sample = ds[index[r["split"]][(r["frame"], r["view"])]]
+        pred, gt = r["_pred"], r["_gt"]
+        H, W = pred.shape[:2]
+        keep = None
+        if protocol.masking == "mask_box":
+            keep = mask_box_mask(sample["inside"])
+        elif protocol.masking == "smpl_box":
+            pose, transl = sample["poses"][-1].double(), sample["transl"][-1].double()  # the frame's own pose
+            with torch.no_grad():
+                joints = host.joints(pose, transl)  # [24,3] world
+            keep = smpl_box_mask(joints, axis_angle_to_matrix(pose[0]), sample["K"], sample["viewmat"], H, W)
+        scores = protocol.scores(pred, gt, keep, lpips, sample["background"])
+        out.append({**{k: v for k, v in r.items() if k not in ("psnr", "ssim", "lpips")}, **scores})
+    return out
+
+
 def evaluate_module(module, dm, trainer, cfg, out_dir: Path) -> dict:
     """Test every split (novel_view, novel_pose), write outputs, return the metric dict.
 
@@ -114,20 +144,25 @@ def evaluate_module(module, dm, trainer, cfg, out_dir: Path) -> dict:
     failing stage is recorded under "evaluation_errors" ({stage: message}) and the others still report.
     """
     from realityavatar.config import check_settings
+    from realityavatar.metrics import eval_protocol
 
     check_settings(cfg, prefix="eval.")
     ev = cfg.get("eval", {}) or {}
+    protocol = eval_protocol(ev.get("protocol", "ours"))  # a run from before the key: ours
     records, errors = [], {}
     for split in dm.test_split_names:
         module.test_records = []
         try:
             trainer.test(module, dataloaders=split_loader(dm, split, ev.get("max_frames_per_split")), verbose=False)
             phases = motion_phases(dm, split)
-            records += [{**r, "phase": phases.get(r["frame"], "all")} for r in module.test_records]
+            scored = protocol_scores(module.test_records, dm, module.body, protocol, getattr(module, "lpips", None)
+                                     if any("lpips" in r for r in module.test_records) else None)
+            records += [{**r, "phase": phases.get(r["frame"], "all")} for r in scored]
         except Exception as e:  # noqa: BLE001 - recorded; the other split still runs
             errors[f"test/{split}"] = f"{type(e).__name__}: {e}"
     module.test_records = []
     metrics = summarise(records)
+    metrics["eval_protocol"] = protocol.describe()
     if ev.get("max_frames_per_split") is not None:
         metrics["eval_max_frames_per_split"] = int(ev["max_frames_per_split"])
     if module.eval_supersample > 1:
@@ -204,6 +239,12 @@ def format_table(metrics: dict) -> str:
     )
     if metrics.get("lpips"):  # "computed (<where the weights came from>)" or "not computed: <why>"
         lines.append(f"LPIPS {metrics.get('lpips')}")
+    proto = metrics.get("eval_protocol") or {"name": "ours"}  # metrics.json from before the key: ours
+    lines.append(f"protocol {proto['name']}" + (
+        " (eval.protocol: the raw render scored against the image)" if proto["name"] == "ours" else
+        f": PSNR / SSIM / LPIPS as {proto['name']} scores them ({proto.get('masking')} masking, "
+        f"{'uint8-floored images, ' if proto.get('uint8_floor') else ''}{proto.get('ssim')}, {proto.get('psnr')}, "
+        f"LPIPS on {proto.get('lpips_input')}); the other columns as ours"))
     return "\n".join(lines)
 
 

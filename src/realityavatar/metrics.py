@@ -103,6 +103,94 @@ def ssim(pred: torch.Tensor, gt: torch.Tensor, window: int = 11, sigma: float = 
     return out[0] if pred.ndim == 3 else out
 
 
+def ssim_skimage(pred: torch.Tensor, gt: torch.Tensor, window: int = 7) -> torch.Tensor:
+    """skimage's structural_similarity with its defaults, as Dyco calls it (`data_range=1, channel_axis=-1`): a
+    `window` x `window` uniform window, sample covariance (x N/(N-1)), K1=0.01, K2=0.03, the mean over the positions
+    whose window lies inside the image, averaged over channels. pred, gt [H,W,3] or [B,H,W,3] -> float64 per image."""
+    p, single = _batched(pred, "pred")
+    g, _ = _batched(gt, "gt")
+    x, y = p.double().permute(0, 3, 1, 2), g.double().permute(0, 3, 1, 2)  # [B,C,H,W]
+    if min(x.shape[-2:]) < window:
+        raise ValueError(f"ssim_skimage: images of {tuple(x.shape[-2:])} px are smaller than the {window}-wide window "
+                         "(skimage refuses them too)")
+    filt = lambda t: F.avg_pool2d(t, window, stride=1)  # the uniform filter at 'valid' positions: skimage's crop
+    n = window * window
+    cov = n / (n - 1.0)
+    mx, my = filt(x), filt(y)
+    vx, vy = cov * (filt(x * x) - mx * mx), cov * (filt(y * y) - my * my)
+    vxy = cov * (filt(x * y) - mx * my)
+    c1, c2 = 0.01**2, 0.03**2
+    s = ((2 * mx * my + c1) * (2 * vxy + c2)) / ((mx * mx + my * my + c1) * (vx + vy + c2))
+    out = s.flatten(2).mean(2).mean(1)  # per channel, then over channels (skimage's channel_axis)
+    return out[0] if single else out
+
+
+def ssim_3dgs(pred: torch.Tensor, gt: torch.Tensor, window: int = 11, sigma: float = 1.5) -> torch.Tensor:
+    """3DGS's `utils/loss_utils.ssim`, as SeqAvatar's render.py scores: an 11x11 Gaussian window (sigma 1.5) with
+    zero padding (every pixel has a value; the border reads lower), population covariance, the mean over all pixels
+    and channels. pred, gt [H,W,3] or [B,H,W,3] -> float64 per image."""
+    p, single = _batched(pred, "pred")
+    g, _ = _batched(gt, "gt")
+    x, y = p.double().permute(0, 3, 1, 2), g.double().permute(0, 3, 1, 2)
+    C, r = x.shape[1], window // 2
+    g1 = _gaussian_1d(window, sigma, x.device)
+    w = (g1[:, None] @ g1[None, :]).expand(C, 1, window, window)
+    filt = lambda t: F.conv2d(t, w, padding=r, groups=C)
+    mx, my = filt(x), filt(y)
+    sxx, syy, sxy = filt(x * x) - mx * mx, filt(y * y) - my * my, filt(x * y) - mx * my
+    c1, c2 = 0.01**2, 0.03**2
+    s = ((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx * mx + my * my + c1) * (sxx + syy + c2))
+    out = s.flatten(1).mean(1)
+    return out[0] if single else out
+
+
+def psnr_per_channel(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
+    """SeqAvatar's PSNR (3DGS `utils/image_utils.psnr` on a [3,H,W] image, then `.mean()`): the PSNR of each colour
+    channel, averaged; not the PSNR of the mean squared error. [H,W,3] or [B,H,W,3] -> float64 per image."""
+    p, single = _batched(pred, "pred")
+    g, _ = _batched(gt, "gt")
+    mse = ((p.double() - g.double()) ** 2).flatten(1, 2).mean(1)  # [B,3]
+    out = (-10.0 * torch.log10(mse.clamp_min(1e-30))).mean(1)
+    return out[0] if single else out
+
+
+def floor_uint8(image: torch.Tensor) -> torch.Tensor:
+    """Dyco's `to_8b_image`, (255 * clip(x, 0, 1)).astype(uint8) / 255: quantised by truncation, not rounding."""
+    return (torch.floor(image.float().clamp(0, 1) * 255.0) / 255.0).to(image.dtype)  # float32 as numpy does it
+
+
+def smpl_box_mask(joints: torch.Tensor, root_rot: torch.Tensor, K: torch.Tensor, viewmat: torch.Tensor, height: int,
+                  width: int, offset: float = 0.3) -> torch.Tensor:
+    """Dyco's ray mask: the pixels whose camera ray meets the box around the posed joints, axis-aligned in the
+    body's frame (its root rotation `root_rot` [3,3] undone), widened by `offset` m (cfg.bbox_offset 0.3) and 0.01 m
+    more (`rays_intersect_3d_bbox`). joints [24,3] world, K [3,3], viewmat [4,4] world-to-camera; rays through
+    integer pixel coordinates, as Dyco's get_rays_from_KRT. -> bool [H,W,1]."""
+    dt = torch.float64
+    R, t = viewmat[:3, :3].to(dt), viewmat[:3, 3].to(dt)
+    Rr = root_rot.to(dt)
+    local = joints.to(dt) @ Rr  # [24,3]: R_root^T x
+    lo, hi = local.amin(0) - offset - 0.01, local.amax(0) + offset + 0.01
+    v, u = torch.meshgrid(torch.arange(height, dtype=dt), torch.arange(width, dtype=dt), indexing="ij")
+    Kd = K.to(dt)
+    d_cam = torch.stack([(u - Kd[0, 2]) / Kd[0, 0], (v - Kd[1, 2]) / Kd[1, 1], torch.ones_like(u)], -1)  # [H,W,3]
+    d = d_cam @ R @ Rr  # camera -> world (R^T d) -> body frame (R_root^T)
+    o = (-(R.T @ t)) @ Rr  # [3]
+    d = torch.where(d.abs() < 1e-5, torch.full_like(d, 1e-5), d)
+    t0, t1 = (lo - o) / d, (hi - o) / d
+    near = torch.minimum(t0, t1).amax(-1)
+    far = torch.maximum(t0, t1).amin(-1)
+    return (far > near)[..., None]  # the ray passes through the slab of every axis at once
+
+
+def mask_box_mask(mask: torch.Tensor, pad: int = 5) -> torch.Tensor:
+    """SeqAvatar's bound mask (`get_rect_bound_mask`): the ground-truth mask's bounding box grown by `pad` pixels,
+    clipped to the image. mask [H,W,1] -> bool [H,W,1]."""
+    y0, y1, x0, x1 = mask_bbox(mask, pad)
+    out = torch.zeros(mask.shape[0], mask.shape[1], 1, dtype=torch.bool, device=mask.device)
+    out[y0:y1, x0:x1] = True
+    return out
+
+
 def silhouette_iou(alpha: torch.Tensor, mask: torch.Tensor, threshold: float = 0.5) -> torch.Tensor:
     """Intersection over union of the predicted silhouette (alpha > threshold) and the mask (> 0.5): [H,W,1] each."""
     a, m = alpha > threshold, mask > 0.5
@@ -224,6 +312,74 @@ def image_metrics(pred: torch.Tensor, gt: torch.Tensor, alpha: torch.Tensor, mas
         rec["lpips"] = float(lpips(pred, gt)) * 1000.0
         rec["lpips_masked"] = float(lpips(pb, gb)) * 1000.0
     return rec
+
+
+class EvalProtocol:
+    """How a published table scores a held-out image (eval.protocol): which pixels of the prediction count
+    (`masking`: none, Dyco's SMPL box, SeqAvatar's mask box + 5 px), whether images are floored to uint8 first, the
+    SSIM and PSNR functions and LPIPS's input range. `prepare` makes the images the scores read; `scores` gives
+    psnr, ssim and (with a network) lpips x1000."""
+
+    def __init__(self, name: str, masking: Literal["none", "smpl_box", "mask_box"], quantise: bool,
+                 ssim_fn, psnr_fn, lpips_range: Literal["[-1,1]", "[0,1]"], source: str) -> None:
+        self.name, self.masking, self.quantise = name, masking, quantise
+        self.ssim_fn, self.psnr_fn, self.lpips_range, self.source = ssim_fn, psnr_fn, lpips_range, source
+
+    def describe(self) -> dict:
+        """What metrics.json records under eval_protocol."""
+        return {"name": self.name, "masking": self.masking, "uint8_floor": self.quantise,
+                "ssim": self.ssim_fn.__name__, "psnr": self.psnr_fn.__name__, "lpips_input": self.lpips_range,
+                "source": self.source}
+
+    def prepare(self, pred: torch.Tensor, gt: torch.Tensor, keep: torch.Tensor | None,
+                background: torch.Tensor | float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
+        """pred, gt [H,W,3] in [0,1]; keep bool [H,W,1], the pixels the protocol scores (None for masking "none"):
+        the prediction elsewhere becomes the background (Dyco: the ground truth too; its pixels there are already
+        background in these datasets)."""
+        if self.masking != "none":
+            if keep is None:
+                raise ValueError(f"eval.protocol={self.name}: needs the {self.masking} pixels of each image")
+            bg = torch.as_tensor(background, dtype=pred.dtype, device=pred.device).expand_as(pred)
+            pred = torch.where(keep, pred, bg)
+            if self.masking == "smpl_box":
+                gt = torch.where(keep, gt, bg.to(gt.dtype))
+        if self.quantise:
+            pred, gt = floor_uint8(pred), floor_uint8(gt)
+        return pred, gt
+
+    def scores(self, pred: torch.Tensor, gt: torch.Tensor, keep: torch.Tensor | None, lpips: nn.Module | None = None,
+               background: torch.Tensor | float = 0.0) -> dict[str, float]:
+        p, g = self.prepare(pred, gt, keep, background)
+        out = {"psnr": float(self.psnr_fn(p, g)), "ssim": float(self.ssim_fn(p, g))}
+        if lpips is not None:
+            # our LPIPS maps [0,1] to the network's [-1,1]; "[0,1]" feeds the images unmapped, as SeqAvatar does
+            p_in, g_in = (p, g) if self.lpips_range == "[-1,1]" else ((p + 1) / 2, (g + 1) / 2)
+            out["lpips"] = float(lpips(p_in, g_in)) * 1000.0
+        return out
+
+
+def _ssim_ours(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
+    return ssim(pred, gt)
+
+
+PROTOCOLS = {
+    # ours: the raw render against the image, image_metrics's scores (its SSIM: 11-wide Gaussian, valid positions)
+    "ours": EvalProtocol("ours", "none", False, ssim, psnr, "[-1,1]", "realityavatar.metrics.image_metrics"),
+    "dyco": EvalProtocol("dyco", "smpl_box", True, ssim_skimage, psnr, "[-1,1]",
+                         "Yifever20002/Dyco run.py unpack_to_image + to_8b_image, core/utils/metrics_util.py "
+                         "(skimage structural_similarity, LPIPS on x*2-1, x1000); SMPL box: "
+                         "core/data/human_nerf/train.py skeleton_to_bbox (bbox_offset 0.3)"),
+    "seqavatar": EvalProtocol("seqavatar", "mask_box", False, ssim_3dgs, psnr_per_channel, "[0,1]",
+                              "zezeaaa/SeqAvatar render.py (bound mask: utils/image_utils.get_rect_bound_mask, 5 px; "
+                              "ssim: utils/loss_utils; psnr: utils/image_utils; lpips.LPIPS(net='vgg') on [0,1])"),
+}
+
+
+def eval_protocol(name: str) -> EvalProtocol:
+    """The EvalProtocol `eval.protocol` names."""
+    if name not in PROTOCOLS:
+        raise ValueError(f"eval.protocol: expected one of {', '.join(PROTOCOLS)}, got {name!r}")
+    return PROTOCOLS[name]
 
 
 def temporal_flicker(frames_pred: torch.Tensor, frames_gt: torch.Tensor) -> float:
