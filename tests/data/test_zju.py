@@ -88,3 +88,18 @@ def test_zju_camera_that_is_no_pinhole_camera_names_it(tmp_path, body, field, va
     path.write_text(json.dumps(params))
     with pytest.raises(SceneFormatError, match=r"cam_params\.json: camera '2' " + match):
         read_zju(tmp_path / "CoreView_377", [1], [2], [0, 0, 1])
+
+
+def test_zju_windows_read_every_models_pose_not_only_the_images(tmp_path, body):
+    """The audit of issue 57: ZJU's pose table holds every models/*.npz, so a novel-pose window reaches back into
+    frames no split shows, exactly (t - k*s), clamped at frame 0 only; it is marked dense, so a gap would be an
+    error rather than a snap."""
+    from realityavatar.data.zju import read_zju
+
+    w = write_zju(tmp_path, "CoreView_377", body, n_frames=12, cams=("1", "2"))
+    scene = read_zju(tmp_path / "CoreView_377", ["1"], ["2"], [0, 6, 3], novel_pose_frames=[9, 12, 1])
+    assert scene.frames("train").tolist() == [0, 3] and scene.frames("novel_pose").tolist() == [9, 10, 11]
+    assert scene.poses.dense_every == 1
+    p, t = scene.poses.window(11, 4, 4)  # targets -1 (frame 0), 3, 7, 11: 7 is in no split
+    np.testing.assert_allclose(p.numpy(), w["pose"][[0, 3, 7, 11]], atol=1e-6)
+    np.testing.assert_allclose(t.numpy(), w["trans"][[0, 3, 7, 11]], atol=1e-6)

@@ -9,6 +9,7 @@ Frame ids are positions in the sorted models/ list (3DGS-Avatar's frame indices)
 from __future__ import annotations
 
 import json
+import logging
 from collections.abc import Sequence
 from itertools import pairwise
 from pathlib import Path
@@ -24,6 +25,8 @@ from realityavatar.data.records import (
     check_shape,
     require_key,
 )
+
+log = logging.getLogger(__name__)
 
 MODEL_KEYS = {"root_orient": 3, "pose_body": 63, "pose_hand": 6, "trans": 3}
 
@@ -87,7 +90,13 @@ def read_models(subject_dir: Path) -> tuple[list[Path], PoseTable, np.ndarray]:
         trans.append(parts["trans"])
         if betas is None and "betas" in d:
             betas = np.asarray(d["betas"], dtype=np.float64).reshape(-1)
-    table = PoseTable(np.arange(len(files)), np.stack(poses), np.stack(trans), source=str(subject_dir / "models"))
+    if steps and min(steps) > 1:  # the windows count files: s files back is s * step capture frames back
+        log.warning("%s: the SMPL files are every %d-th capture frame; data.window_step counts files (frame ids are "
+                    "positions in the list), so a window step of s reaches s * %d capture frames back",
+                    subject_dir / "models", min(steps), min(steps))
+    # Every file's pose, not only the selected images' frames: the table is dense (windows exact, clamped at frame 0).
+    table = PoseTable(np.arange(len(files)), np.stack(poses), np.stack(trans), source=str(subject_dir / "models"),
+                      dense_every=1)
     return files, table, betas if betas is not None else np.zeros(10)
 
 
