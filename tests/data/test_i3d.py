@@ -337,3 +337,12 @@ def test_i3d_datamodule_passes_frame_interval(tmp_path, body):
     torch.testing.assert_close(item["poses"], p_ref, atol=1e-5, rtol=0)
     with pytest.raises(ValueError, match=r"data\.frame_interval: expected a whole number >= 1"):
         I3DDataModule(str(tmp_path), "rel", body=body, frame_interval=0)
+
+
+def test_make_scene_release_arguments_are_checked_before_building():
+    from realityavatar.data.make_scene import main
+
+    with pytest.raises(SystemExit, match=r"--release: expected TRAIN,NOVEL \(two whole numbers >= 1\), got '5'"):
+        main(["--release", "5", "--release-root", "x"])
+    with pytest.raises(SystemExit, match="--release needs --release-root"):
+        main(["--release", "5,5"])
