@@ -46,21 +46,22 @@ def test_an_override_of_a_key_the_run_has_not_is_refused_unless_added_or_a_defau
 
 
 def test_perceptual_loss_finds_vgg19_in_torch_hub_cache(tmp_path, monkeypatch):
-    """loss.perceptual.vgg19_weights unset: torchvision's vgg19 in torch's hub cache makes the term VGG19, and
-    build_losses says where it came from; kind=dssim, or no file, keeps D-SSIM."""
+    """loss=vgg19 with vgg19_weights unset takes torchvision's vgg19 from torch's hub cache, and says where it came
+    from; the default loss is D-SSIM whatever the cache holds (a run's loss does not depend on the machine)."""
     from realityavatar.build import build_losses
     from realityavatar.config import compose
     from tests.helpers import plant_found_weights
 
-    assert build_losses(compose())[0]["perceptual"].kind == "dssim"  # nothing found (tests/conftest.py)
+    with pytest.raises(InstantiationException, match="vgg19_weights: expected a torchvision vgg19"):
+        build_losses(compose(["loss=vgg19"]))  # nothing found (tests/conftest.py)
     found = plant_found_weights(tmp_path, monkeypatch, lin=False, vgg16=False, vgg19=True)
-    losses, source = build_losses(compose())
-    assert losses["perceptual"].kind == "vgg19" and source == f"torch hub {found['vgg19']}"
-    assert list(losses) == ["rgb", "mask", "perceptual", "skinning", "silhouette"]
-    losses, source = build_losses(compose(["loss.perceptual.kind=dssim"]))
-    assert losses["perceptual"].kind == "dssim" and source is None
-    losses, source = build_losses(compose([f"loss.perceptual.vgg19_weights={found['vgg19']}"]))
-    assert source == f"loss.perceptual.vgg19_weights {found['vgg19']}"
+    losses = build_losses(compose())
+    assert list(losses) == ["rgb", "mask", "perceptual", "silhouette"] and losses["perceptual"].kind == "dssim"
+    assert not any(t.weights_from for t in losses.values())
+    losses = build_losses(compose(["loss=vgg19"]))
+    assert losses["perceptual"].kind == "vgg19" and losses["perceptual"].weights_from == f"torch hub {found['vgg19']}"
+    losses = build_losses(compose(["loss=vgg19", f"loss.perceptual.vgg19_weights={found['vgg19']}"]))
+    assert losses["perceptual"].weights_from == f"loss.perceptual.vgg19_weights {found['vgg19']}"
     (tmp_path / "torch_home" / "hub" / "checkpoints" / "vgg19-dcbb9e9d.pth").write_bytes(b"\0" * 64)  # truncated
     with pytest.raises(InstantiationException, match=f"'{found['vgg19']}': not a torch state dict file"):
-        build_losses(compose())
+        build_losses(compose(["loss=vgg19"]))

@@ -5,22 +5,21 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from hydra.utils import instantiate
 
+from realityavatar.config import compose
 from realityavatar.data.records import mask_distance
 from realityavatar.losses import (
-    ColourL1,
     MaskLoss,
-    PerceptualLoss,
-    SilhouetteChamfer,
-    SkinningLoss,
     TrainingRender,
+    VGG19PerceptualLoss,
     project_points,
     total_loss,
 )
 from realityavatar.metrics import (
     vgg_features,
 )
-from realityavatar.model.skinning import SkinningField
+from tests.model.configured import component
 
 
 def _batch(seed=0):
@@ -41,15 +40,18 @@ def _render(pred, alpha, gt, mask, skinning=None):
     return TrainingRender(pred, alpha, {"image": gt, "mask": mask}, {}, avatar)
 
 
-def test_loss_terms_dssim_fallback_weights_and_schedule():
-    """The default terms sum in order with their weights: L1 + 0.1 mask + 0.2 D-SSIM (no VGG19 weights) +
-    λ_skin skinning, λ_skin 10 before the skinning term's switch step and 0.1 from it on and for a finished run
-    (set_progress, as the module calls it before each step)."""
-    terms = {"rgb": ColourL1(), "mask": MaskLoss(weight=0.1), "perceptual": PerceptualLoss(weight=0.01, dssim_weight=0.2),
-             "skinning": SkinningLoss(weight=10.0, weight_after=0.1, switch=5, samples=32)}
+def test_loss_terms_weights_and_schedule():
+    """loss=learnt_skinning's terms sum in order with their weights: L1 + 0.1 mask + 0.2 D-SSIM + λ_skin skinning,
+    λ_skin 10 before the skinning term's switch step and 0.1 from it on and for a finished run (set_progress, as the
+    module calls it before each step). The skinning term refuses a field with nothing to train (the frozen grid)."""
+    cfg = compose(["loss=learnt_skinning", "loss.skinning.switch=5", "loss.skinning.samples=32"])
+    terms = {name: instantiate(term) for name, term in cfg.loss.items()}
+    assert list(terms) == ["rgb", "mask", "perceptual", "skinning"]
     assert terms["perceptual"].kind == "dssim" and terms["perceptual"].weight == 0.2
     pred, alpha, gt, mask = _batch()
-    field = SkinningField(hidden_dim=16, num_layers=1)
+    field = component("skinning", "mlp", hidden_dim=16, num_layers=1)
+    with pytest.raises(ValueError, match="loss.skinning: .*SkinningGrid has no trained weights"):
+        terms["skinning"].bind(_render(pred, alpha, gt, mask, component("skinning", "grid")).avatar)
     with pytest.raises(RuntimeError, match="bind"):
         total_loss(terms, _render(pred, alpha, gt, mask, field))
     for term in terms.values():
@@ -75,7 +77,7 @@ def test_loss_terms_dssim_fallback_weights_and_schedule():
 def test_perceptual_term_is_vgg19_when_weights_exist(tmp_path):
     feats = vgg_features("vgg19")[:30]
     torch.save({f"features.{k}": v for k, v in feats.state_dict().items()}, tmp_path / "vgg19.pth")
-    term = PerceptualLoss(kind="auto", vgg19_weights=str(tmp_path / "vgg19.pth"), weight=0.01)
+    term = VGG19PerceptualLoss(weight=0.01, vgg19_weights=str(tmp_path / "vgg19.pth"))
     assert term.kind == "vgg19" and term.weight == 0.01
     assert not any(p.requires_grad for p in term.parameters())
     pred, alpha, gt, mask = _batch()
@@ -88,12 +90,10 @@ def test_perceptual_term_is_vgg19_when_weights_exist(tmp_path):
 
 
 def test_loss_terms_bad_options(tmp_path):
-    with pytest.raises(ValueError, match="loss.perceptual.kind"):
-        PerceptualLoss(kind="lpips")
     with pytest.raises(FileNotFoundError, match="vgg19_weights"):
-        PerceptualLoss(kind="vgg19", vgg19_weights=str(tmp_path / "missing.pth"))
+        VGG19PerceptualLoss(weight=0.01, vgg19_weights=str(tmp_path / "missing.pth"))
     with pytest.raises(ValueError, match="loss.mask.kind"):
-        MaskLoss(kind="huber")
+        MaskLoss(weight=0.1, kind="huber")
 
 
 def _camera(H: int = 32):
@@ -120,7 +120,7 @@ def test_outside_term_pulls_a_gaussian_whose_footprint_misses_the_mask():
     x = torch.tensor([[(10 - H / 2) * 2.0 / H, (16 - H / 2) * 2.0 / H, 0.0]], requires_grad=True)  # projects to (10,16)
     uv, _ = project_points(x, E, K)
     assert torch.allclose(uv, torch.tensor([[10.0, 16.0]]), atol=1e-4)
-    loss_fn = SilhouetteChamfer(weight=1.0)
+    loss_fn = component("silhouette", "chamfer", weight=1.0)
     terms = loss_fn.image_terms(x, E, K, mask, mask_distance(mask[..., 0]), alpha)
     assert float(terms["sil_outside"]) == pytest.approx((10 / H) ** 2, rel=0.05)
     assert float(terms["sil_coverage"]) == 0.0
@@ -139,10 +139,10 @@ def test_coverage_term_pulls_the_nearest_centre_to_uncovered_mask_pixels():
     mask_in = mask.clone()
     mask_in[16, 16] = 1  # keep both centres' outside term small: only coverage should move them
     mask_in[16, 8] = 1
-    terms = SilhouetteChamfer(weight=1.0, outside_weight=0.0).image_terms(x, E, K, mask_in,
+    terms = component("silhouette", "chamfer", weight=1.0, outside_weight=0.0).image_terms(x, E, K, mask_in,
                                                                      mask_distance(mask_in[..., 0]), alpha)
     assert float(terms["sil_coverage"]) > 0
-    SilhouetteChamfer(weight=1.0, outside_weight=0.0).total(terms).backward()
+    component("silhouette", "chamfer", weight=1.0, outside_weight=0.0).total(terms).backward()
     assert x.grad[0, 0] < 0, "the nearest centre must be pulled towards the uncovered pixels (+x)"
     assert float(x.grad[1].abs().sum()) == 0.0, "a farther centre is not the nearest to any uncovered pixel"
 
@@ -153,3 +153,34 @@ def test_nearest_index_matches_the_dense_argmin():
     g = torch.Generator().manual_seed(0)
     pts, q = torch.rand(3000, 2, generator=g) * 128, torch.rand(500, 2, generator=g) * 128
     assert torch.equal(nearest_index(q, pts), torch.cdist(q.double(), pts.double()).argmin(1))
+
+
+def test_every_default_loss_term_reaches_a_trained_parameter():
+    """The loss lists only terms that act: each term of the default config, on a tiny rendered batch of the default
+    model, has a gradient path to a parameter the optimizer trains (a λ3 term on the frozen skinning grid has none)."""
+    from realityavatar.body import build_body
+    from realityavatar.build import build_module
+    from realityavatar.data.records import mask_distance
+
+    body = build_body("mannequin")
+    module = build_module(compose(["gaussians.num_points=300"]), body, num_train_frames=2, scene_extent=1.0)
+    trained = [p for g in module.param_groups() for p in g["params"]]
+    poses, transl = torch.zeros(1, 3, 24, 3), torch.zeros(1, 3, 3)
+    R = torch.diag(torch.tensor([1.0, -1.0, -1.0]))  # OpenCV camera 3 m in front of the body, looking back at it
+    E = torch.eye(4)
+    E[:3, :3], E[:3, 3] = R, -R @ torch.tensor([0.0, -0.3, 3.0])
+    S = 32
+    mask = torch.zeros(1, S, S, 1)
+    mask[:, 4:28, 10:22] = 1.0
+    batch = {**module.pose_inputs(poses, transl), "frame_idx": torch.tensor([0]), "viewmat": E[None],
+             "K": torch.tensor([[[30.0, 0, S / 2], [0, 30.0, S / 2], [0, 0, 1]]]), "width": torch.tensor([S]),
+             "height": torch.tensor([S]), "image": mask.expand(-1, -1, -1, 3) * 0.5, "mask": mask,
+             "mask_dist": mask_distance(mask[0, ..., 0])[None]}
+    rgb, alpha, _, posed = module.render_batch(batch)
+    out = TrainingRender(rgb, alpha, batch, posed, module)
+    assert {"rgb", "mask", "perceptual", "silhouette"} <= set(module.losses)
+    for name, term in module.losses.items():
+        value, _ = term(out)
+        assert value.grad_fn is not None, f"loss.{name} has no gradient at all"
+        grads = torch.autograd.grad(value, trained, retain_graph=True, allow_unused=True)
+        assert any(g is not None and g.abs().sum() > 0 for g in grads), f"loss.{name} reaches no trained parameter"

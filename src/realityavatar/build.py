@@ -13,7 +13,7 @@ from omegaconf import DictConfig, OmegaConf
 
 # importing config also registers the resolvers
 from realityavatar.config import RAW_CONFIG_NAME, check_settings, compose
-from realityavatar.metrics import build_lpips, hub_checkpoint
+from realityavatar.metrics import build_lpips
 from realityavatar.model.module import AvatarModule, Schedule
 from realityavatar.runs import CKPT_NAME, read_checkpoint
 
@@ -32,14 +32,9 @@ def build_module(cfg: DictConfig, body, num_train_frames: int, scene_extent: flo
     skinning = instantiate(cfg.skinning)
     color = instantiate(cfg.color, num_frames=max(int(num_train_frames), 1))  # the per-frame latent table Z_r
     density = instantiate(cfg.density)
-    losses, vgg19_from = build_losses(cfg)
+    losses = build_losses(cfg)
     shading = instantiate(cfg.shading)
-    views = {}
-    if data is not None and cfg.sheet.get("profile") == "rest":  # laid out in a rest frame (its masks)
-        from realityavatar.model.hull import hull_views
-
-        views["views"] = hull_views(data, cfg.sheet.get("hull_frame"))
-    sheet = instantiate(cfg.sheet, body=body, **views)
+    sheet = instantiate(cfg.sheet, body=body, data=data)
     m = cfg.get("metrics", {}) or {}
     lpips, lpips_status = build_lpips("vgg", m.get("lpips_backbone_weights"), m.get("lpips_weights"))
     module = AvatarModule(
@@ -66,27 +61,14 @@ def build_module(cfg: DictConfig, body, num_train_frames: int, scene_extent: flo
         eval_supersample=int((cfg.get("eval") or {}).get("supersample", 1)),  # run folders from before it: 1
     )
     module.lpips_status = lpips_status  # "computed (<weights' source>)" or why not, recorded in metrics.json
-    module.perceptual_weights = vgg19_from  # where the perceptual loss's VGG19 came from (None: not used)
+    # where the perceptual loss's VGG19 came from (None: not used)
+    module.perceptual_weights = next((t.weights_from for t in losses.values() if t.weights_from), None)
     return module
 
 
-VGG19_HUB_NAME = "vgg19-dcbb9e9d.pth"  # torchvision's vgg19 in torch's hub cache
-
-
-def build_losses(cfg: DictConfig) -> tuple[dict, str | None]:
-    """The loss terms, summed in this order: conf/loss's, then the silhouette group's (silhouette=none: no term);
-    and where a term's VGG19 weights came from ("<key> <path>", "torch hub <path>", or None: not used). A term with
-    `vgg19_weights: null` gets torchvision's vgg19 from torch's hub cache when it is there (kind=dssim ignores it)."""
-    losses, vgg19_from = {}, None
-    for name, term in cfg.loss.items():
-        extra, source = {}, f"loss.{name}.vgg19_weights {term.get('vgg19_weights')}"
-        if "vgg19_weights" in term and not term.vgg19_weights and (found := hub_checkpoint(VGG19_HUB_NAME)):
-            extra, source = {"vgg19_weights": found}, f"torch hub {found}"
-        losses[name] = instantiate(term, **extra)
-        if getattr(losses[name], "kind", None) == "vgg19":
-            vgg19_from = source
-    losses.update({"silhouette": instantiate(cfg.silhouette)} if cfg.silhouette else {})
-    return losses, vgg19_from
+def build_losses(cfg: DictConfig) -> dict:
+    """The loss terms, summed in this order: conf/loss's, then the silhouette group's."""
+    return {**{name: instantiate(term) for name, term in cfg.loss.items()}, "silhouette": instantiate(cfg.silhouette)}
 
 
 def build_data(cfg: DictConfig, body):

@@ -81,8 +81,9 @@ def compose(overrides: list[str] | None = None, config_name: str = "train") -> D
         return hydra_compose(config_name=config_name, overrides=list(overrides or []), return_hydra_config=True)
 
 
-# Numeric settings checked before anything is built: key -> (rule, what is expected). Keys absent from a config
-# (an option file without them) are skipped; interpolated keys derived from these are not checked separately.
+# Settings checked before anything is built: key -> (rule, what is expected). A key missing from the config is an
+# error naming it, unless it sits in a component whose class does not take it (`skinning.hidden_dim` is the MLP's,
+# not the grid's: `_applies`); interpolated keys derived from these are not checked separately.
 def _is_int(v) -> bool:
     return isinstance(v, int) and not isinstance(v, bool)
 
@@ -132,7 +133,7 @@ SETTINGS = {
         "encoder.clothes_latent_dim", "deformer.feature_dim", "deformer.num_freqs", "skinning.num_freqs")},
     **{k: (lambda v: _is_num(v) and v >= 0, "a number >= 0") for k in (
         "gaussians.feature_init_std", "encoder.latent_init_std", "silhouette.near", "optim.grad_clip", "optim.lr.*",
-        "loss.*.weight", "loss.*.weight_after", "loss.*.dssim_weight", "density.grad_threshold")},
+        "loss.*.weight", "loss.*.weight_after", "density.grad_threshold")},
     "optim.final_factor.*": (lambda v: _is_num(v) and v > 0, "a number > 0 (the learning rate's factor at the last step)"),
     "loss.*.samples": (lambda v: _is_int(v) and v >= 1, "a whole number >= 1"),
     "silhouette.max_pixels": (lambda v: _is_int(v) and v >= 1, "a whole number >= 1"),
@@ -148,6 +149,24 @@ SETTINGS = {
     **{k: (lambda v: _is_num(v), "a finite number (metres)") for k in (
         "sheet.top_offset", "sheet.bottom_offset", "sheet.margin")},
 }
+
+
+def _applies(cfg: DictConfig, key: str) -> bool:
+    """False when `key` sits in a component node (one with `_target_`) whose class or function has no argument of
+    that name: the option chosen for that group does not have this setting."""
+    import inspect
+
+    from hydra.utils import get_object
+
+    head, _, name = key.rpartition(".")
+    node = OmegaConf.select(cfg, head, default=None) if head else cfg
+    if not isinstance(node, DictConfig) or "_target_" not in node:
+        return True
+    try:
+        params = inspect.signature(get_object(node._target_)).parameters
+    except (ImportError, AttributeError, ValueError, TypeError):  # instantiate names a bad target when it builds
+        return True
+    return name in params and params[name].kind is not inspect.Parameter.VAR_KEYWORD
 
 
 def _keys(cfg: DictConfig, key: str) -> list[str]:
@@ -173,6 +192,8 @@ def check_settings(cfg: DictConfig, prefix: str = "") -> None:
             problems.append(f"{key}: cannot be resolved ({e}); expected {expected}")
             continue
         if isinstance(value, str) and value == "<absent>":
+            if _applies(cfg, key):
+                problems.append(f"{key}: missing; expected {expected}")
             continue
         if not ok(value):
             problems.append(f"{key}={value!r}: expected {expected}")

@@ -37,8 +37,9 @@ EFFECTS = {
     "shading/irradiance:normals": f"learnt against body: +0.20 / +0.13 dB ({_DYN})",
     "silhouette/chamfer": f"**kept, measured gain**: +0.40 / +0.30 dB over `silhouette=none` ({_DYN})",
     "silhouette/none": f"−0.40 / −0.30 dB ({_DYN})",
-    "skinning/grid": f"+0.20 / +0.12 † dB over `skinning=mlp`, 0.02 against 0.17 GEMM units per step at 10k ({_DYN})",
-    "skinning/mlp": f"−0.20 / −0.12 † dB ({_DYN})",
+    "skinning/grid": f"+0.20 / +0.12 † dB over `skinning=mlp` with its λ3 term (now `loss=learnt_skinning`), 0.02 "
+                     f"against 0.17 GEMM units per step at 10k ({_DYN})",
+    "skinning/mlp": f"with `loss=learnt_skinning`: −0.20 / −0.12 † dB ({_DYN})",
     "sampler/hard_frames": f"**kept, measured gain**: +0.25 / +0.10 dB over `sampler=uniform` ({_DYN})",
     "sampler/uniform": f"−0.25 / −0.10 dB ({_DYN})",
     "deformer/motion_trend:activation": f"relu against silu: +0.17 † / +0.30 dB ({_SWEEP}, `0cb8667`; "

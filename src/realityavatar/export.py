@@ -94,9 +94,9 @@ def gaussians_for_export(module, poses: torch.Tensor | None = None, transl: torc
     numpy arrays: means [N,3], quats [N,4] wxyz, scales [N,3] (linear), opacities [N], and either rgb [N,3] or sh
     [N,K,3]. What `export_gaussians` writes and what `realityavatar-view` streams.
 
-    View-dependent colour is baked to its average over six axis-aligned view directions (degree-0 SH),
-    except for the SH colour model in canonical space without shading, whose coefficients are kept as they are.
-    With `shading=irradiance` the colour is multiplied by the light of that pose (canonical: the rest orientation).
+    View-dependent colour is baked to its average over six axis-aligned view directions (degree-0 SH), except for
+    the SH colour model in canonical space, whose coefficients are kept (lit, `shading.apply_sh`). With
+    `shading=irradiance` the colour is multiplied by the light of that pose (canonical: the rest orientation).
     """
     g = module.gaussians
     dev, dt = g.means.device, g.means.dtype
@@ -113,11 +113,10 @@ def gaussians_for_export(module, poses: torch.Tensor | None = None, transl: torc
         posed = module.deform(module.pose_inputs(poses[None].to(dev, dt), transl[None].to(dev, dt)))
         means, quats, scales, rot, f_mt = posed["means"][0], posed["quats"][0], posed["scales"][0], posed["rot"], posed["f_mt"]
         x_e, opacities, N = posed["x_e"], posed["opacities"], posed["means"].shape[1]
-    light = module.shading(x_e, rot)  # world-fixed light [1,N,3] (shading=irradiance), or None
     out = {"means": means, "quats": quats, "scales": scales, "opacities": opacities}
     sh_coeffs = getattr(module.color, "sh_coefficients", None)
-    if callable(sh_coeffs) and poses is None and light is None:
-        out["sh"] = sh_coeffs(feats)
+    if callable(sh_coeffs) and poses is None:
+        out["sh"] = module.shading.apply_sh(sh_coeffs(feats), x_e)  # lit by the rest orientation's light
     else:
         # One direction at a time: a [6,N,hidden] batch is slower on the CPU at 35k Gaussians (cache), not faster.
         dirs = torch.tensor([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], dtype=dt, device=dev)
@@ -127,7 +126,7 @@ def gaussians_for_export(module, poses: torch.Tensor | None = None, transl: torc
             d_c = torch.nn.functional.normalize(d_c.expand(1, N, 3), dim=-1)
             rgb = rgb + module.color(feats, d_c, f_mt, frame_idx)[0]
         rgb = rgb / len(dirs)
-        out["rgb"] = (rgb if light is None else rgb * light[0]).clamp(0, 1)
+        out["rgb"] = module.shading.apply(rgb[None], x_e, rot)[0].clamp(0, 1)  # x world-fixed light
     return {k: v.detach().cpu().float().numpy() for k, v in out.items()}
 
 

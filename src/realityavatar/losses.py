@@ -1,12 +1,12 @@
-"""Training loss terms: L1 + λ1 mask + λ2 perceptual (VGG19 features, or D-SSIM without weights) + λ3 skinning
-(paper §Optimization), the long-range silhouette term and the garment sheet's strain; each term a component with its
-weight (and schedule), summed by `total_loss` in the configured order."""
+"""Training loss terms: L1 + λ1 mask + λ2 perceptual (D-SSIM, or VGG19 features) + λ3 skinning (paper §Optimization),
+the long-range silhouette term and the garment sheet's strain; each term a component with its weight (and schedule),
+summed by `total_loss` in the configured order."""
 
 from __future__ import annotations
 
-import os
 from collections.abc import Mapping
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Literal
 
 import torch
@@ -15,7 +15,7 @@ from torch import nn
 
 from realityavatar.geometry import kd_tree, sample_surface
 from realityavatar.kernels import dssim
-from realityavatar.metrics import load_features_state, vgg_features
+from realityavatar.metrics import hub_checkpoint, load_features_state, vgg_features
 from realityavatar.model.skinning import skinning_loss
 from realityavatar.runtime import constant, host_path
 
@@ -83,6 +83,8 @@ class LossTerm(nn.Module):
     training step, also outside the graphs: a term whose weight follows a schedule keeps it in a buffer, so that the
     compiled loss reads a tensor and is not traced again when the weight changes."""
 
+    weights_from: str | None = None  # the network weights file a term loaded (metrics.json's perceptual_weights)
+
     def bind(self, avatar: nn.Module) -> None:
         """Nothing to prepare."""
 
@@ -90,10 +92,17 @@ class LossTerm(nn.Module):
         """Nothing follows the step (None: a finished run)."""
 
 
+class NoLoss(LossTerm):
+    """A term that adds nothing (`silhouette=none`)."""
+
+    def forward(self, out: TrainingRender) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        return out.rgb.new_zeros(()), {}
+
+
 class ColourL1(LossTerm):
     """weight x mean |rendered - ground-truth colour| (the paper's L1)."""
 
-    def __init__(self, weight: float = 1.0) -> None:
+    def __init__(self, weight: float) -> None:
         super().__init__()
         self.weight = float(weight)
 
@@ -105,7 +114,7 @@ class ColourL1(LossTerm):
 class MaskLoss(LossTerm):
     """weight x the rendered alpha's disagreement with the mask: mean squared (mse), absolute (l1) or BCE (bce)."""
 
-    def __init__(self, weight: float = 0.1, kind: Literal["mse", "bce", "l1"] = "mse") -> None:
+    def __init__(self, weight: float, kind: Literal["mse", "bce", "l1"]) -> None:
         super().__init__()
         if kind not in ("mse", "bce", "l1"):
             raise ValueError(f"loss.mask.kind: expected 'mse', 'bce' or 'l1', got {kind!r}")
@@ -122,36 +131,54 @@ class MaskLoss(LossTerm):
         return self.weight * v, {"mask": v.detach()}
 
 
-class PerceptualLoss(LossTerm):
-    """weight x VGG19 feature loss when `vgg19_weights` points to a file (kind auto or vgg19), else
-    dssim_weight x D-SSIM = (1 - SSIM)/2 (11x11 window; VGG feature losses and D-SSIM differ in scale, so each has
-    its own weight). `kind` records which one is used ("vgg19" | "dssim")."""
+class DSSIMLoss(LossTerm):
+    """λ2 as D-SSIM: weight x (1 - SSIM)/2 (11x11 window; kornia's ssim_loss(x, y, 11), a fused Numba kernel on the
+    CPU). It needs no downloaded weights (`loss=default`)."""
 
-    def __init__(self, weight: float = 0.01, dssim_weight: float = 0.2, kind: Literal["auto", "vgg19", "dssim"] = "auto",
-                 vgg19_weights: str | None = None) -> None:
+    kind = "dssim"  # metrics.json's `perceptual`
+
+    def __init__(self, weight: float) -> None:
         super().__init__()
-        if kind not in ("auto", "vgg19", "dssim"):
-            raise ValueError(f"loss.perceptual.kind: expected 'auto', 'vgg19' or 'dssim', got {kind!r}")
-        have_vgg = bool(vgg19_weights) and os.path.isfile(str(vgg19_weights))
-        if kind == "vgg19" and not have_vgg:
-            raise FileNotFoundError(f"loss.perceptual.vgg19_weights: kind=vgg19 needs a torchvision vgg19 .pth, got "
-                                    f"{vgg19_weights!r}")
-        self.kind = "vgg19" if (kind == "vgg19" or (kind == "auto" and have_vgg)) else "dssim"
-        self.vgg = VGG19Loss(str(vgg19_weights)) if self.kind == "vgg19" else None
-        self.weight = float(weight if self.kind == "vgg19" else dssim_weight)
+        self.weight = float(weight)
 
     def forward(self, out: TrainingRender) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-        x, y = out.rgb.permute(0, 3, 1, 2), out.batch["image"].permute(0, 3, 1, 2)
-        # kornia's ssim_loss(x, y, 11); fused Numba kernel on the CPU
-        v = self.vgg(x, y) if self.kind == "vgg19" else dssim(x, y)
+        v = dssim(out.rgb.permute(0, 3, 1, 2), out.batch["image"].permute(0, 3, 1, 2))
+        return self.weight * v, {"perceptual": v.detach()}
+
+
+VGG19_HUB_NAME = "vgg19-dcbb9e9d.pth"  # torchvision's vgg19 in torch's hub cache
+
+
+class VGG19PerceptualLoss(LossTerm):
+    """λ2 as the paper's perceptual loss: weight x `VGG19Loss` (`loss=vgg19`). vgg19_weights: a torchvision vgg19
+    .pth, or null for torchvision's vgg19 in torch's hub cache ($TORCH_HOME/hub/checkpoints); neither is an error.
+    VGG feature losses and D-SSIM differ in scale: each term has its own weight."""
+
+    kind = "vgg19"
+
+    def __init__(self, weight: float, vgg19_weights: str | None) -> None:
+        super().__init__()
+        self.weights_from = f"loss.perceptual.vgg19_weights {vgg19_weights}"
+        if not vgg19_weights and (found := hub_checkpoint(VGG19_HUB_NAME)):
+            vgg19_weights, self.weights_from = found, f"torch hub {found}"
+        if not vgg19_weights or not Path(vgg19_weights).is_file():
+            raise FileNotFoundError(f"loss.perceptual.vgg19_weights: expected a torchvision vgg19 .pth (or "
+                                    f"{VGG19_HUB_NAME} in torch's hub cache), got {vgg19_weights!r}")
+        self.vgg = VGG19Loss(str(vgg19_weights))
+        self.weight = float(weight)
+
+    def forward(self, out: TrainingRender) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        v = self.vgg(out.rgb.permute(0, 3, 1, 2), out.batch["image"].permute(0, 3, 1, 2))
         return self.weight * v, {"perceptual": v.detach()}
 
 
 class SkinningLoss(LossTerm):
     """The paper's L_skin: the skinning field against the body's weights at `samples` points drawn from the canonical
-    body surface each step; weight until step `switch`, weight_after from then on (3DGS-Avatar's 10 -> 0.1)."""
+    body surface each step; weight until step `switch`, weight_after from then on (3DGS-Avatar's 10 -> 0.1). Only for
+    a skinning field that trains (`loss=learnt_skinning` with skinning=mlp or skinning.learnable=true): with the
+    frozen grid it would have no gradient, and `bind` refuses it."""
 
-    def __init__(self, weight: float = 10.0, weight_after: float = 0.1, switch: int = 0, samples: int = 1024) -> None:
+    def __init__(self, weight: float, weight_after: float, switch: int, samples: int) -> None:
         super().__init__()
         self.weight, self.weight_after, self.switch = float(weight), float(weight_after), int(switch)
         self.samples = int(samples)
@@ -164,6 +191,10 @@ class SkinningLoss(LossTerm):
 
     def bind(self, avatar: nn.Module) -> None:
         """A fixed pool of 20 x `samples` points on the canonical body surface and the body's weights there [P,24]."""
+        if not any(p.requires_grad for p in avatar.skinning.parameters()):
+            raise ValueError(f"loss.skinning: the skinning field {type(avatar.skinning).__name__} has no trained "
+                             "weights (skinning=grid with learnable: false), so the term would have no gradient; use "
+                             "it with skinning=mlp or skinning.learnable=true, or loss=default")
         body = avatar.body
         self.pool_points, self.pool_weights = sample_surface(
             body.canonical_vertices().detach(), body.faces, body.skin_weights, 20 * self.samples,
@@ -194,7 +225,7 @@ class SheetStrain(LossTerm):
     """weight x the garment sheet's stretch down the garment beyond sheet.strain_free (model/sheet.py `strain`),
     on the posed vertices; only with sheet=skirt: `'+loss.sheet_strain={_target_:realityavatar.losses.SheetStrain}'`."""
 
-    def __init__(self, weight: float = 1.0) -> None:
+    def __init__(self, weight: float) -> None:
         super().__init__()
         self.weight = float(weight)
 
@@ -243,8 +274,8 @@ class SilhouetteChamfer(LossTerm):
       sampled) pull their nearest projected centre.
     """
 
-    def __init__(self, weight: float = 10.0, outside_weight: float = 1.0, coverage_weight: float = 1.0,
-                 covered_alpha: float = 0.5, max_pixels: int = 1024, near: float = 0.05) -> None:
+    def __init__(self, weight: float, outside_weight: float, coverage_weight: float, covered_alpha: float,
+                 max_pixels: int, near: float) -> None:
         super().__init__()
         if weight < 0 or outside_weight < 0 or coverage_weight < 0:
             raise ValueError("silhouette: weights must be >= 0")

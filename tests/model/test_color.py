@@ -9,10 +9,12 @@ from realityavatar.model.color import MLPColor, SHColor
 from realityavatar.render import eval_sh
 from tests.helpers import assert_all_grads
 
+SIZES = {"feature_dim": 8, "fmt_dim": 16, "frame_latent_dim": 4, "num_frames": 5, "sh_degree": 3, "hidden_dim": 64}
+
 
 def test_mlp_color_shapes_grads_and_novel_pose_latent():
     torch.manual_seed(0)
-    col = MLPColor(feature_dim=8, fmt_dim=16, frame_latent_dim=4, num_frames=5, sh_degree=3, hidden_dim=64)
+    col = MLPColor(**SIZES)
     feats = torch.randn(40, 8)
     dirs = torch.randn(2, 40, 3)
     f_mt = torch.randn(2, 40, 16)
@@ -39,7 +41,7 @@ def test_mlp_color_shapes_grads_and_novel_pose_latent():
     for bad, field in (({"sh_degree": 0}, "color.sh_degree"), ({"frame_latent_dim": 0}, "color.frame_latent_dim"),
                        ({"num_frames": 0}, "color.num_frames")):
         with pytest.raises(ValueError, match=field):
-            MLPColor(**bad)
+            MLPColor(**{**SIZES, **bad})
 
 
 def test_sh_color_matches_eval_sh():

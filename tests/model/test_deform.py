@@ -7,13 +7,14 @@ import torch
 from realityavatar.geometry import (
     quat_to_matrix,
 )
-from realityavatar.model.deform import MotionTrendDecoder, apply_deformation
+from realityavatar.model.deform import apply_deformation
 from tests.helpers import assert_all_grads
+from tests.model.configured import component
 
 
 def test_motion_trend_decoder_identity_start_and_grads():
     torch.manual_seed(0)
-    dec = MotionTrendDecoder(cond_dim=16, hidden_dim=32, feature_dim=16)
+    dec = component("deformer", cond_dim=16, hidden_dim=32, feature_dim=16)
     x = torch.randn(100, 3) * 0.4
     log_s = torch.randn(100, 3) - 4
     q = torch.nn.functional.normalize(torch.randn(100, 4), dim=-1)
@@ -34,7 +35,7 @@ def test_motion_trend_decoder_identity_start_and_grads():
 def test_the_encoding_gives_the_means_no_gradient_path():
     """The decoder's encoding sees x_c detached: the means get their gradient from x_e = x_c + dx only."""
     torch.manual_seed(0)
-    dec = MotionTrendDecoder(cond_dim=8, hidden_dim=16, feature_dim=4)
+    dec = component("deformer", cond_dim=8, hidden_dim=16, feature_dim=4)
     with torch.no_grad():
         dec.out.weight.normal_()  # outputs depend on x_c
     x = (torch.randn(30, 3) * 0.3).requires_grad_()
@@ -79,13 +80,13 @@ def test_coarse_to_fine_window_opens_the_frequency_bands_in_turn():
 
     from realityavatar.model.module import Schedule
 
-    d = MotionTrendDecoder(cond_dim=8, hidden_dim=16, num_layers=2, feature_dim=4, num_freqs=6)
+    d = component("deformer", cond_dim=8, hidden_dim=16, num_layers=2, feature_dim=4, num_freqs=6)
     assert d.encoding.alpha == 6.0  # a decoder nobody set (a module outside training) sees every band
-    sched = Schedule(deform_start=10, deform_anneal=100)
+    sched = Schedule(deform_start=10, skin_pretrain_steps=0, deform_anneal=100)
     for step, alpha in ((0, 0.0), (10, 0.0), (60, 3.0), (110, 6.0), (500, 6.0), (None, 6.0)):
         d.set_window(sched.deform_window(step))
         assert d.encoding.alpha == alpha, (step, d.encoding.alpha)
-    assert Schedule(deform_anneal=0).deform_window(0) == 1.0  # 0: every band from the start
+    assert Schedule(deform_start=0, skin_pretrain_steps=0, deform_anneal=0).deform_window(0) == 1.0  # 0: every band from the start
 
 
 def test_training_opens_the_coarse_to_fine_window_and_a_checkpoint_keeps_it(scenes_root, tmp_path, monkeypatch):
@@ -113,7 +114,7 @@ def test_training_opens_the_coarse_to_fine_window_and_a_checkpoint_keeps_it(scen
 def test_a_box_fitted_to_points_flat_along_an_axis_gives_finite_offsets():
     """fit_bounds pads each axis by at least 1 mm: one Gaussian (gaussians.num_points=1), or points on a plane, gave a
     box of zero width and NaN offsets (the run stopped in the silhouette term's k-d tree, 'data must be finite')."""
-    dec = MotionTrendDecoder()
+    dec = component("deformer")
     for points in (torch.tensor([[0.1, 0.2, 0.3]]), torch.tensor([[0.0, 0.0, 0.0], [1.0, 1.0, 0.0]])):
         dec.fit_bounds(points)
         out = dec(points, torch.zeros(1, 128))

@@ -9,10 +9,11 @@ import pytest
 import torch
 
 from realityavatar.config import compose
-from realityavatar.model.density import DensityControl, NoDensityControl
+from realityavatar.model.density import NoDensityControl
 from realityavatar.model.gaussians import PARAM_NAMES, CanonicalGaussians
 from tests.fixtures_data import RandomBody
 from tests.helpers import ITERATIONS, NUM_POINTS, TRAINED_RUN
+from tests.model.configured import component
 
 
 @pytest.fixture(scope="module")
@@ -38,7 +39,7 @@ def _meta(n, high_idx, value=1e-2):
 
 
 def test_density_clone_split_prune_with_optimizer_state(body):
-    g = CanonicalGaussians(body, num_points=20, feature_dim=4, seed=0)
+    g = component("gaussians", body=body, num_points=20, feature_dim=4, seed=0)
     assert g.param_names == PARAM_NAMES
     with torch.no_grad():
         g.log_scales[:10] = math.log(0.001)  # small -> clone
@@ -49,7 +50,7 @@ def test_density_clone_split_prune_with_optimizer_state(body):
     old_avg = {n: opt.state[getattr(g, n)]["exp_avg"].clone() for n in g.param_names}
     old_means = g.means.detach().clone()
     old_scales = g.scales().detach().clone()
-    dc = DensityControl(refine_start=0, refine_stop=100, refine_every=10, grad_threshold=2e-4, prune_opacity=0.05,
+    dc = component("density", refine_start=0, refine_stop=100, refine_every=10, grad_threshold=2e-4, prune_opacity=0.05,
                         grow_scale3d=0.01, scene_scale=1.0, reset_every=0, max_points=1000)
     high = [0, 1, 2, 12, 13]  # 3 clones, 2 splits
     stats = dc.step_post_backward(g, opt, _meta(20, high), step=10, image_size=(64, 48))
@@ -77,7 +78,7 @@ def test_density_clone_split_prune_with_optimizer_state(body):
 
 
 def test_density_cap_reset_state_and_disabled(body):
-    g = CanonicalGaussians(body, num_points=20, feature_dim=4, seed=0)
+    g = component("gaussians", body=body, num_points=20, feature_dim=4, seed=0)
     with torch.no_grad():
         g.log_scales[:] = math.log(0.001)
         g.opacity_logits[:] = 2.0
@@ -86,10 +87,10 @@ def test_density_cap_reset_state_and_disabled(body):
     assert off.step_post_backward(g, opt, _meta(20, list(range(20))), 10, (64, 64)) == {} and g.num_points == 20
     with pytest.raises(TypeError, match="density=off: unknown option.*prune_opacty"):
         NoDensityControl(prune_opacty=0.02)
-    dc = DensityControl(refine_start=0, refine_stop=100, refine_every=10, reset_every=5, max_points=24, prune_opacity=0.05)
+    dc = component("density", refine_start=0, refine_stop=100, refine_every=10, reset_every=5, max_points=24, prune_opacity=0.05)
     dc.step_post_backward(g, opt, _meta(20, list(range(20))), step=3, image_size=(64, 64))
     state = dc.state_dict()
-    dc2 = DensityControl(refine_start=0, refine_stop=100, refine_every=10, reset_every=5, max_points=24)
+    dc2 = component("density", refine_start=0, refine_stop=100, refine_every=10, reset_every=5, max_points=24)
     dc2.load_state_dict(state)
     assert torch.equal(dc2.grad2d, dc.grad2d) and dc2.grad2d.sum() > 0
     stats = dc.step_post_backward(g, opt, _meta(20, list(range(20))), step=10, image_size=(64, 64))
@@ -102,10 +103,10 @@ def test_density_cap_reset_state_and_disabled(body):
 def test_density_gradient_of_a_multi_image_batch_is_scaled_by_its_images(body):
     """gsplat's rule: the loss is a mean over a batch's images, so a Gaussian seen by V samples (one meta each, as a
     batch of V images renders them) with 1/V of one image's gradient each accumulates what one image gives alone."""
-    g = CanonicalGaussians(body, num_points=20, feature_dim=4, seed=0)
+    g = component("gaussians", body=body, num_points=20, feature_dim=4, seed=0)
     kw = {"refine_start": 0, "refine_stop": 100, "refine_every": 10, "grad_threshold": 2e-4, "prune_opacity": 0.05,
           "grow_scale3d": 0.01, "scene_scale": 1.0, "reset_every": 0, "max_points": 1000}
-    one, four = DensityControl(**kw), DensityControl(**kw)
+    one, four = component("density", **kw), component("density", **kw)
     one.step_post_backward(g, None, _meta(20, [3], 1e-2), step=1, image_size=(64, 48))
     four.step_post_backward(g, None, [_meta(20, [3], 1e-2 / 4) for _ in range(4)], step=1, image_size=(64, 48))
     avg_one = one.grad2d / one.count.clamp_min(1)

@@ -10,8 +10,17 @@ from torch import nn
 from realityavatar.geometry import (
     axis_angle_to_matrix,
 )
-from realityavatar.model.encoders import PART_DIMS, PART_NAMES, LatentBoneEncoder, pose_features, split_parts
+from realityavatar.model.encoders import (
+    PART_DIMS,
+    PART_NAMES,
+    LatentBoneEncoder,
+    NoClothesLatentEncoder,
+    WholePoseEncoder,
+    pose_features,
+    split_parts,
+)
 from tests.helpers import assert_all_grads, random_poses
+from tests.model.configured import component
 
 
 def test_pose_features_invariant_to_heading_but_not_to_spin():
@@ -45,9 +54,13 @@ def test_pose_features_rejects_a_wrong_shape():
         pose_features(poses[..., :23, :], transl)
 
 
-@pytest.mark.parametrize("split,zc", [(True, 16), (False, 16), (True, 0)])
-def test_latentbone_encoder_options(split, zc):
-    enc = LatentBoneEncoder(part_split=split, clothes_latent_dim=zc, out_dim=64)
+@pytest.mark.parametrize("option,cls,zc", [("latentbone", LatentBoneEncoder, 16), ("no_split", WholePoseEncoder, 16),
+                                           ("no_zc", NoClothesLatentEncoder, 0)])
+def test_encoder_variants(option, cls, zc):
+    """Each of the paper's encoder ablations is its own class, picked by conf/encoder/<option>.yaml; no_split's input
+    layer sees every feature, the others' part i only its own features (and Z_c)."""
+    enc = component("encoder", option, "encoder.out_dim=64")
+    assert type(enc) is cls
     poses, transl = random_poses()
     features = pose_features(poses, transl)
     f = enc(features)
@@ -58,22 +71,20 @@ def test_latentbone_encoder_options(split, zc):
     with torch.no_grad():  # a training step: the split must hold after updates, not only as initialised
         for q in enc.parameters():
             q -= 0.1 * q.grad
-    # The part split: a part's features reach its own part_dim outputs of the input layer only.
-    legs = PART_NAMES.index("legs")
-    bumped = features.clone()
-    at = sum(PART_DIMS[p] for p in PART_NAMES[:legs])
-    bumped[..., at : at + PART_DIMS["legs"]] += 0.5
-    changed = (enc.parts(bumped) - enc.parts(features)).abs().amax((0, 1)) > 0  # [4*part_dim]
-    rows = torch.zeros_like(changed)
-    rows[legs * enc.part_dim : (legs + 1) * enc.part_dim] = True
-    assert torch.equal(changed, rows) if split else changed.all()
+    # the legs' features reach the torso's rows of the input layer only without the split
+    legs = sum(PART_DIMS[p] for p in PART_NAMES[:2])
+    torso_rows = slice(3 * enc.part_dim, 4 * enc.part_dim)
+    moved = features.clone()
+    moved[..., legs] += 1.0
+    changed = (enc.parts(moved) - enc.parts(features))[..., torso_rows].abs().max()
+    assert (changed > 0) == (cls is WholePoseEncoder), float(changed)
 
 
 def test_part_split_is_the_papers_four_layers_and_loads_their_checkpoints():
     """The masked input layer computes what four Linear+SiLU layers on (part features ⊕ Z_c) computed, and a state dict
     in that layout (`part_layers.<part>.0.*`, runs before the layers became one) loads into it."""
     torch.manual_seed(0)
-    enc = LatentBoneEncoder()
+    enc = component("encoder", "latentbone")
     features = pose_features(*random_poses())
     first, z, total = enc.input_layer[0], enc.z_c, sum(PART_DIMS.values())
     old, start, outs = {}, 0, []
@@ -87,8 +98,6 @@ def test_part_split_is_the_papers_four_layers_and_loads_their_checkpoints():
     four_layers = sum(v.numel() for v in old.values())
     assert enc.num_parameters() == sum(q.numel() for q in enc.parameters()) - first.weight.numel() - first.bias.numel() + four_layers
     state = {k: v for k, v in enc.state_dict().items() if not k.startswith("input_layer")} | old
-    loaded = LatentBoneEncoder()
+    loaded = component("encoder", "latentbone")
     loaded.load_state_dict(state)
     assert torch.allclose(loaded(features), enc(features), atol=1e-6)
-    no_zc = {k: v for k, v in LatentBoneEncoder(clothes_latent_dim=0).state_dict().items() if k != "z_c"}
-    LatentBoneEncoder(clothes_latent_dim=0).load_state_dict(no_zc)  # written when Z_c was no parameter at all

@@ -8,8 +8,9 @@ import torch
 from realityavatar.geometry import (
     sample_surface,
 )
-from realityavatar.model.gaussians import PARAM_NAMES, CanonicalGaussians
+from realityavatar.model.gaussians import PARAM_NAMES
 from tests.fixtures_data import RandomBody
+from tests.model.configured import component
 
 
 @pytest.fixture(scope="module")
@@ -31,7 +32,7 @@ def test_sample_surface_barycentric_weights(body):
 
 
 def test_canonical_gaussians_init(body):
-    g = CanonicalGaussians(body, num_points=300, feature_dim=8, init_opacity=0.1, seed=1)
+    g = component("gaussians", body=body, num_points=300, feature_dim=8, init_opacity=0.1, seed=1)
     assert g.num_points == 300
     shapes = {n: tuple(getattr(g, n).shape) for n in PARAM_NAMES}
     assert shapes == {"means": (300, 3), "log_scales": (300, 3), "quats": (300, 4), "opacity_logits": (300,), "features": (300, 8)}
@@ -42,13 +43,13 @@ def test_canonical_gaussians_init(body):
     Jc = body.joints(body.canonical_pose())
     d = torch.cdist(g.means.detach(), Jc).min(-1).values
     assert (d < 0.06).all()
-    assert torch.equal(g.means, CanonicalGaussians(body, num_points=300, feature_dim=8, seed=1).means)
+    assert torch.equal(g.means, component("gaussians", body=body, num_points=300, feature_dim=8, seed=1).means)
     assert set(g.param_groups()) == set(PARAM_NAMES)
 
 
 def test_checkpoint_with_other_count_resizes(body):
-    small = CanonicalGaussians(body, num_points=50, feature_dim=4, seed=0)
-    big = CanonicalGaussians(body, num_points=120, feature_dim=4, seed=2)
+    small = component("gaussians", body=body, num_points=50, feature_dim=4, seed=0)
+    big = component("gaussians", body=body, num_points=120, feature_dim=4, seed=2)
     wrapper = torch.nn.Module()
     wrapper.gaussians = big
     wrapper.load_state_dict({f"gaussians.{k}": v for k, v in small.state_dict().items()})

@@ -116,7 +116,7 @@ def test_frozen_metric_networks_stay_out_of_the_checkpoint(body, tmp_path):
     torch.save({f"features.{k}": v for k, v in vgg_features("vgg19").state_dict().items()}, tmp_path / "vgg19.pth")
     small = ["gaussians.num_points=200", "silhouette=none"]
     plain = build_module(compose(small), body, num_train_frames=2, scene_extent=1.0)
-    with_nets = build_module(compose([*small, f"metrics.lpips_weights={tmp_path}",
+    with_nets = build_module(compose([*small, f"metrics.lpips_weights={tmp_path}", "loss=vgg19",
                                       f"loss.perceptual.vgg19_weights={tmp_path / 'vgg19.pth'}"]),
                              body, num_train_frames=2, scene_extent=1.0)
     assert with_nets.lpips is not None and with_nets.losses["perceptual"].vgg is not None
@@ -395,7 +395,8 @@ def test_a_compiled_run_traces_each_graph_once(body, monkeypatch):
     monkeypatch.setattr(torch, "compile", functools.partial(torch.compile, backend="eager"))
     module, make_batch = _stepping_module(
         body, monkeypatch, "cpu", 5, "iterations=20", "density=default", "density.refine_start=4",
-        "density.refine_every=4", "density.grad_threshold=1e-12")  # skinning switch at 2, window open from 10
+        "density.refine_every=4", "density.grad_threshold=1e-12",  # skinning switch at 2, window open from 10
+        "skinning=mlp", "loss=learnt_skinning")  # a skinning term with its weight switch
     torch._dynamo.reset()
     counters.clear()
     module.compile_path("default")

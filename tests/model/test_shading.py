@@ -10,6 +10,13 @@ from hydra.utils import instantiate
 
 from realityavatar.config import compose
 from realityavatar.model.shading import IrradianceShading, NoShading, vertex_normals
+from realityavatar.render import eval_sh
+from tests.model.configured import component
+
+
+def irradiance(**kwargs) -> IrradianceShading:
+    """shading=irradiance as configured, with the body's normals (as built) unless a test says otherwise."""
+    return component("shading", "irradiance", **{"normals": "body", **kwargs})
 
 
 @pytest.fixture(scope="module")
@@ -19,7 +26,7 @@ def body():
 
 @pytest.fixture(scope="module")
 def shading(body):
-    s = IrradianceShading(voxel_size=0.04)
+    s = irradiance(voxel_size=0.04)
     s.init_from_body(body.canonical_vertices().detach(), body.faces)
     return s
 
@@ -58,7 +65,7 @@ def test_zero_coefficients_leave_the_colour_alone(shading):
 
 def test_same_canonical_gaussian_is_lit_differently_after_the_body_turns(body, shading):
     """The point of the option: the pose features do not see the heading, the light does."""
-    s = IrradianceShading(voxel_size=0.04)
+    s = irradiance(voxel_size=0.04)
     s.load_state_dict(shading.state_dict())
     with torch.no_grad():
         s.coeffs[3] = -3.0  # a degree-1 term (gsplat's band 3 is -C1 x): light from +x
@@ -77,7 +84,7 @@ def test_irradiance_map_fits_a_lambertian_light():
     n = torch.nn.functional.normalize(torch.randn(4000, 3, generator=g), dim=-1)
     light = torch.nn.functional.normalize(torch.tensor([0.35, 0.82, 0.45]), dim=0)
     target = (0.4 + 0.6 * (n @ light).clamp_min(0))[:, None].expand(-1, 3)
-    s = IrradianceShading()
+    s = irradiance()
     opt = torch.optim.Adam(s.parameters(), lr=0.05)
     for _ in range(400):
         opt.zero_grad()
@@ -89,7 +96,7 @@ def test_irradiance_map_fits_a_lambertian_light():
 
 
 def test_shading_sends_no_gradient_to_the_geometry(shading):
-    s = IrradianceShading(voxel_size=0.04)
+    s = irradiance(voxel_size=0.04)
     s.load_state_dict(shading.state_dict())
     x = (torch.randn(1, 20, 3) * 0.2).requires_grad_()
     rot = _rot_y(0.3).expand(1, 20, 3, 3).clone().requires_grad_()
@@ -99,7 +106,7 @@ def test_shading_sends_no_gradient_to_the_geometry(shading):
 
 
 def test_checkpoint_restores_the_normal_grid(shading):
-    fresh = IrradianceShading(voxel_size=0.04)
+    fresh = irradiance(voxel_size=0.04)
     assert not bool(fresh.built)
     fresh.load_state_dict(shading.state_dict())
     assert bool(fresh.built) and fresh.grid.shape == shading.grid.shape
@@ -112,8 +119,10 @@ def test_shading_option_composes_instantiates_and_switches_off(choice, cls):
     cfg = compose([f"shading={choice}"])
     s = instantiate(cfg.shading)
     assert isinstance(s, cls)
-    if choice == "none":
-        assert s(torch.zeros(1, 3, 3), torch.eye(3).expand(1, 3, 3, 3)) is None and bool(s.built)
+    if choice == "none":  # a null component: the colour (and SH coefficients) it is given, unchanged
+        rgb, sh = torch.rand(1, 3, 3), torch.randn(3, 16, 3)
+        assert s.apply(rgb, torch.zeros(1, 3, 3), torch.eye(3).expand(1, 3, 3, 3)) is rgb and bool(s.built)
+        assert s.apply_sh(sh, torch.zeros(1, 3, 3)) is sh
     else:
         assert "shading" in cfg.optim.lr
 
@@ -195,7 +204,7 @@ def test_learnt_normals_train_the_grid_and_not_the_geometry(shading):
     """shading.normals=learnt: the photometric gradient reaches the normal grid (and the light map), never x_e or the
     LBS rotation; with the body's normals the grid is not trained."""
     for normals, trained in (("learnt", True), ("body", False)):
-        s = IrradianceShading(voxel_size=0.04, normals=normals)
+        s = irradiance(voxel_size=0.04, normals=normals)
         s.load_state_dict(shading.state_dict())
         with torch.no_grad():
             s.coeffs[1] = -1.0
@@ -211,7 +220,7 @@ def test_learnt_normals_train_the_grid_and_not_the_geometry(shading):
 def test_learnt_normals_learn_the_normal_the_light_needs(body, shading):
     """Points on the torso's side (body normal horizontal) under a light from above, with a target as bright as an
     upward normal: training the grid alone tilts their looked-up normal up, and it stays at most unit length."""
-    s = IrradianceShading(voxel_size=0.04, normals="learnt")
+    s = irradiance(voxel_size=0.04, normals="learnt")
     s.load_state_dict(shading.state_dict())
     with torch.no_grad():
         s.coeffs[1] = -1.0  # band 1 is -C1 y: brighter towards +y
@@ -250,3 +259,19 @@ def test_learnt_normal_grid_is_one_parameter_through_build_and_checkpoint(body):
     assert "shading_normals" not in {g["name"] for g in build_module(
         compose(["gaussians.num_points=300", "shading=irradiance", "shading.normals=body"]), body, num_train_frames=2,
         scene_extent=1.0).param_groups()}
+
+
+def test_lit_sh_coefficients_are_the_lit_colour(shading):
+    """apply_sh (export's SH colour in canonical space): along any direction the lit coefficients give the light
+    times the colour of the unlit ones."""
+    s = irradiance(voxel_size=0.04)
+    s.load_state_dict(shading.state_dict())
+    with torch.no_grad():
+        s.coeffs.normal_(0, 0.3)
+    g = torch.Generator().manual_seed(0)
+    x_e, sh = torch.randn(1, 40, 3, generator=g) * 0.2, torch.randn(40, 16, 3, generator=g) * 0.3
+    d = torch.nn.functional.normalize(torch.randn(1, 40, 3, generator=g), dim=-1)
+    with torch.no_grad():
+        light = s(x_e, torch.eye(3).expand(1, 40, 3, 3))
+        lit = torch.clamp_min(eval_sh(3, s.apply_sh(sh, x_e)[None], d) + 0.5, 0.0)
+    assert torch.allclose(lit, light * torch.clamp_min(eval_sh(3, sh[None], d) + 0.5, 0.0), atol=1e-5)

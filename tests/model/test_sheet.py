@@ -11,12 +11,12 @@ from hydra.utils import instantiate
 
 from realityavatar.body import build_body
 from realityavatar.config import compose
-from realityavatar.model.sheet import GarmentSheet
+from tests.model.configured import component
 
 
 @pytest.fixture(scope="module")
 def sheet():
-    return GarmentSheet(build_body("mannequin"), rows=3, cols=8, per_cell=3, profile="canonical")
+    return component("sheet", "skirt", body=build_body("mannequin"), rows=3, cols=8, per_cell=3, profile="canonical")
 
 
 def test_sheet_gaussians_sit_on_their_cells_in_the_cells_frame(sheet):
@@ -69,9 +69,9 @@ def test_canonical_sheet_spans_the_hips_to_the_knees_around_the_body(sheet):
     knee = (hv - h[-1, 0]).abs() < 0.05
     assert float(r[-1, 0]) > float(torch.quantile(rv[knee], 0.9))  # outside the legs
     with pytest.raises(ValueError, match="bottom"):
-        GarmentSheet(body, profile="canonical", top_offset=-1.0)
+        component("sheet", "skirt", body=body, profile="canonical", top_offset=-1.0)
     with pytest.raises(ValueError, match="sheet.profile"):
-        GarmentSheet(body, profile="hull")
+        component("sheet", "skirt", body=body, profile="hull")
 
 
 def _ci_sheet_module(rows: int = 6, per_cell: int = 1):
@@ -168,14 +168,14 @@ def test_export_and_viewer_frames_carry_the_sheet(scenes_root):
 def test_a_cell_torn_open_caps_its_gaussians_stretch():
     """Under a pose the garment cannot follow (a cell pulled 20x its size) the tangent scales stop at max_stretch
     times the reference cell's (here, profile=canonical, the canonical one); below the cap they follow the cell."""
-    sh = GarmentSheet(build_body("mannequin"), rows=3, cols=8, per_cell=2, profile="canonical", max_stretch=5.0)
+    sh = component("sheet", "skirt", body=build_body("mannequin"), rows=3, cols=8, per_cell=2, profile="canonical", max_stretch=5.0)
     V = sh.vertices[None]
     centre = V[0].mean(0)
     base = sh.place(V)["scales"][0].detach()
     for k, expect in ((3.0, 3.0), (20.0, 5.0)):
         got = sh.place(centre + k * (V - centre))["scales"][0].detach()
         assert torch.allclose(got[:, :2] / base[:, :2], torch.full_like(got[:, :2], expect), rtol=1e-5)
-    free = GarmentSheet(build_body("mannequin"), rows=3, cols=8, per_cell=2, profile="canonical", max_stretch=0)
+    free = component("sheet", "skirt", body=build_body("mannequin"), rows=3, cols=8, per_cell=2, profile="canonical", max_stretch=0)
     got = free.place(centre + 20.0 * (V - centre))["scales"][0].detach()
     assert torch.allclose(got[:, :2] / base[:, :2], torch.full_like(got[:, :2], 20.0), rtol=1e-5)
 
@@ -183,7 +183,7 @@ def test_a_cell_torn_open_caps_its_gaussians_stretch():
 def test_strain_penalises_stretch_down_the_sheet_not_around_it():
     """sheet.strain: zero for the reference layout, for rings widened 3x (a flare) and for columns within
     strain_free; positive, and pulling the vertices back together, for columns stretched beyond it."""
-    sh = GarmentSheet(build_body("mannequin"), rows=3, cols=8, per_cell=1, profile="canonical", strain_free=0.2)
+    sh = component("sheet", "skirt", body=build_body("mannequin"), rows=3, cols=8, per_cell=1, profile="canonical", strain_free=0.2)
     V = sh.vertices[None].double()
     G = V.reshape(1, sh.rows + 1, sh.cols, 3)
     axis_xz = G.mean(2, keepdim=True)[..., [0, 2]]  # each ring's centre
@@ -201,15 +201,15 @@ def test_strain_penalises_stretch_down_the_sheet_not_around_it():
     assert torch.all(down > 0)  # descending the loss moves the hem ring back up its column
     assert float(sh.strain(wide.reshape(1, -1, 3))) < float(s.detach())  # a 3x flare costs less than 2x long columns
     with pytest.raises(ValueError, match="strain"):
-        GarmentSheet(build_body("mannequin"), rows=3, cols=8, per_cell=1, profile="canonical", strain_free=-1.0)
+        component("sheet", "skirt", body=build_body("mannequin"), rows=3, cols=8, per_cell=1, profile="canonical", strain_free=-1.0)
 
 
 def test_motion_basis_is_a_linear_map_of_the_temporal_state():
     """sheet.basis: zero offsets at the start, a gradient that reaches the basis there, offsets sum_k c_k(h) B_k
     that differ between temporal states; basis=0 adds no parameters."""
     body = build_body("mannequin")
-    assert not hasattr(GarmentSheet(body, rows=3, cols=8, per_cell=1, profile="canonical"), "basis")
-    sh = GarmentSheet(body, rows=3, cols=8, per_cell=1, profile="canonical", basis=4, cond_dim=8)
+    assert not hasattr(component("sheet", "skirt", body=body, rows=3, cols=8, per_cell=1, profile="canonical"), "basis")
+    sh = component("sheet", "skirt", body=body, rows=3, cols=8, per_cell=1, profile="canonical", basis=4, cond_dim=8)
     h = torch.randn(3, 8, generator=torch.Generator().manual_seed(0))
     o = sh.basis_offsets(h)
     assert o.shape == (3, sh.vertices.shape[0], 3) and float(o.abs().max()) == 0.0
@@ -221,4 +221,4 @@ def test_motion_basis_is_a_linear_map_of_the_temporal_state():
         expect = torch.einsum("bk,kpd->bpd", sh.coeff(h), sh.basis)
     assert torch.allclose(o, expect) and not torch.allclose(o[0], o[1])
     with pytest.raises(ValueError, match="basis"):
-        GarmentSheet(body, rows=3, cols=8, per_cell=1, profile="canonical", basis=-1)
+        component("sheet", "skirt", body=body, rows=3, cols=8, per_cell=1, profile="canonical", basis=-1)

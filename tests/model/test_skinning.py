@@ -17,9 +17,10 @@ from realityavatar.geometry import (
     rigid,
     sample_surface,
 )
-from realityavatar.model.skinning import SkinningField, lbs_gaussians, pretrain_skinning, skinning_loss
+from realityavatar.model.skinning import lbs_gaussians, pretrain_skinning, skinning_loss
 from tests.fixtures_data import RandomBody
 from tests.helpers import assert_all_grads
+from tests.model.configured import component
 
 
 @pytest.fixture(scope="module")
@@ -28,7 +29,7 @@ def body() -> RandomBody:
 
 
 def test_skinning_field_softmax_and_loss_grads(body):
-    field = SkinningField(hidden_dim=32, num_layers=2)
+    field = component("skinning", "mlp", "skinning.hidden_dim=32", "skinning.num_layers=2")
     x = torch.randn(4, 50, 3)
     w = field(x)
     assert w.shape == (4, 50, 24)
@@ -40,7 +41,7 @@ def test_skinning_field_softmax_and_loss_grads(body):
 
 def test_pretrain_skinning_lowers_loss(body):
     torch.manual_seed(0)
-    field = SkinningField(hidden_dim=32, num_layers=2)
+    field = component("skinning", "mlp", "skinning.hidden_dim=32", "skinning.num_layers=2")
     pts, tw = sample_surface(body.rest_vertices, body.faces, body.skin_weights, 512, torch.Generator().manual_seed(5))
     field.fit_bounds(body.rest_vertices)
     before = float(skinning_loss(field, pts, tw).detach())
@@ -93,11 +94,9 @@ def test_skinning_grid_follows_the_body_and_blends_between_the_legs():
     a skirt apart there); gradients reach the query positions; a checkpoint restores the grid's shape and box."""
     from realityavatar.body import build_body
     from realityavatar.geometry import sample_surface
-    from realityavatar.model.skinning import SkinningGrid
-
     body = build_body("mannequin")
     v = body.canonical_vertices().detach()
-    grid = SkinningGrid(voxel_size=0.04)
+    grid = component("skinning", "grid", "skinning.voxel_size=0.04")
     info = grid.init_from_body(v, body.faces, body.skin_weights)
     p, w = sample_surface(v, body.faces, body.skin_weights, 5000, torch.Generator().manual_seed(1))
     with torch.no_grad():
@@ -115,13 +114,13 @@ def test_skinning_grid_follows_the_body_and_blends_between_the_legs():
     g = torch.randn(10, 24, generator=torch.Generator().manual_seed(2))
     (grid(x) * g).sum().backward()
     assert x.grad is not None and x.grad.abs().sum() > 0
-    fresh = SkinningGrid(voxel_size=0.04)
+    fresh = component("skinning", "grid", "skinning.voxel_size=0.04")
     fresh.load_state_dict(grid.state_dict())
     assert torch.equal(fresh(p[:50]), grid(p[:50]).detach())
     # stored channels last (a lookup reads each corner's 24 weights together): the same values and gradients as the
     # plain layout
     assert grid.grid.is_contiguous(memory_format=torch.channels_last_3d) and fresh.grid.stride() == grid.grid.stride()
-    plain = SkinningGrid(voxel_size=0.04)
+    plain = component("skinning", "grid", "skinning.voxel_size=0.04")
     plain.load_state_dict(grid.state_dict())
     plain.grid.data = plain.grid.data.contiguous()
     x2 = p[:10].clone().requires_grad_()
@@ -129,20 +128,21 @@ def test_skinning_grid_follows_the_body_and_blends_between_the_legs():
     assert torch.equal(plain(p[:50]), grid(p[:50]).detach()) and torch.equal(x2.grad, x.grad)
 
 
-@pytest.mark.parametrize("query_at", ["deformed", "canonical"])
-def test_skinning_query_at_reads_the_weights_where_it_says(scenes_root, query_at):
-    """skinning.query_at: "deformed" reads each point's weights at x_c + dx (3DGS-Avatar), "canonical" at x_c, so
-    a point the decoder moves 40 cm keeps the bones it was laid out on; an unknown value names the field."""
+@pytest.mark.parametrize("query", ["AtDeformed", "AtCanonical"])
+def test_skinning_query_reads_the_weights_where_it_says(scenes_root, query):
+    """skinning.query: AtDeformed reads each point's weights at x_c + dx (3DGS-Avatar), AtCanonical at x_c, so a
+    point the decoder moves 40 cm keeps the bones it was laid out on."""
     from torch.utils.data import default_collate
 
     from realityavatar.build import build_data, build_module
 
-    cfg = compose(["data=synthetic_ci", "trainer=ci", "gaussians.num_points=200", f"skinning.query_at={query_at}"])
+    cfg = compose(["data=synthetic_ci", "trainer=ci", "gaussians.num_points=200",
+                   f"skinning.query._target_=realityavatar.model.skinning.{query}"])
     body = instantiate(cfg.body)
     dm = build_data(cfg, body)
     module = build_module(cfg, body, dm.num_train_frames, dm.scene_extent, data=dm)
-    assert module.skinning.query_at == query_at
-    module.skinning.init_from_body(body.canonical_vertices().detach(), body.faces, body.skin_weights)  # as on_fit_start
+    assert type(module.skinning.query).__name__ == query
+    module.skinning.init_from_body(body.canonical_vertices().detach(), body.faces, body.skin_weights, steps=0)
     forward = module.deformer.forward
 
     def far(*args, **kwargs):  # the decoder moves every point 40 cm along x
@@ -154,15 +154,9 @@ def test_skinning_query_at_reads_the_weights_where_it_says(scenes_root, query_at
     with torch.no_grad():
         posed = module.deform(b)
         at_rest, moved = module.skinning(module.gaussians.means), module.skinning(posed["x_e"][0])
-    expected, other = (at_rest, moved) if query_at == "canonical" else (moved, at_rest)
+    expected, other = (at_rest, moved) if query == "AtCanonical" else (moved, at_rest)
     assert torch.allclose(posed["weights"][0], expected, atol=1e-6)
     assert (posed["weights"][0] - other).abs().max() > 0.1
-    from realityavatar.model.skinning import SkinningField, SkinningGrid
-
-    with pytest.raises(ValueError, match=r"skinning \(grid\)\.query_at"):
-        SkinningGrid(query_at="rest")
-    with pytest.raises(ValueError, match=r"skinning \(mlp\)\.query_at"):
-        SkinningField(query_at="rest")
 
 
 def test_grid_query_finds_the_neighbours_of_scipys_default_tree(monkeypatch):

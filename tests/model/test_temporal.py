@@ -14,7 +14,7 @@ def test_temporal_none_ignores_history_lstm_does_not():
     torch.manual_seed(0)
     f = torch.randn(3, 6, 32)
     perm = torch.cat([torch.tensor([3, 0, 4, 1, 2]), torch.tensor([5])])
-    none, lstm, gru = NoTemporal(32, 16), RecurrentTemporal("lstm", 32, 16), RecurrentTemporal("gru", 32, 16)
+    none, lstm, gru = NoTemporal(32, 16), RecurrentTemporal("lstm", 32, 16, 1), RecurrentTemporal("gru", 32, 16, 1)
     assert torch.equal(none(f), none(f[:, perm]))
     assert not torch.allclose(lstm(f), lstm(f[:, perm]))
     assert not torch.allclose(gru(f), gru(f[:, perm]))
@@ -24,7 +24,7 @@ def test_temporal_none_ignores_history_lstm_does_not():
         h.square().sum().backward()
         assert_all_grads(m)
     with pytest.raises(ValueError, match="temporal.kind"):
-        RecurrentTemporal("transformer", 32, 16)
+        RecurrentTemporal("transformer", 32, 16, 1)
 
 
 def _still_and_spin(T: int):

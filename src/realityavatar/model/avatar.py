@@ -117,9 +117,7 @@ class Avatar(nn.Module):
         else:
             out = identity_deformation(B, means, self.deformer.feature_dim)
         x_e, log_s_e, q_e = apply_deformation(means, log_scales, quats, out)  # [B,N,3],[B,N,3],[B,N,4]
-        # skinning.query_at: the weights at the deformed canonical position (default) or at the undeformed one
-        at_rest = self.skinning.query_at == "canonical"
-        w = self.skinning(means[None].expand(B, -1, -1) if at_rest else x_e)  # [B,N,24]
+        w = self.skinning(self.skinning.query(means, x_e))  # [B,N,24] at x_e or x_c (skinning.query)
         means_o, quats_o, rot = lbs_gaussians(x_e, q_e, w, A)
         posed = {"means": means_o, "quats": quats_o, "scales": torch.exp(log_s_e), "rot": rot, "f_mt": out["f_mt"],
                  "weights": w, "x_e": x_e}

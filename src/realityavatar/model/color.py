@@ -18,12 +18,12 @@ class MLPColor(nn.Module):
 
     def __init__(
         self,
-        feature_dim: int = 32,
-        fmt_dim: int = 16,
-        frame_latent_dim: int = 16,
-        num_frames: int = 1,
-        sh_degree: int = 3,
-        hidden_dim: int = 64,
+        feature_dim: int,
+        fmt_dim: int,
+        frame_latent_dim: int,
+        num_frames: int,
+        sh_degree: int,
+        hidden_dim: int,
     ) -> None:
         super().__init__()
         if num_frames < 1:
@@ -70,12 +70,12 @@ class SHColor(nn.Module):
     """Plain 3DGS colour: features are SH coefficients [N,(deg+1)^2*3] (coefficient-major, RGB last), evaluated
     with the view direction, +0.5 and clamped at 0 like gsplat. Has no parameters; f_mt and frame_idx are unused."""
 
-    def __init__(self, sh_degree: int = 3, feature_dim: int | None = None, num_frames: int | None = None) -> None:
+    def __init__(self, sh_degree: int, feature_dim: int, num_frames: int | None = None) -> None:
         super().__init__()
         self.sh_degree = sh_degree
         self.num_coeffs = (sh_degree + 1) ** 2
         expected = 3 * self.num_coeffs
-        if feature_dim is not None and feature_dim != expected:
+        if feature_dim != expected:
             raise ValueError(f"color.feature_dim: SH degree {sh_degree} needs {expected} features, got {feature_dim}")
         self.feature_dim = expected
 

@@ -29,18 +29,9 @@ class MotionTrendDecoder(nn.Module):
     rows start at zero so the deformation starts at the identity.
     """
 
-    def __init__(
-        self,
-        cond_dim: int = 128,
-        hidden_dim: int = 128,
-        num_layers: int = 3,
-        feature_dim: int = 16,
-        num_freqs: int = 6,
-        bbox_min: tuple[float, float, float] = (-1.2, -1.5, -1.2),
-        bbox_max: tuple[float, float, float] = (1.2, 1.0, 1.2),
-        auto_bounds: bool = True,
-        activation: Literal["silu", "relu"] = "silu",
-    ) -> None:
+    def __init__(self, cond_dim: int, hidden_dim: int, num_layers: int, feature_dim: int, num_freqs: int,
+                 bbox_min: tuple[float, float, float], bbox_max: tuple[float, float, float], auto_bounds: bool,
+                 activation: Literal["silu", "relu"]) -> None:
         super().__init__()
         if activation not in _ACTIVATIONS:
             raise ValueError(f"deformer.activation: expected one of {sorted(_ACTIVATIONS)}, got {activation!r}")

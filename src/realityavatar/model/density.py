@@ -77,20 +77,9 @@ class DensityControl:
 
     changes_count = True  # refinements change the Gaussian count: compiled graphs treat it as dynamic
 
-    def __init__(
-        self,
-        refine_start: int = 500,
-        refine_stop: int = 10000,
-        refine_every: int = 100,
-        grad_threshold: float = 2e-4,
-        prune_opacity: float = 0.05,
-        grow_scale3d: float = 0.01,
-        prune_scale3d: float = 0.1,
-        scene_scale: float = 1.0,
-        reset_every: int = 3000,
-        max_points: int = 100000,
-        seed: int = 0,
-    ) -> None:
+    def __init__(self, refine_start: int, refine_stop: int, refine_every: int, grad_threshold: float,
+                 prune_opacity: float, grow_scale3d: float, prune_scale3d: float, scene_scale: float, reset_every: int,
+                 max_points: int, seed: int) -> None:
         self.refine_start = refine_start
         self.refine_stop = refine_stop
         self.refine_every = max(int(refine_every), 1)

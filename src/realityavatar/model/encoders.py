@@ -83,51 +83,43 @@ def _from_parts(parts: list[tuple[torch.Tensor, torch.Tensor]], latent_dim: int)
 
 
 class LatentBoneEncoder(nn.Module):
-    """The paper's latentbone encoder F_le({p_lm, p_rm, p_lg, p_to}; Z_c) applied to every frame of the window.
-
-    part_split=True: each part's features ⊕ Z_c go through their own Linear+SiLU (part_dim outputs); the four outputs
-    are concatenated into a shallow MLP. part_split=False: all features ⊕ Z_c go through one Linear+SiLU of width
-    4*part_dim into the same MLP. Both are one input layer (`input_layer`) whose weight is masked (`part_mask`): block
-    diagonal, each part's rows seeing its own features and Z_c (initialised as four separate layers would be), or
-    full. One matmul instead of four layers (a step had ~30 operations more with them). clothes_latent_dim=0: Z_c
-    has no entries. Note: with one avatar per model Z_c is a learned constant, i.e. extra bias in the input layer.
+    """The paper's latentbone encoder F_le({p_lm, p_rm, p_lg, p_to}; Z_c) applied to every frame of the window
+    (`encoder=latentbone`): each part's features ⊕ Z_c go through their own Linear+SiLU (part_dim outputs), the four
+    outputs concatenated into a shallow MLP. The four part layers are one input layer (`input_layer`) whose weight
+    is masked block diagonal (`part_mask`: each part's rows see its own features and Z_c), initialised as four
+    separate layers would be: one matmul instead of four layers (a step had ~30 operations more with them). Note:
+    with one avatar per model Z_c is a learned constant, i.e. extra bias in the input layer.
+    The paper's ablations are the subclasses: `WholePoseEncoder` (no part split), `NoClothesLatentEncoder` (no Z_c).
     """
 
-    def __init__(
-        self,
-        part_split: bool = True,
-        clothes_latent_dim: int = 16,
-        part_dim: int = 32,
-        hidden_dim: int = 128,
-        out_dim: int = 128,
-        num_layers: int = 2,
-        latent_init_std: float = 0.1,
-    ) -> None:
+    def __init__(self, clothes_latent_dim: int, part_dim: int, hidden_dim: int, out_dim: int, num_layers: int,
+                 latent_init_std: float) -> None:
         super().__init__()
         if num_layers < 1:
             raise ValueError(f"encoder.num_layers: expected >= 1, got {num_layers}")
-        self.part_split = part_split
         self.clothes_latent_dim = clothes_latent_dim
         self.part_dim = part_dim
         self.out_dim = out_dim
         self.z_c = nn.Parameter(torch.randn(clothes_latent_dim) * latent_init_std)
-        total = sum(PART_DIMS.values())
-        size = (total + clothes_latent_dim, 4 * part_dim)
-        # with part_split the blocks are drawn below (the full layer's own initialisation would draw other numbers)
-        first = torch.nn.utils.skip_init(nn.Linear, *size) if part_split else nn.Linear(*size)
+        size = (sum(PART_DIMS.values()) + clothes_latent_dim, 4 * part_dim)
+        first, mask = self._input_layer(size)
         self.input_layer = nn.Sequential(first, nn.SiLU())
-        mask = torch.ones(size[::-1])
-        if part_split:
-            dims = [PART_DIMS[p] + clothes_latent_dim for p in PART_NAMES]
-            # nn.Linear's own initialisation for each part's fan-in, drawn in part order
-            layers = [nn.Linear(d, part_dim) for d in dims]
-            with torch.no_grad():
-                weight, bias = _from_parts([(m.weight, m.bias) for m in layers], clothes_latent_dim)
-                first.weight.copy_(weight)
-                first.bias.copy_(bias)
-            mask = _from_parts([(torch.ones(part_dim, d), torch.ones(part_dim)) for d in dims], clothes_latent_dim)[0]
         self.register_buffer("part_mask", mask, persistent=False)
         self.mlp = _mlp(4 * part_dim, hidden_dim, out_dim, num_layers)
+
+    def _input_layer(self, size: tuple[int, int]) -> tuple[nn.Linear, torch.Tensor]:
+        """The input layer (in, out = size) and its weight's mask: block diagonal, drawn part by part."""
+        # the blocks are drawn below (the full layer's own initialisation would draw other numbers)
+        first = torch.nn.utils.skip_init(nn.Linear, *size)
+        dims = [PART_DIMS[p] + self.clothes_latent_dim for p in PART_NAMES]
+        # nn.Linear's own initialisation for each part's fan-in, drawn in part order
+        layers = [nn.Linear(d, self.part_dim) for d in dims]
+        with torch.no_grad():
+            weight, bias = _from_parts([(m.weight, m.bias) for m in layers], self.clothes_latent_dim)
+            first.weight.copy_(weight)
+            first.bias.copy_(bias)
+        ones = [(torch.ones(self.part_dim, d), torch.ones(self.part_dim)) for d in dims]
+        return first, _from_parts(ones, self.clothes_latent_dim)[0]
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
         # Checkpoints written before the part layers became one masked layer: their four layers' blocks.
@@ -136,12 +128,11 @@ class LatentBoneEncoder(nn.Module):
             parts = [(state_dict.pop(k + "weight"), state_dict.pop(k + "bias")) for k in old]
             weight, bias = _from_parts(parts, self.clothes_latent_dim)
             state_dict[prefix + "input_layer.0.weight"], state_dict[prefix + "input_layer.0.bias"] = weight, bias
-        state_dict.setdefault(prefix + "z_c", self.z_c.detach().new_zeros(0))  # written without Z_c (dim 0)
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def parts(self, features: torch.Tensor) -> torch.Tensor:
-        """features [B,T,sum(PART_DIMS)] -> the input layer's output [B,T,4*part_dim] (with part_split, part i's
-        features reach rows i*part_dim..(i+1)*part_dim only)."""
+        """features [B,T,sum(PART_DIMS)] -> the input layer's output [B,T,4*part_dim] (part i's features reach rows
+        i*part_dim..(i+1)*part_dim only, where the mask is block diagonal)."""
         x = torch.cat([features, self.z_c.expand(features.shape[:-1] + (-1,))], -1)
         first = self.input_layer[0]
         return self.input_layer[1](F.linear(x, first.weight * self.part_mask, first.bias))
@@ -156,3 +147,19 @@ class LatentBoneEncoder(nn.Module):
 
     def param_groups(self) -> dict[str, list[nn.Parameter]]:
         return {"encoder": list(self.parameters())}
+
+
+class WholePoseEncoder(LatentBoneEncoder):
+    """Ablation "w/o part segmentation" (`encoder=no_split`): all features ⊕ Z_c through one Linear+SiLU of width
+    4*part_dim (nn.Linear's own initialisation, an all-ones mask) into the same MLP."""
+
+    def _input_layer(self, size: tuple[int, int]) -> tuple[nn.Linear, torch.Tensor]:
+        return nn.Linear(*size), torch.ones(size[::-1])
+
+
+class NoClothesLatentEncoder(LatentBoneEncoder):
+    """Ablation "w/o latent code Z_c" (`encoder=no_zc`): the part split without the clothes latent (Z_c has no
+    entries, so the input is the pose features alone)."""
+
+    def __init__(self, part_dim: int, hidden_dim: int, out_dim: int, num_layers: int) -> None:
+        super().__init__(0, part_dim, hidden_dim, out_dim, num_layers, 0.0)

@@ -29,12 +29,12 @@ class CanonicalGaussians(nn.Module):
     def __init__(
         self,
         body: BodyModel,
-        num_points: int = 35000,
-        feature_dim: int = 32,
-        init_scale: float | None = None,
-        init_opacity: float = 0.1,
-        feature_init_std: float = 0.01,
-        seed: int = 0,
+        num_points: int,
+        feature_dim: int,
+        init_scale: float | None,
+        init_opacity: float,
+        feature_init_std: float,
+        seed: int,
     ) -> None:
         super().__init__()
         if num_points < 1:

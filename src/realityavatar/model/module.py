@@ -35,14 +35,18 @@ SHEET_RATES = {"sheet_normal_offset": "means", "sheet_basis": "deformer", "sheet
 class Schedule:
     """The step-dependent switches of the model (the loss terms carry their own, e.g. loss.skinning.switch)."""
 
-    deform_start: int = 0
-    skin_pretrain_steps: int = 0  # fit the skinning field to the body's weights before the first step
-    deform_anneal: int = 0  # the decoder's frequency bands open linearly over steps deform_start .. + this (0: all)
+    deform_start: int
+    skin_pretrain_steps: int  # skinning=mlp: fit the field to the body's weights before the first step
+    deform_anneal: int  # the decoder's frequency bands open linearly over steps deform_start .. + this (0: all)
 
     @classmethod
     def from_config(cls, schedule: dict) -> Schedule:
-        """The config's schedule block (other keys there, e.g. skin_switch, reach loss terms by interpolation)."""
-        return cls(**{f.name: schedule[f.name] for f in fields(cls) if f.name in schedule})
+        """The config's schedule block (other keys there, e.g. skin_switch, reach loss terms by interpolation); a
+        missing key is an error naming it."""
+        missing = [f.name for f in fields(cls) if f.name not in schedule]
+        if missing:
+            raise KeyError(f"schedule: missing {', '.join(missing)} (conf/train.yaml's schedule block)")
+        return cls(**{f.name: schedule[f.name] for f in fields(cls)})
 
     def deform_on(self, step: int) -> bool:
         return step >= self.deform_start
@@ -75,10 +79,10 @@ class AvatarModule(Avatar, pl.LightningModule):
         lr: dict,
         final_factor: dict,
         render: dict,
-        schedule: Schedule | None = None,
-        grad_clip: float | None = None,
-        max_steps: int = 1000,
-        scene_extent: float = 1.0,
+        schedule: Schedule,
+        grad_clip: float | None,
+        max_steps: int,
+        scene_extent: float,
         lpips: nn.Module | None = None,
         eval_supersample: int = 1,
     ):
@@ -93,7 +97,7 @@ class AvatarModule(Avatar, pl.LightningModule):
         self.optimizer_factory = optimizer
         self.lr = dict(lr)
         self.final_factor = dict(final_factor)
-        self.schedule = schedule or Schedule()
+        self.schedule = schedule
         self.grad_clip = grad_clip
         self.max_steps = max(int(max_steps), 1)
         self.scene_extent = float(scene_extent)

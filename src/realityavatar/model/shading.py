@@ -14,18 +14,19 @@ from torch import nn
 
 from realityavatar.model.skinning import check_grid_settings, diffuse_to_grid, sample_grid
 from realityavatar.render import sh_basis
+from realityavatar.render.sh import _C0 as SH_C0
 
 NORMALS = ("body", "learnt")
 
 
 class NoShading(nn.Module):
-    """The paper's colour as it is: no shading factor (`shading=none`)."""
-
-    def forward(self, x_e: torch.Tensor, rot: torch.Tensor) -> None:
-        return None  # no light factor (export writes view-dependent SH only for an unlit model)
+    """The paper's colour as it is (`shading=none`): lighting returns the colour it is given."""
 
     def apply(self, rgb: torch.Tensor, x_e: torch.Tensor, rot: torch.Tensor) -> torch.Tensor:
         return rgb
+
+    def apply_sh(self, sh: torch.Tensor, x_e: torch.Tensor) -> torch.Tensor:
+        return sh
 
     def init_from_body(self, vertices: torch.Tensor, faces: torch.Tensor, seed: int = 0) -> None:
         return None
@@ -55,17 +56,8 @@ class IrradianceShading(nn.Module):
       Looked-up normals longer than 1 are scaled back to length 1.
     """
 
-    def __init__(
-        self,
-        sh_degree: int = 2,
-        voxel_size: float = 0.03,
-        padding: float = 0.3,
-        k: int = 8,
-        smooth_iters: int = 8,
-        smooth_ramp: float = 0.1,
-        max_voxels: int = 400_000,
-        normals: str = "body",
-    ) -> None:
+    def __init__(self, sh_degree: int, voxel_size: float, padding: float, k: int, smooth_iters: int,
+                 smooth_ramp: float, max_voxels: int, normals: str) -> None:
         super().__init__()
         if normals not in NORMALS:
             raise ValueError(f"shading.normals: expected one of {NORMALS}, got {normals!r}")
@@ -123,6 +115,15 @@ class IrradianceShading(nn.Module):
     def apply(self, rgb: torch.Tensor, x_e: torch.Tensor, rot: torch.Tensor) -> torch.Tensor:
         """rgb [B,N,3] lit by the light at the Gaussians' places (x_e, rot as in forward)."""
         return rgb * self(x_e, rot)
+
+    def apply_sh(self, sh: torch.Tensor, x_e: torch.Tensor) -> torch.Tensor:
+        """SH colour coefficients sh [N,K,3] (colour = max(SH + 0.5, 0), model/color.py SHColor) of Gaussians at
+        canonical places x_e [1,N,3] in the rest orientation, lit: E (view-independent, > 0) scales every band, and
+        the constant band takes E's share of the +0.5 offset, so max(SH' + 0.5, 0) = E max(SH + 0.5, 0)."""
+        e = self(x_e, torch.eye(3, dtype=x_e.dtype, device=x_e.device).expand(*x_e.shape, 3))[0]  # [N,3]
+        lit = sh * e[:, None]
+        lit[:, 0] += 0.5 * (e - 1) / SH_C0
+        return lit
 
     def param_groups(self) -> dict[str, list[nn.Parameter]]:
         return {"shading": [self.coeffs], **({"shading_normals": [self.grid]} if self.grid.requires_grad else {})}

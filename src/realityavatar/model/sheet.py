@@ -23,6 +23,7 @@ from torch import nn
 
 from realityavatar.body.base import BodyModel
 from realityavatar.geometry import matrix_to_quat
+from realityavatar.model.hull import hull_views
 
 
 class GarmentSheet(nn.Module):
@@ -42,13 +43,13 @@ class GarmentSheet(nn.Module):
     rebuilt from its checkpoint, whose vertices then replace it).
     """
 
-    def __init__(self, body: BodyModel, rows: int = 16, cols: int = 48, per_cell: int = 6, profile: str = "rest",
-                 top_offset: float = 0.08, margin: float = 0.02, radius_from: str = "body",
-                 bottom_joints: tuple[int, ...] = (4, 5), bottom_offset: float = 0.0, hull_frame: int | None = None,
-                 hull_voxel: float = 0.015, hull_quantile: float = 0.25, feature_dim: int = 32,
-                 init_opacity: float = 0.1, normal_scale: float = 0.005, feature_init_std: float = 0.01,
-                 seed: int = 0, max_stretch: float = 16.0, strain_free: float = 0.2,
-                 basis: int = 0, cond_dim: int = 128, views=None) -> None:
+    def __init__(self, body: BodyModel, rows: int, cols: int, per_cell: int, profile: str, top_offset: float,
+                 margin: float, radius_from: str, bottom_joints: tuple[int, ...], bottom_offset: float,
+                 hull_frame: int | None, hull_voxel: float, hull_quantile: float, feature_dim: int,
+                 init_opacity: float, normal_scale: float, seed: int, max_stretch: float, strain_free: float,
+                 basis: int, cond_dim: int, feature_init_std: float, data=None) -> None:
+        """data: the set-up DataModule, whose training masks profile="rest" carves its hull from; None when a run
+        is rebuilt from its checkpoint (its layout buffers replace the canonical one laid out here)."""
         super().__init__()
         if rows < 1 or cols < 3 or per_cell < 1:
             raise ValueError(f"sheet: expected rows >= 1, cols >= 3, per_cell >= 1, got {rows}, {cols}, {per_cell}")
@@ -66,15 +67,15 @@ class GarmentSheet(nn.Module):
             raise ValueError(f"sheet.strain_free must be >= 0, got {strain_free}")
         self.strain_free = float(strain_free)  # see `strain` (the loss term losses.SheetStrain)
         self.feature_dim = int(feature_dim)
-        self.profile, self.hull_frame = profile, hull_frame  # hull_frame: read by build_module
+        self.profile = profile
         # profile=rest keeps its layout (posed) and that frame's pose for `canonicalise`; both are checkpointed
         self.register_buffer("posed_rest", torch.zeros(0, 3))
         self.register_buffer("rest_pose", torch.zeros(0, 3))
         self.register_buffer("rest_transl", torch.zeros(3))
         self.register_buffer("canonical_done", torch.tensor(True))
         self.layout: dict = {"profile": "canonical"}
-        if profile == "rest" and views is not None:
-            grid = self._rest_layout(body, views, float(top_offset), float(margin), radius_from, float(hull_voxel),
+        if profile == "rest" and data is not None:
+            grid = self._rest_layout(body, hull_views(data, hull_frame), float(top_offset), float(margin), radius_from, float(hull_voxel),
                                      float(hull_quantile))
         else:
             grid = self._canonical_layout(body, float(top_offset), tuple(bottom_joints), float(bottom_offset),

@@ -16,6 +16,27 @@ from realityavatar.model.encodings import FrequencyEncoding
 NUM_BONES = 24
 
 
+class AtDeformed:
+    """Where a skinning field is read (`skinning.query`): at the deformed canonical position x_e = x_c + dx, as
+    3DGS-Avatar (the default)."""
+
+    def __call__(self, x_c: torch.Tensor, x_e: torch.Tensor) -> torch.Tensor:
+        """x_c [N,3], x_e [B,N,3] -> the query points [B,N,3]."""
+        return x_e
+
+
+class AtCanonical:
+    """At the undeformed canonical position x_c, so a garment point keeps the bones it was laid out on however far
+    the decoder moves it (read at x_c + dx, a hem pushed 30 cm out takes the weights of whatever part lies there;
+    docs/research/2026-11-26-spin-gap-oracles.md; `+experiment=spin_target`)."""
+
+    def __call__(self, x_c: torch.Tensor, x_e: torch.Tensor) -> torch.Tensor:
+        return x_c[None].expand(x_e.shape[0], -1, -1)
+
+
+QueryPoint = AtDeformed | AtCanonical
+
+
 class SkinningField(nn.Module):
     """MLP on a (canonical-space) position -> softmax weights over the 24 bones.
 
@@ -23,18 +44,10 @@ class SkinningField(nn.Module):
     not depend on the body's units as long as the box covers it.
     """
 
-    def __init__(
-        self,
-        hidden_dim: int = 128,
-        num_layers: int = 4,
-        num_freqs: int = 4,
-        center: tuple[float, float, float] = (0.0, -0.3, 0.0),
-        half_extent: float = 1.2,
-        num_bones: int = NUM_BONES,
-        query_at: str = "deformed",
-    ) -> None:
+    def __init__(self, hidden_dim: int, num_layers: int, num_freqs: int, center: tuple[float, float, float],
+                 half_extent: float, query: QueryPoint, num_bones: int = NUM_BONES) -> None:
         super().__init__()
-        self.query_at = check_query_at("skinning (mlp)", query_at)
+        self.query = query
         self.encoding = FrequencyEncoding(num_freqs)
         # Persistent so a checkpoint carries the normalisation the weights were trained with.
         self.register_buffer("center", torch.tensor(center, dtype=torch.float32))
@@ -56,7 +69,7 @@ class SkinningField(nn.Module):
         self.half_extent.fill_(float((hi - lo).max()) / 2 * (1 + padding))
 
     def init_from_body(self, vertices: torch.Tensor, faces: torch.Tensor, weights: torch.Tensor,
-                       steps: int = 300) -> dict | None:
+                       steps: int) -> dict | None:
         """Before step 0: fit the field to the body's skin weights for `steps` steps (`pretrain_skinning`); the
         record of the fit, or None when steps <= 0 (no pre-fit)."""
         if steps <= 0:
@@ -87,21 +100,11 @@ class SkinningGrid(nn.Module):
     and renormalised at lookup); by default they stay as built (no optimizer state, no skinning-loss gradient).
     """
 
-    def __init__(
-        self,
-        voxel_size: float = 0.03,
-        padding: float = 0.3,
-        k: int = 8,
-        smooth_iters: int = 8,
-        smooth_ramp: float = 0.1,
-        learnable: bool = False,
-        max_voxels: int = 400_000,
-        num_bones: int = NUM_BONES,
-        query_at: str = "deformed",
-    ) -> None:
+    def __init__(self, voxel_size: float, padding: float, k: int, smooth_iters: int, smooth_ramp: float,
+                 learnable: bool, max_voxels: int, query: QueryPoint, num_bones: int = NUM_BONES) -> None:
         super().__init__()
         check_grid_settings("skinning (grid)", voxel_size, padding, k, smooth_iters, smooth_ramp)
-        self.query_at = check_query_at("skinning (grid)", query_at)
+        self.query = query
         self.voxel_size, self.padding, self.k = float(voxel_size), float(padding), int(k)
         self.smooth_iters, self.smooth_ramp, self.max_voxels = int(smooth_iters), float(smooth_ramp), int(max_voxels)
         self.num_bones = num_bones
@@ -143,19 +146,6 @@ class SkinningGrid(nn.Module):
             w = w.clamp_min(0)
             w = w / w.sum(-1, keepdim=True).clamp_min(1e-8)
         return w
-
-
-QUERY_AT = ("deformed", "canonical")
-
-
-def check_query_at(name: str, query_at: str) -> str:
-    """Where the module reads a point's skinning weights (`skinning.query_at`): "deformed", at its canonical
-    position plus the decoder's offset (x_c + dx, as 3DGS-Avatar), or "canonical", at x_c itself, so a garment
-    point keeps the bones it was laid out on however far the decoder moves it (read at x_c + dx, a hem pushed 30 cm
-    out takes the weights of whatever part lies there; docs/research/2026-11-26-spin-gap-oracles.md)."""
-    if query_at not in QUERY_AT:
-        raise ValueError(f"{name}.query_at: expected one of {QUERY_AT}, got {query_at!r}")
-    return query_at
 
 
 # The nearest-sample queries of the last few grids (see diffuse_to_grid): a run builds the skinning grid and the

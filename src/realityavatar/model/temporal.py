@@ -11,7 +11,7 @@ from torch import nn
 class RecurrentTemporal(nn.Module):
     """LSTM or GRU over f_p [B,T,D] (oldest first); h_t is the output at the last (current) time step."""
 
-    def __init__(self, kind: Literal["lstm", "gru"] = "lstm", in_dim: int = 128, hidden_dim: int = 128, num_layers: int = 1):
+    def __init__(self, kind: Literal["lstm", "gru"], in_dim: int, hidden_dim: int, num_layers: int):
         super().__init__()
         if kind not in ("lstm", "gru"):
             raise ValueError(f"temporal.kind: expected 'lstm' or 'gru', got {kind!r}")
@@ -32,7 +32,7 @@ class RecurrentTemporal(nn.Module):
 class NoTemporal(nn.Module):
     """Ablation 'no temporal module': uses only the current frame f_p[:, -1] through a Linear+SiLU of the same width."""
 
-    def __init__(self, in_dim: int = 128, hidden_dim: int = 128):
+    def __init__(self, in_dim: int, hidden_dim: int):
         super().__init__()
         self.net = nn.Sequential(nn.Linear(in_dim, hidden_dim), nn.SiLU())
         self.out_dim = hidden_dim
