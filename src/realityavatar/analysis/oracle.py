@@ -221,7 +221,7 @@ def main(argv: list[str] | None = None) -> int:
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
-        recent.append(float(loss))
+        recent.append(loss.item())
         if (step + 1) % 500 == 0:
             print(f"step {step + 1}: mean loss of the last 500 {np.mean(recent):.4f} ({time.perf_counter() - t0:.0f} s)",
                   flush=True)
