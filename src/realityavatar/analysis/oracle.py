@@ -182,6 +182,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("overrides", nargs="*", help="more config overrides (data.image_scale=0.5, ...)")
     a = ap.parse_args(argv)
     torch.set_num_threads(a.threads)
+    commit = git_commit()  # the code that runs: read before other sessions commit
     tag = a.views + (f"_slide{a.slide_cm:g}cm" if a.slide_cm else "") + ("_unlit" if a.light == "none" else "")
     out = Path(a.out or f"outputs/oracle/{a.data}_{tag}")
     cfg = compose([f"data={a.data}", *a.overrides])
@@ -245,7 +246,7 @@ def main(argv: list[str] | None = None) -> int:
     metrics = {**summarise(records), "oracle": {
         "data": a.data, "overrides": a.overrides, "views": a.views, "slide_cm": a.slide_cm, "light": a.light,
         "body": a.body, "garment": a.garment, "seed": a.seed, "ambient": model.ambient, "diffuse": model.diffuse},
-        "commit": git_commit(), "iterations": a.steps, "num_gaussians": int(model.pos.shape[1]),
+        "commit": commit, "iterations": a.steps, "num_gaussians": int(model.pos.shape[1]),
         "train_seconds": round(fit_s, 1), "render_fps": len(records) / max(render_s, 1e-9),
         "command": "python -m realityavatar.analysis.oracle " + " ".join(sys.argv[1:] if argv is None else argv)}
     out.mkdir(parents=True, exist_ok=True)
