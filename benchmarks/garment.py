@@ -37,9 +37,10 @@ def timeit(fn, repeats: int = 5) -> float:
 
 
 def main(argv=None) -> int:
+    from hydra.utils import instantiate
+
+    from realityavatar.config import compose
     from realityavatar.data.records import mask_distance
-    from realityavatar.losses import SilhouetteChamfer
-    from realityavatar.model.deform import MotionTrendDecoder
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--threads", type=int, default=1)
@@ -48,6 +49,7 @@ def main(argv=None) -> int:
     torch.set_num_threads(a.threads)
     torch.manual_seed(0)
     unit = gemm_unit()
+    cfg = compose([])  # the default components, as a run builds them
     rows = []
     for res in (128, 256):
         K = torch.tensor([[res * 1.2, 0, res / 2], [0, res * 1.2, res / 2], [0, 0, 1.0]])
@@ -58,7 +60,7 @@ def main(argv=None) -> int:
         alpha = mask * (xx < res / 2).float()[..., None]  # half of the silhouette uncovered
         for n in (5000, 10000):
             means = (torch.randn(n, 3) * 0.3).requires_grad_(True)
-            loss = SilhouetteChamfer()
+            loss = instantiate(compose(["silhouette=chamfer"]).silhouette)
 
             dist = mask_distance(mask[..., 0])  # the dataset's, once per image
 
@@ -69,7 +71,7 @@ def main(argv=None) -> int:
     for n in (5000, 10000):
         x = torch.randn(n, 3) * 0.3
         h = torch.randn(1, 128)
-        dec = MotionTrendDecoder()
+        dec = instantiate(cfg.deformer)  # the configured decoder (conf/deformer)
         dec(x, h)  # fit the box once, as training does
 
         def step(dec=dec, x=x, h=h):
@@ -78,13 +80,12 @@ def main(argv=None) -> int:
 
         rows.append({"part": "decoder per Gaussian", "resolution": None, "gaussians": n, "seconds": timeit(step)})
     from realityavatar.body import build_body
-    from realityavatar.model.skinning import SkinningField, SkinningGrid
 
     body = build_body("mannequin")
     verts = body.canonical_vertices().detach()
-    grid = SkinningGrid()
+    grid = instantiate(compose(["skinning=grid"]).skinning)
     grid.init_from_body(verts, body.faces, body.skin_weights)
-    mlp = SkinningField()
+    mlp = instantiate(compose(["skinning=mlp"]).skinning)
     for n in (5000, 10000):
         x = (verts[torch.randint(0, verts.shape[0], (n,))] + 0.05 * torch.randn(n, 3)).requires_grad_(True)
         for name, field in (("skinning MLP", mlp), ("skinning grid", grid)):
@@ -93,9 +94,8 @@ def main(argv=None) -> int:
                 (w * torch.arange(24.0)).sum().backward()
 
             rows.append({"part": name, "resolution": None, "gaussians": n, "seconds": timeit(step)})
-    from realityavatar.model.shading import IrradianceShading
 
-    shading = IrradianceShading()
+    shading = instantiate(cfg.shading)
     shading.init_from_body(verts, body.faces)
     for n in (5000, 10000):
         x = verts[torch.randint(0, verts.shape[0], (n,))][None] + 0.05 * torch.randn(1, n, 3)

@@ -167,7 +167,8 @@ def test_decoder_condition_as_first_layer_bias_equals_the_concatenated_input():
     from realityavatar.model.deform import MotionTrendDecoder
 
     torch.manual_seed(0)
-    dec = MotionTrendDecoder(cond_dim=8, hidden_dim=16, num_layers=3, feature_dim=4, num_freqs=2)
+    dec = MotionTrendDecoder(cond_dim=8, hidden_dim=16, num_layers=3, feature_dim=4, num_freqs=2,
+                             bbox_min=(-1.2, -1.5, -1.2), bbox_max=(1.2, 1.0, 1.2), auto_bounds=True, activation="silu")
     x = torch.rand(50, 3)
     h = torch.randn(2, 8)
     out = dec(x, h)
