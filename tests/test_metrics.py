@@ -1,4 +1,4 @@
-"""Metrics: PSNR, SSIM against a loop reference, masked variants, flicker, LPIPS loading, float64 accumulation."""
+"""Metrics: PSNR, SSIM against a loop reference, mask-box scores, flicker, LPIPS loading, float64 accumulation."""
 
 from __future__ import annotations
 
@@ -14,15 +14,12 @@ import torch
 from realityavatar.metrics import (
     LPIPS,
     PackageLPIPS,
-    alexnet_features,
     build_lpips,
+    image_metrics,
     lpips_status,
     mask_bbox,
-    masked_bbox,
     psnr,
-    psnr_masked,
     ssim,
-    ssim_masked,
     temporal_flicker,
     vgg_features,
 )
@@ -78,18 +75,22 @@ def test_ssim_identity_and_loop_reference():
     assert float(ssim(x.clone().requires_grad_(), y)) == pytest.approx(float(ssim(x, y)), abs=1e-12)
 
 
-def test_masked_bbox_variants():
+def test_box_scores_read_the_mask_box_only():
+    """image_metrics's *_masked scores are the whole-image scores of the mask's bounding box: pixels outside it do not
+    count (the box of an empty mask is the whole image)."""
     pred, gt = _img(30, 40, 0), _img(30, 40, 1)
     mask = torch.zeros(30, 40, 1)
     mask[5:17, 10:33] = 1
-    assert mask_bbox(mask) == (5, 17, 10, 33)
-    pb, gb = masked_bbox(pred, gt, mask)
-    assert pb.shape == (12, 23, 3) and torch.equal(gb, gt[5:17, 10:33])
-    assert float(psnr_masked(pred, gt, mask)) == pytest.approx(float(psnr(pred[5:17, 10:33], gt[5:17, 10:33])))
-    assert float(ssim_masked(pred, gt, mask)) == pytest.approx(float(ssim(pred[5:17, 10:33], gt[5:17, 10:33])))
+    assert mask_bbox(mask) == (5, 17, 10, 33) and mask_bbox(mask, pad=6) == (0, 23, 4, 39)
     assert mask_bbox(torch.zeros(30, 40, 1)) == (0, 30, 0, 40)  # empty mask -> whole image
-    batched = psnr_masked(torch.stack([pred, pred]), torch.stack([gt, pred]), torch.stack([mask, mask]))
-    assert batched.shape == (2,) and math.isinf(float(batched[1]))
+    rec = image_metrics(pred, gt, mask, mask)
+    box = pred[5:17, 10:33], gt[5:17, 10:33]
+    assert rec["psnr_masked"] == pytest.approx(float(psnr(*box))) and rec["ssim_masked"] == pytest.approx(float(ssim(*box)))
+    outside = pred.clone()
+    outside[20:] = gt[20:]  # perfect outside the box: the whole image improves, the box does not move
+    moved = image_metrics(outside, gt, mask, mask)
+    assert moved["psnr"] > rec["psnr"] and moved["psnr_masked"] == rec["psnr_masked"]
+    assert moved["ssim_masked"] == rec["ssim_masked"]
 
 
 def test_temporal_flicker():
@@ -101,26 +102,25 @@ def test_temporal_flicker():
         temporal_flicker(gt[:1], gt[:1])
 
 
-def _save_fake_lpips(tmp_path, net: str):
+def _save_fake_lpips(tmp_path, chans=(64, 128, 256, 512, 512), name="vgg.pth"):
+    """A torchvision-layout vgg16 file and an lpips lin file (random weights) in tmp_path."""
     torch.manual_seed(0)
-    feats = vgg_features("vgg16") if net == "vgg" else alexnet_features()
-    backbone = {f"features.{k}": v for k, v in feats.state_dict().items()}
+    backbone = {f"features.{k}": v for k, v in vgg_features("vgg16").state_dict().items()}
     backbone["classifier.0.weight"] = torch.zeros(2, 2)  # extra torchvision keys are ignored
-    chans = (64, 128, 256, 512, 512) if net == "vgg" else (64, 192, 384, 256, 256)
     lin = {f"lin{k}.model.1.weight": torch.rand(1, c, 1, 1) for k, c in enumerate(chans)}
-    names = {"vgg": "vgg16-397923af.pth", "alex": "alexnet-owt-7be5be79.pth"}
-    torch.save(backbone, tmp_path / names[net])
-    torch.save(lin, tmp_path / f"{net}.pth")
-    return tmp_path / names[net], tmp_path / f"{net}.pth"
+    torch.save(backbone, tmp_path / "vgg16-397923af.pth")
+    torch.save(lin, tmp_path / name)
+    return tmp_path / "vgg16-397923af.pth", tmp_path / name
 
 
-@pytest.mark.parametrize("net,size", [("vgg", 32), ("alex", 64)])
-def test_lpips_loads_weights_and_behaves(tmp_path, net, size):
-    bb, lin = _save_fake_lpips(tmp_path, net)
+def test_lpips_loads_weights_and_behaves(tmp_path):
+    bb, lin = _save_fake_lpips(tmp_path)
+    size = 32
     assert lpips_status(str(bb), str(lin)) == "computed"
-    m, status = build_lpips(net, str(bb), str(lin))
+    m, status = build_lpips("vgg", str(bb), str(lin))
     assert isinstance(m, LPIPS) and status == f"computed (weights: metrics.lpips_weights {lin} + metrics.lpips_backbone_weights {bb})"
-    m_dir = LPIPS.from_paths(str(tmp_path), net=net)  # a directory with both files
+    m_dir, status = build_lpips("vgg", None, str(tmp_path))  # metrics.lpips_weights=<a directory with both files>
+    assert status == f"computed (weights: metrics.lpips_weights {lin} + metrics.lpips_weights {bb})"
     assert torch.equal(m_dir.lins[0].weight, m.lins[0].weight)
     assert torch.equal(m.lins[2].weight, torch.load(lin)["lin2.model.1.weight"])
     x, y = _img(size, size, 0), _img(size, size, 1)
@@ -130,8 +130,8 @@ def test_lpips_loads_weights_and_behaves(tmp_path, net, size):
     assert float(m(torch.stack([x, x]), torch.stack([y, x]))[0]) == pytest.approx(d, rel=1e-5)
     # closer image -> smaller distance
     assert float(m(x, (0.9 * x + 0.1 * y))) < d
-    # a thin mask box is edge-padded up to the network's smallest input (vgg 16, alex 31 px)
-    thin_x, thin_y, low = x[:5, :9], y[:5, :9], {"vgg": 16, "alex": 31}[net]
+    # a thin mask box is edge-padded up to the network's smallest input (16 px)
+    thin_x, thin_y, low = x[:5, :9], y[:5, :9], 16
     pad = (low - 9) // 2, low - 9 - (low - 9) // 2, (low - 5) // 2, low - 5 - (low - 5) // 2
     padded = [torch.nn.functional.pad(t.permute(2, 0, 1)[None], pad, mode="replicate")[0].permute(1, 2, 0)
               for t in (thin_x, thin_y)]
@@ -156,11 +156,11 @@ def test_lpips_not_computed_without_weights(tmp_path):
     assert m is None and why.startswith("not computed: LPIPS weight file") and "vgg" in why
     with pytest.raises(FileNotFoundError, match="not computed"):
         LPIPS("vgg", "", "")
-    bb, _ = _save_fake_lpips(tmp_path, "alex")
-    wrong = tmp_path / "vgg_lin.pth"
-    torch.save({f"lin{k}.model.1.weight": torch.rand(1, c, 1, 1) for k, c in enumerate((64, 128, 256, 512, 512))}, wrong)
-    with pytest.raises(ValueError, match="lin"):
-        LPIPS("alex", str(bb), str(wrong))  # vgg lin weights for an alex net
+    bb, wrong = _save_fake_lpips(tmp_path, chans=(64, 192, 384, 256, 256), name="alex.pth")
+    with pytest.raises(ValueError, match=r"expected lin1.model.1.weight of shape \(1, 128, 1, 1\)"):
+        LPIPS("vgg", str(bb), str(wrong))  # the lpips package's alexnet lin file for the vgg net
+    with pytest.raises(ValueError, match="net expected 'vgg'"):
+        LPIPS("alex", str(bb), str(wrong))
 
 
 def test_lpips_found_in_lpips_package_and_torch_hub(tmp_path, monkeypatch):

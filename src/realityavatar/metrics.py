@@ -208,26 +208,6 @@ def mask_bbox(mask: torch.Tensor, pad: int = 0) -> tuple[int, int, int, int]:
     return max(int(ys[0]) - pad, 0), min(int(ys[-1]) + 1 + pad, H), max(int(xs[0]) - pad, 0), min(int(xs[-1]) + 1 + pad, W)
 
 
-def masked_bbox(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor, pad: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
-    """Crop pred, gt [H,W,3] to the bounding box of mask [H,W,1] (the 'masked' metric variants)."""
-    y0, y1, x0, x1 = mask_bbox(mask, pad)
-    return pred[y0:y1, x0:x1], gt[y0:y1, x0:x1]
-
-
-def psnr_masked(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """PSNR inside the mask's bounding box; pred, gt [H,W,3] or [B,H,W,3], mask [(B,)H,W,1]."""
-    if pred.ndim == 3:
-        return psnr(*masked_bbox(pred, gt, mask))
-    return torch.stack([psnr(*masked_bbox(p, g, m)) for p, g, m in zip(pred, gt, mask)])
-
-
-def ssim_masked(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """SSIM inside the mask's bounding box; shapes as psnr_masked."""
-    if pred.ndim == 3:
-        return ssim(*masked_bbox(pred, gt, mask))
-    return torch.stack([ssim(*masked_bbox(p, g, m)) for p, g, m in zip(pred, gt, mask)])
-
-
 REGION_ERODE = 2  # pixels taken off a region's edge before it is scored: its outline is the silhouette's, not texture
 
 
@@ -417,17 +397,6 @@ def vgg_features(arch: Literal["vgg16", "vgg19"]) -> nn.Sequential:
     return nn.Sequential(*layers)
 
 
-def alexnet_features() -> nn.Sequential:
-    """torchvision's alexnet `.features`."""
-    return nn.Sequential(
-        nn.Conv2d(3, 64, 11, 4, 2), nn.ReLU(), nn.MaxPool2d(3, 2),
-        nn.Conv2d(64, 192, 5, padding=2), nn.ReLU(), nn.MaxPool2d(3, 2),
-        nn.Conv2d(192, 384, 3, padding=1), nn.ReLU(),
-        nn.Conv2d(384, 256, 3, padding=1), nn.ReLU(),
-        nn.Conv2d(256, 256, 3, padding=1), nn.ReLU(), nn.MaxPool2d(3, 2),
-    )  # fmt: skip
-
-
 def load_state_file(path: str, what: str) -> dict[str, torch.Tensor]:
     """A weights file that must hold a state dict (a torchvision checkpoint, an lpips lin file); errors name the file."""
     try:
@@ -453,14 +422,15 @@ def load_features_state(features: nn.Sequential, path: str) -> None:
     missing = sorted(set(own) - set(sub))
     if missing:
         raise ValueError(f"backbone weights {path!r}: missing torchvision 'features.*' keys {missing[:4]}... "
-                         "(expected a torchvision vgg16/vgg19/alexnet state dict)")
+                         "(expected a torchvision vgg16/vgg19 state dict)")
     features.load_state_dict(sub)
 
 
 # ---------------------------------------------------------------------- LPIPS
-_LPIPS_TAPS = {"vgg": (3, 8, 15, 22, 29), "alex": (1, 4, 7, 9, 11)}  # relu outputs used by lpips
-_LPIPS_CHANNELS = {"vgg": (64, 128, 256, 512, 512), "alex": (64, 192, 384, 256, 256)}
-_LPIPS_MIN_SIZE = {"vgg": 16, "alex": 31}  # smaller images leave a pooling layer no output
+# VGG only: every eval.protocol (ours, Dyco, SeqAvatar) scores LPIPS with lpips.LPIPS(net="vgg")
+_LPIPS_TAPS = {"vgg": (3, 8, 15, 22, 29)}  # relu outputs used by lpips
+_LPIPS_CHANNELS = {"vgg": (64, 128, 256, 512, 512)}
+_LPIPS_MIN_SIZE = {"vgg": 16}  # smaller images leave a pooling layer no output
 
 
 def _lpips_input(x: torch.Tensor, name: str, net: str, like: torch.Tensor) -> tuple[torch.Tensor, bool]:
@@ -475,14 +445,14 @@ def _lpips_input(x: torch.Tensor, name: str, net: str, like: torch.Tensor) -> tu
     return b, single
 
 
-TORCHVISION_NAMES = {"vgg": "vgg16-397923af.pth", "alex": "alexnet-owt-7be5be79.pth"}
+TORCHVISION_NAMES = {"vgg": "vgg16-397923af.pth"}
 
 
 def resolve_lpips_paths(
     net: str, lin_weights: str | None, backbone_weights: str | None = None
 ) -> tuple[str | None, str | None]:
     """Accept files or a directory: a directory `lin_weights` means <dir>/<net>.pth (lpips package file name) and,
-    when backbone_weights is not given, <dir>/<torchvision file name> (vgg16-397923af.pth / alexnet-owt-7be5be79.pth)."""
+    when backbone_weights is not given, <dir>/<torchvision file name> (vgg16-397923af.pth)."""
     lin, backbone = lin_weights, backbone_weights
     if lin and os.path.isdir(lin):
         if not backbone:
@@ -508,23 +478,22 @@ class LPIPS(nn.Module):
     """LPIPS (Zhang et al. 2018) in pure torch, v0.1 linear layers, like `lpips.LPIPS(net=..., normalize=True)`.
 
     Inputs [H,W,3] or [B,H,W,3] in [0,1] are mapped to [-1,1], shifted/scaled by lpips' ScalingLayer, passed
-    through the backbone (vgg16 or alexnet, torchvision weights), unit-normalised per channel; squared
+    through the backbone (torchvision's vgg16 weights), unit-normalised per channel; squared
     differences are weighted by the learned 1x1 convs (lin weights file of the lpips package, keys
     `lin{k}.model.1.weight`) and spatially averaged. Tables report the value x1000. Images smaller than the
-    network's smallest input (16 px for vgg, 31 for alex) are edge-padded up to it.
+    network's smallest input (16 px) are edge-padded up to it.
     """
 
-    def __init__(self, net: Literal["vgg", "alex"] = "vgg", backbone_weights: str = "", lin_weights: str = "") -> None:
+    def __init__(self, net: Literal["vgg"] = "vgg", backbone_weights: str = "", lin_weights: str = "") -> None:
         super().__init__()
         if net not in _LPIPS_TAPS:
-            raise ValueError(f"metrics.lpips_net: expected 'vgg' or 'alex', got {net!r}")
+            raise ValueError(f"LPIPS: net expected 'vgg' (the network every eval.protocol uses), got {net!r}")
         status = lpips_status(backbone_weights, lin_weights)
         if status != "computed":
             raise FileNotFoundError(f"LPIPS: {status}")
         self.net = net
         self.taps = _LPIPS_TAPS[net]
-        feats = vgg_features("vgg16") if net == "vgg" else alexnet_features()
-        self.features = feats[: self.taps[-1] + 1]  # the final max-pool is never used
+        self.features = vgg_features("vgg16")[: self.taps[-1] + 1]  # the final max-pool is never used
         load_features_state(self.features, backbone_weights)
         chans = _LPIPS_CHANNELS[net]
         self.lins = nn.ModuleList([nn.Conv2d(c, 1, 1, bias=False) for c in chans])
@@ -538,12 +507,6 @@ class LPIPS(nn.Module):
         self.register_buffer("scale", torch.tensor([0.458, 0.448, 0.450]).view(1, 3, 1, 1))
         self.requires_grad_(False)
         self.eval()
-
-    @classmethod
-    def from_paths(cls, lin_weights: str, backbone_weights: str | None = None, net: str = "vgg") -> LPIPS:
-        """Build from files or a directory (see resolve_lpips_paths); raises FileNotFoundError naming what is missing."""
-        backbone, lin = resolve_lpips_paths(net, lin_weights, backbone_weights)
-        return cls(net, backbone or "", lin or "")
 
     def _taps(self, x: torch.Tensor) -> list[torch.Tensor]:
         out = []

@@ -5,8 +5,29 @@ import pytest
 import torch
 
 from realityavatar.body import SMPL_PARENTS, MannequinBody, build_body, rh_th_to_smpl
-from realityavatar.body.mannequin import fold_joint_index, mannequin_reference_vertices
+from realityavatar.body.mannequin import fold_joint_index
 from realityavatar.geometry import axis_angle_to_matrix
+
+
+def mannequin_reference_vertices(pose: np.ndarray, transl: np.ndarray | None = None, kind: str = "wooden") -> np.ndarray:
+    """mannequin-x's own posed vertices [V,3] for an SMPL-order pose [24,3] (pose[0] about the pelvis, like SMPL):
+    the package's reference that our LBS is checked against.
+
+    Joints 22/23 (hands) are not actuated by mannequin-x (SMPL-X has no such body joints), so pose[22:] must be zero.
+    """
+    from mannequin import Mannequin
+
+    pose = np.asarray(pose, dtype=np.float32)
+    if np.abs(pose[22:]).max() > 0:
+        raise ValueError("mannequin_reference_vertices: pose[22:24] (hand joints) must be zero for mannequin-x")
+    m = Mannequin(kind)
+    p = m.rest_pose()
+    p["body_pose"] = pose[1:22].copy()
+    # pelvis_rotation turns about the pelvis like SMPL's global_orient; global_rotation would turn about the origin.
+    p["pelvis_rotation"] = pose[0].copy()
+    if transl is not None:
+        p["global_translation"] = np.asarray(transl, dtype=np.float32)
+    return np.asarray(m.vertices(p))
 
 
 @pytest.fixture(scope="module")
@@ -20,9 +41,9 @@ def test_buffers_and_parents(body):
     m = Mannequin("wooden")
     assert tuple(m.parents[:24]) == SMPL_PARENTS == body.parents
     assert body.rest_vertices.shape == (24256, 3)
-    assert body.faces.shape[1] == 3 and int(body.faces.max()) < body.num_vertices
+    assert body.faces.shape[1] == 3 and int(body.faces.max()) < 24256
     assert body.skin_weights.shape == (24256, 24)
-    assert torch.allclose(body.skin_weights.sum(-1), torch.ones(body.num_vertices), atol=1e-5)
+    assert torch.allclose(body.skin_weights.sum(-1), torch.ones(24256), atol=1e-5)
     assert (body.skin_weights >= 0).all()
     assert body.rest_joints.shape == (24, 3)
 

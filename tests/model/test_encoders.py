@@ -17,10 +17,14 @@ from realityavatar.model.encoders import (
     NoClothesLatentEncoder,
     WholePoseEncoder,
     pose_features,
-    split_parts,
 )
 from tests.helpers import assert_all_grads, random_poses
 from tests.model.configured import component
+
+
+def split_parts(features: torch.Tensor) -> dict[str, torch.Tensor]:
+    """[...,sum(PART_DIMS)] -> {part: [...,PART_DIMS[part]]}: pose_features cut into its parts."""
+    return dict(zip(PART_NAMES, features.split([PART_DIMS[p] for p in PART_NAMES], -1)))
 
 
 def test_pose_features_invariant_to_heading_but_not_to_spin():

@@ -37,7 +37,7 @@ def test_canonical_gaussians_init(body):
     shapes = {n: tuple(getattr(g, n).shape) for n in PARAM_NAMES}
     assert shapes == {"means": (300, 3), "log_scales": (300, 3), "quats": (300, 4), "opacity_logits": (300,), "features": (300, 8)}
     assert torch.allclose(g.opacities(), torch.full((300,), 0.1), atol=1e-6)
-    assert torch.allclose(g.rotations(), torch.tensor([1.0, 0, 0, 0]).expand(300, 4))
+    assert torch.equal(g.quats, torch.tensor([1.0, 0, 0, 0]).expand(300, 4))  # identity rotations (wxyz)
     assert (g.scales() > 0).all() and g.init_scale < 0.05
     # on the canonical surface: every point lies near a (canonical-pose) joint of its tetrahedron
     Jc = body.joints(body.canonical_pose())

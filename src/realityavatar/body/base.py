@@ -102,10 +102,6 @@ class BodyModel(nn.Module):
         body._canonical_inverse = {}
         return body
 
-    @property
-    def num_vertices(self) -> int:
-        return self.rest_vertices.shape[0]
-
     def forward(self, pose: torch.Tensor, transl: torch.Tensor | None = None) -> torch.Tensor:
         """pose [...,24,3], transl [...,3] -> bone transforms [...,24,4,4] (rest pose -> posed)."""
         check_pose_shape(pose, transl)

@@ -66,23 +66,3 @@ class MannequinBody(BodyModel):
         a = _CACHE[kind]
         self.kind = kind
         self._set_buffers(a["rest_vertices"], a["faces"], a["skin_weights"], a["rest_joints"])
-
-
-def mannequin_reference_vertices(pose: np.ndarray, transl: np.ndarray | None = None, kind: str = "wooden") -> np.ndarray:
-    """The package's own posed vertices [V,3] for an SMPL-order pose [24,3] (pose[0] about the pelvis, like SMPL).
-
-    Joints 22/23 (hands) are not actuated by mannequin-x (SMPL-X has no such body joints), so pose[22:] must be zero.
-    """
-    from mannequin import Mannequin
-
-    pose = np.asarray(pose, dtype=np.float32)
-    if np.abs(pose[22:]).max() > 0:
-        raise ValueError("mannequin_reference_vertices: pose[22:24] (hand joints) must be zero for mannequin-x")
-    m = Mannequin(kind)
-    p = m.rest_pose()
-    p["body_pose"] = pose[1:22].copy()
-    # pelvis_rotation turns about the pelvis like SMPL's global_orient; global_rotation would turn about the origin.
-    p["pelvis_rotation"] = pose[0].copy()
-    if transl is not None:
-        p["global_translation"] = np.asarray(transl, dtype=np.float32)
-    return np.asarray(m.vertices(p))

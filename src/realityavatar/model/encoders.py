@@ -27,7 +27,7 @@ def _rot6d(R: torch.Tensor) -> torch.Tensor:
 
 def pose_features(poses: torch.Tensor, transl: torch.Tensor) -> torch.Tensor:
     """poses [B,T,24,3] axis-angle (last frame = current), transl [B,T,3] -> [B,T,sum(PART_DIMS)]: the four parts'
-    features side by side in PART_NAMES order (`split_parts` cuts them apart).
+    features side by side in PART_NAMES order, PART_DIMS wide each.
 
     The global orientation and translation of every window frame are expressed in the current frame's root
     frame (R_root(t)^T R_root(t_k), R_root(t)^T (transl_k - transl_t)): invariant to absolute heading and
@@ -49,11 +49,6 @@ def pose_features(poses: torch.Tensor, transl: torch.Tensor) -> torch.Tensor:
     return torch.cat([six[:, :, list(LEFT_ARM)].reshape(B, T, -1), six[:, :, list(RIGHT_ARM)].reshape(B, T, -1),
                       six[:, :, list(LEGS)].reshape(B, T, -1), hips,
                       six[:, :, list(TORSO)].reshape(B, T, -1), rel_orient, rel_transl], -1)
-
-
-def split_parts(features: torch.Tensor) -> dict[str, torch.Tensor]:
-    """[...,sum(PART_DIMS)] -> {part: [...,PART_DIMS[part]]} (views)."""
-    return dict(zip(PART_NAMES, features.split([PART_DIMS[p] for p in PART_NAMES], -1)))
 
 
 def _mlp(in_dim: int, hidden_dim: int, out_dim: int, num_layers: int) -> nn.Sequential:

@@ -5,7 +5,6 @@ from __future__ import annotations
 import math
 
 import torch
-import torch.nn.functional as F
 from torch import nn
 
 from realityavatar.body.base import BodyModel
@@ -75,10 +74,6 @@ class CanonicalGaussians(nn.Module):
     def opacities(self) -> torch.Tensor:
         """[N] opacities in (0,1)."""
         return torch.sigmoid(self.opacity_logits)
-
-    def rotations(self) -> torch.Tensor:
-        """[N,4] unit quaternions (wxyz)."""
-        return F.normalize(self.quats, dim=-1)
 
     # ------------------------------------------------------------------ the source interface (model/avatar.py)
     def points(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
