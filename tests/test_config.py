@@ -221,12 +221,52 @@ def test_spin_target_experiment_is_the_command_it_was_measured_with():
     assert a.iterations == 10000 and a.sheet.basis == 64 and a.data.sequence == "skirt_spin_demo"
 
 
-@pytest.mark.parametrize("group,on,off", [("silhouette", "chamfer", "none"), ("skinning", "grid", "mlp")])
-def test_each_mechanism_composes_and_switches_off(group, on, off):
-    for opt in (on, off):
-        cfg = compose([f"{group}={opt}", "gaussians.num_points=200"])
-        name = type(instantiate(cfg[group])).__name__
-        assert (name in ("SilhouetteChamfer", "SkinningGrid")) == (opt == on), (group, opt, name)
+def test_silhouette_chamfer_pulls_a_centre_outside_the_mask_and_none_adds_nothing():
+    """silhouette=chamfer: a projected centre outside the mask is pulled towards it, one inside is left alone;
+    silhouette=none: the same render adds 0 with no gradient."""
+    from realityavatar.data.records import mask_distance
+    from realityavatar.losses import TrainingRender
+
+    S = 32
+    mask = torch.zeros(1, S, S, 1)
+    mask[:, 8:24, 8:20] = 1.0
+    # an OpenCV camera at the origin looking down +z, focal S: (0, 0, 2) projects to pixel (16, 16), inside the mask;
+    # (0.5, 0, 2) to (24, 16), 5 columns right of it
+    means = torch.tensor([[[0.0, 0.0, 2.0], [0.5, 0.0, 2.0]]], requires_grad=True)  # [B=1,N=2,3]
+    batch = {"image": mask.expand(-1, -1, -1, 3), "mask": mask, "mask_dist": mask_distance(mask[0, ..., 0])[None],
+             "viewmat": torch.eye(4)[None], "K": torch.tensor([[[S, 0.0, S / 2], [0.0, S, S / 2], [0.0, 0.0, 1.0]]])}
+    out = TrainingRender(mask.expand(-1, -1, -1, 3), mask.clone(), batch, {"means": means}, None)  # alpha covers the mask
+    chamfer = instantiate(compose(["silhouette=chamfer"]).silhouette)
+    value, logs = chamfer(out)
+    assert float(logs["sil_outside"]) > 0 and float(logs["sil_coverage"]) == 0
+    (grad,) = torch.autograd.grad(value, means)
+    assert torch.equal(grad[0, 0], torch.zeros(3))  # inside: no pull
+    assert float(grad[0, 1, 0]) > 0  # right of the mask: a descent step moves it left, towards the mask
+    with torch.no_grad():
+        stepped = TrainingRender(out.rgb, out.alpha, batch, {"means": means - 0.1 * grad / grad.norm()}, None)
+        assert float(chamfer(stepped)[0]) < float(value)
+    none = instantiate(compose(["silhouette=none"]).silhouette)
+    value, logs = none(out)
+    assert float(value) == 0 and logs == {} and not value.requires_grad
+
+
+def test_skinning_grid_is_built_from_the_body_and_frozen_and_the_mlp_trains(body):
+    """skinning=grid (the default): weights diffused from the body's, close to them on its surface, and nothing in it
+    trains (the λ3 term would have no gradient); skinning=mlp: every parameter gets a gradient from the weights."""
+    vertices, sampled = body.canonical_vertices().detach(), slice(None, None, 97)
+    grid = instantiate(compose(["skinning=grid", "skinning.voxel_size=0.05"]).skinning)
+    grid.init_from_body(vertices, body.faces, body.skin_weights)
+    w = grid(vertices[sampled])  # [V/97,24]
+    assert torch.allclose(w.sum(-1), torch.ones(len(w)), atol=1e-5)
+    ref = body.skin_weights[sampled]
+    assert float(((w - ref) ** 2).sum(-1).mean()) < 0.3  # 0.22; the body's weights of other vertices: 1.5
+    assert float((w.argmax(-1) == ref.argmax(-1)).float().mean()) > 0.75  # 0.83 (a coarse grid at joints)
+    assert not any(p.requires_grad for p in grid.parameters()) and w.grad_fn is None
+    mlp = instantiate(compose(["skinning=mlp"]).skinning)
+    w = mlp(vertices[sampled])
+    assert torch.allclose(w.sum(-1), torch.ones(len(w)), atol=1e-5)
+    grads = torch.autograd.grad((w * torch.rand_like(w)).sum(), list(mlp.parameters()))
+    assert all(g.abs().sum() > 0 for g in grads)
 
 
 def test_a_missing_setting_is_named_unless_its_option_has_no_such_argument():

@@ -49,12 +49,32 @@ def test_tuned_malloc_stops_page_faults_of_freed_tensors():
     assert tuned < plain / 20, (tuned, plain)
 
 
-def test_tune_malloc_reports_and_runs_once():
-    from realityavatar.runtime import tune_malloc
+@pytest.mark.parametrize("preload,accepted,expect", [
+    ("", 1, "glibc malloc: mmap threshold 32 MiB, no trimming below 1024 MiB"),
+    ("", 0, "glibc mallopt refused a setting; allocator partly tuned"),
+    ("/usr/lib/libtcmalloc.so.4", 1, "allocator preloaded (LD_PRELOAD); glibc malloc not tuned")])
+def test_tune_malloc_sets_glibc_once_and_says_what_it_did(monkeypatch, preload, accepted, expect):
+    """tune_malloc asks glibc for the mmap threshold, trim threshold and top pad (M_MMAP_THRESHOLD -3, M_TRIM_THRESHOLD
+    -1, M_TOP_PAD -2) once per process, reports what glibc accepted, and leaves a preloaded allocator alone."""
+    import ctypes
 
-    first = tune_malloc()
-    assert isinstance(first, str) and first
-    assert tune_malloc() == first
+    from realityavatar import runtime
+
+    calls = []
+
+    class Libc:
+        def mallopt(self, option, value):
+            calls.append((option, value))
+            return accepted
+
+    monkeypatch.setattr(runtime, "_state", {})
+    monkeypatch.setattr(ctypes, "CDLL", lambda name: Libc())
+    monkeypatch.setenv("LD_PRELOAD", preload)
+    assert runtime.tune_malloc() == expect
+    settings = [(-3, 32 << 20), (-1, 1 << 30), (-2, 64 << 20)]
+    assert calls == ([] if preload else settings[: 1 if not accepted else 3])  # all() stops at the first refusal
+    n = len(calls)
+    assert runtime.tune_malloc() == expect and len(calls) == n  # a second call asks glibc nothing
 
 
 def test_constant_is_made_once_per_device_and_dtype():
