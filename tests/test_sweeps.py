@@ -30,7 +30,7 @@ EXPECTED = {
     "color": (6, {"color": {"mlp", "sh"}, "seed": SEEDS}),
     "budget": (24, {"gaussians.num_points": {"2000", "5000", "10000", "35000"}, "density": {"default", "off"},
                     "seed": SEEDS}),
-    "speed": (18, {"iterations": {"500", "1000", "2000"}, "data.image_scale": {"0.5", "1.0"}, "render.backend": {"torch"},
+    "speed": (18, {"iterations": {"500", "1000", "2000"}, "data.image_scale": {"0.5", "1.0"}, "render.backend": {"numba"},
                    "seed": SEEDS}),
     "tiny": (2, {"+variant": {"full", "no_lstm"}, "seed": {"0"}, "data": {"synthetic_ci"}, "trainer": {"ci"}}),
     "scenes": (8, {"+variant": {"full", "no_lstm"}, "seed": {"0"},
