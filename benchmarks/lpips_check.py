@@ -45,7 +45,7 @@ def image_pairs(sizes=(64, 256), seed: int = 0) -> list[tuple[str, torch.Tensor,
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--net", default="vgg", choices=("vgg", "alex"))
+    ap.add_argument("--net", default="vgg", choices=("vgg",))
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     ap.add_argument("--dtype", default="float32", choices=("float32", "float64"))
     ap.add_argument("--sizes", type=int, nargs="+", default=[64, 256], help="square image sizes (multiples of 8)")
