@@ -286,3 +286,15 @@ def test_a_missing_setting_is_named_unless_its_option_has_no_such_argument():
         check_settings(cfg)
     for key in ("density.reset_every", "eval.supersample", "encoder.part_dim"):
         assert f"{key}: missing" in str(e.value), str(e.value)
+
+
+def test_an_unknown_eval_protocol_stops_the_run_before_training():
+    """eval.protocol is checked with the other settings (before step 0, not after training), against the protocols
+    metrics.py defines."""
+    from realityavatar.config import EVAL_PROTOCOLS, check_settings, compose
+    from realityavatar.metrics import PROTOCOLS
+
+    assert set(EVAL_PROTOCOLS) == set(PROTOCOLS)
+    check_settings(compose(["eval.protocol=dyco"]))
+    with pytest.raises(ValueError, match="eval.protocol"):
+        check_settings(compose(["eval.protocol=dycoo"]))

@@ -97,6 +97,7 @@ def _is_num(v) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
 
 
+EVAL_PROTOCOLS = ("ours", "dyco", "seqavatar")  # metrics.PROTOCOLS' names, checked before training starts
 SETTINGS = {
     "iterations": (lambda v: _is_int(v) and v >= 1, "a whole number of training steps >= 1"),
     "seed": (lambda v: _is_int(v) and v >= 0, "a whole number >= 0"),
@@ -119,6 +120,7 @@ SETTINGS = {
     "eval.save_video": (lambda v: isinstance(v, bool), "true or false"),
     "eval.fps_warmup": (lambda v: _is_int(v) and v >= 0, "a whole number >= 0"),
     "eval.fps_frames": (lambda v: _is_int(v) and v >= 1, "a whole number >= 1"),
+    "eval.protocol": (lambda v: v in EVAL_PROTOCOLS, f"one of {', '.join(EVAL_PROTOCOLS)} (metrics.PROTOCOLS)"),
     "resume": (lambda v: isinstance(v, bool), "true or false"),
     "overwrite": (lambda v: isinstance(v, bool), "true or false"),
     "trainer.log_every_n_steps": (lambda v: _is_int(v) and v >= 1, "a whole number >= 1"),
