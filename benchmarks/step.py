@@ -6,11 +6,11 @@ Every time is printed beside its ratio to the GEMM unit (8 float32 matmuls of 10
 because the project's CPU is shared and absolute seconds drift with the load. Writes benchmarks/results/step_cpu.json.
 
 "step" is module.training_step itself (one backward; optimizers and logging stubbed, no Trainer), with learning rates 0
-so that every timed step sees the same, initial model. The parts are the
-same step cut at detach points, so each backward is timed on its own (render backward = the rasterizer's; networks
-backward = decoder, skinning, colour, encoder): the module's own forward path (Avatar.deform, shade, splat) and its
-configured loss terms (losses.total_loss over module.losses: every term the run trains with), then
-data -> networks fwd -> render fwd -> losses fwd -> losses bwd -> render bwd -> networks bwd -> optimizer -> density.
+so that every timed step sees the same, initial model. The parts are timed inside that same training_step, where it
+calls them: data (the batch) -> networks fwd (the avatar's deform and shade) -> render fwd (its splat) -> losses fwd
+(module.loss: every term the run trains with) -> backward (one, through losses, render and networks) -> optimizer
+(its step and the LR schedule's) -> density (control after the backward); `other` is the rest of the step (gradient
+clipping, bookkeeping).
 The body grids are built as training builds them (skinning weights, shading normals: ~171k voxels for the
 mannequin). Data is a synthetic batch (one of 4 random pose windows with their pose inputs, one camera framing the
 body, a random target image: each made once, as the dataset caches them) built the way the DataModule collates one.
@@ -29,6 +29,7 @@ inductor's fused kernels plus the outermost computing ATen operations), which al
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import math
 import os
@@ -48,8 +49,7 @@ def _clock() -> float:
         torch.cuda.synchronize()
     return _clock_base()
 
-PARTS = ("data", "networks_fwd", "render_fwd", "losses_fwd", "losses_bwd", "render_bwd", "networks_bwd", "optimizer",
-         "density")
+PARTS = ("data", "networks_fwd", "render_fwd", "losses_fwd", "backward", "optimizer", "density", "other")
 
 
 def gemm_unit(repeats: int = 5) -> list[float]:
@@ -108,7 +108,7 @@ def make_batch_fn(module, size: int, window: int, views: int = 1):
     target images and masks."""
     from realityavatar.data.records import mask_distance
 
-    verts = module.body.canonical_vertices().detach().float().cpu()
+    verts = module.avatar.body.canonical_vertices().detach().float().cpu()
     lo, hi = verts.min(0).values, verts.max(0).values
     centre, ext = 0.5 * (lo + hi), hi - lo
     up_axis = int(torch.argmax(ext))
@@ -135,7 +135,7 @@ def make_batch_fn(module, size: int, window: int, views: int = 1):
     dists = [torch.stack([mask_distance(m[..., 0]) for m in ms]) for ms in masks]
     from realityavatar.model.avatar import pose_inputs
 
-    body = module.body.host_copy()  # the dataset's copy, on the host
+    body = module.avatar.body.host_copy()  # the dataset's copy, on the host
     windows = []  # pose windows and their pose inputs, made once per frame as the dataset makes them
     for _ in images:
         poses = (torch.randn(1, window, 24, 3, generator=g) * 0.1).expand(views, -1, -1, -1).clone()
@@ -171,53 +171,40 @@ def make_batch_fn(module, size: int, window: int, views: int = 1):
 
 
 def step_parts(module, opt, sched, make_batch, step: int) -> dict:
-    """One training step with detach points; seconds per part."""
-    from realityavatar.losses import TrainingRender
-    from realityavatar.model.module import CLIPPED
+    """One module.training_step, timed in parts where it calls them (each callable wrapped with a clock for this step,
+    then restored); seconds per part, `other` the rest of the step."""
+    t = dict.fromkeys(PARTS, 0.0)
 
-    t = {}
-    c = _clock
-    module.mark_step()  # as training_step does (compile=reduce-overhead: a new iteration of the CUDA graphs)
-    t0 = c()
-    batch = make_batch()
-    t["data"] = c() - t0
-    opt.zero_grad(set_to_none=True)
-    module.set_progress(step)
-    t0 = c()
-    posed = module.deform(batch, deform=module.schedule.deform_on(step))
-    rgb = module.shade(posed, batch["viewmat"], batch["frame_idx"])  # [B,N,3]
-    t["networks_fwd"] = c() - t0
-    net_out = [posed["means"], posed["quats"], posed["scales"], posed["opacities"], rgb]
-    leaves = [x.detach().requires_grad_() for x in net_out]
-    p = {**posed, "means": leaves[0], "quats": leaves[1], "scales": leaves[2], "opacities": leaves[3]}
-    W, H = int(batch["width"][0]), int(batch["height"][0])
-    t0 = c()
-    img, alpha, meta = module.splat(p, 0, leaves[4][0], batch["viewmat"], batch["K"], W, H, check_finite=False)
-    t["render_fwd"] = c() - t0
-    img_l, alpha_l = img.detach().requires_grad_(), alpha.detach().requires_grad_()
-    t0 = c()
-    one = {k: v[:1] for k, v in batch.items()}  # the sample rendered above (as training_step: no device reads)
-    total, _ = module.loss(TrainingRender(img_l, alpha_l, one, p, module))
-    t["losses_fwd"] = c() - t0
-    t0 = c()
-    total.backward()
-    t["losses_bwd"] = c() - t0
-    t0 = c()
-    torch.autograd.backward([img, alpha], [img_l.grad, alpha_l.grad])
-    t["render_bwd"] = c() - t0
-    t0 = c()
-    torch.autograd.backward(net_out, [x.grad for x in leaves])
-    t["networks_bwd"] = c() - t0
-    t0 = c()
-    if module.grad_clip:
-        nets = [q for n in CLIPPED for q in module.components()[n].parameters() if q.grad is not None]
-        torch.nn.utils.clip_grad_norm_(nets, module.grad_clip)
-    opt.step()
-    sched.step()
-    t["optimizer"] = c() - t0
-    t0 = c()
-    module.density.step_post_backward(module.gaussians, opt, [meta], step, (W, H))
-    t["density"] = c() - t0
+    def timed(part, f):
+        @functools.wraps(f)  # keeps what the LR scheduler marks on the optimizer's step
+        def call(*args, **kwargs):
+            t0 = _clock()
+            out = f(*args, **kwargs)
+            t[part] += _clock() - t0
+            return out
+        return call
+
+    a = module.avatar
+    wrap = [(a, "deform", "networks_fwd"), (a, "shade", "networks_fwd"), (a, "splat", "render_fwd"),
+            (module, "loss", "losses_fwd"), (module, "manual_backward", "backward"), (opt, "step", "optimizer"),
+            (sched, "step", "optimizer"), (module.density, "step_post_backward", "density")]
+    own = [(obj, name, obj.__dict__.get(name)) for obj, name, _ in wrap]  # instance attributes (compiled, patched)
+    for obj, name, part in wrap:
+        setattr(obj, name, timed(part, getattr(obj, name)))
+    try:
+        t0 = _clock()
+        batch = make_batch()
+        t["data"] = _clock() - t0
+        t0 = _clock()
+        module.training_step(batch, 0)
+        whole = _clock() - t0
+    finally:
+        for obj, name, before in own:
+            if before is None:
+                delattr(obj, name)
+            else:
+                setattr(obj, name, before)
+    t["other"] = whole - sum(v for k, v in t.items() if k not in ("data", "other"))
     return t
 
 
@@ -380,7 +367,7 @@ def run_config(n: int, size: int, backend: str, repeats: int, overrides: list[st
         multi[str(V)] = statistics.median([step_whole(module, opt, sched, make_v, step) for _ in range(repeats)])
     return {"n": n, "size": size, "backend": backend, "device": _device, "compile": compile_mode,
             "first_step_s": first_step_s,
-            "num_gaussians": int(module.gaussians.num_points), "step_s": statistics.median(whole),
+            "num_gaussians": int(module.avatar.gaussians.num_points), "step_s": statistics.median(whole),
             "step_min_s": min(whole),
             "sum_of_parts_s": sum(med.values()), "parts_s": med, "views_step_s": multi, "gpu_kernel_s": gpu_kernel_s,
             "top_ops_time": top, **({"cpu_launches_per_step": launches_per_step(prof)} if _device == "cpu" else {}),
@@ -464,7 +451,7 @@ def main() -> None:
                 print(f"  {backend:6s} N={n:6d} {size}^2  step {r['step_s']:.3f}s = {r['step_s'] / u:.2f} units "
                       f"(best of {a.repeats}: {r['step_min_s']:.3f}s / {r['gemm_unit_min_s']:.3f}s = "
                       f"{r['step_min_s'] / r['gemm_unit_min_s']:.2f}) (first step {r['first_step_s']:.1f}s, compile {r['compile']}) "
-                      f"(render fwd+bwd {r['parts_s']['render_fwd'] + r['parts_s']['render_bwd']:.3f}s{gk}); "
+                      f"(render fwd {r['parts_s']['render_fwd']:.3f}s, backward {r['parts_s']['backward']:.3f}s{gk}); "
                       + (f"tensor ops not counted (compiled: {r['compiled_graphs']} graphs, "
                          f"{r['cudagraph_skips']} skipped by CUDA graphs)" if r["ops_per_step"] is None else
                          f"{r['ops_per_step']:.0f} tensor ops, {r['scalar_reads_per_step']:.0f} scalar reads, "
@@ -499,7 +486,7 @@ def main() -> None:
         "load_average_before": load_before,
         "load_average_after": list(os.getloadavg()),
         "gemm_units_s": units,
-        "note": "medians (wall or process-CPU seconds, see clock); parts are timed with detach points between them, step without; "
+        "note": "medians (wall or process-CPU seconds, see clock); parts are timed inside one training_step each, step without; "
                 "ratio = seconds / GEMM unit measured in the same process next to the row; step_min_s / gemm_unit_min_s: "
                 "the best of the repeats of each (a shared machine's other tenants only add time)",
     }

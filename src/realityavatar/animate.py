@@ -70,22 +70,18 @@ def orbit_camera(stage: Stage, pelvis: np.ndarray, cameras: list[dict], turns: f
 
 
 @torch.no_grad()
-def render_sequence(module, table: PoseTable, cameras: list[dict], window_len: int, window_step: int,
+def render_sequence(avatar, table: PoseTable, cameras: list[dict], window_len: int, window_step: int,
                     frames_to_render=None) -> list[np.ndarray]:
     """Render frames of `table` (all, or `frames_to_render`; windows look back into the whole table) from each
     camera (a fixed viewmat [4,4], or one per rendered frame [N,4,4]); returns uint8 frames [H, W*len(cameras), 3]."""
-    dev, dt = module.device, module.dtype  # poses and cameras come as float32 CPU tensors
     frames = []
     for i, f in enumerate(table.frames if frames_to_render is None else frames_to_render):
-        poses, transl = table.window(int(f), window_len, window_step)
-        idx = torch.full((1,), -1, dtype=torch.long, device=dev)
-        posed = module.deform(module.pose_inputs(poses[None].to(dev, dt), transl[None].to(dev, dt)))
+        posed = avatar.posed(*table.window(int(f), window_len, window_step))
         tiles = []
         for cam in cameras:
-            vm = (cam["viewmat"] if cam["viewmat"].ndim == 2 else cam["viewmat"][i])[None].to(dev, dt)
-            rgb = module.shade(posed, vm, idx)[0]
-            img, _, _ = module.splat(posed, 0, rgb, vm, cam["K"][None].to(dev, dt), cam["width"], cam["height"])
-            tiles.append((img[0].clamp(0, 1).cpu().numpy() * 255).round().astype(np.uint8))
+            vm = cam["viewmat"] if cam["viewmat"].ndim == 2 else cam["viewmat"][i]
+            img = avatar.render_view(posed, vm, cam["K"], cam["width"], cam["height"])
+            tiles.append((img.clamp(0, 1).cpu().numpy() * 255).round().astype(np.uint8))
         frames.append(np.concatenate(tiles, 1))
     return frames
 
@@ -139,7 +135,7 @@ def number(args: dict, key: str, default: float | None = None) -> float | None:
 def main(argv: list[str] | None = None) -> int:
     import imageio.v2 as imageio
 
-    from realityavatar.build import build_data, load_run, run_device
+    from realityavatar.build import build_data, load_avatar, run_device
 
     try:
         args = parse_args(sys.argv[1:] if argv is None else argv, ARGS)
@@ -160,11 +156,11 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(args.get("out", Path(args["run_dir"]) / "animations" / f"{name}.mp4"))
     check_video_writer(out)
     overrides = [f"{k}={v}" for k, v in args.items() if "." in k and not k.startswith("orbit.")]
-    cfg, module, _info = load_run(args["run_dir"], overrides)
-    dm = build_data(cfg, module.body)
-    stage = Stage.of(dm, module.body)
+    cfg, avatar, _info = load_avatar(args["run_dir"], overrides)
+    dm = build_data(cfg, avatar.body)
+    stage = Stage.of(dm, avatar.body)
     if "poses" in args:
-        table = load_motion(args["poses"], module.body, stage, number(args, "fps"), args.get("up", "auto"),
+        table = load_motion(args["poses"], avatar.body, stage, number(args, "fps"), args.get("up", "auto"),
                             args.get("place", "subject"))
         frame_ids = [int(f) for f in table.frames]
     else:
@@ -177,11 +173,11 @@ def main(argv: list[str] | None = None) -> int:
             cameras += dataset
             continue
         rows = torch.as_tensor(np.searchsorted(table.frames, frame_ids))
-        pelvis = posed_joints(module.body, table.poses[rows], table.transl[rows])[:, 0]
+        pelvis = posed_joints(avatar.body, table.poses[rows], table.transl[rows])[:, 0]
         cameras.append(orbit_camera(stage, pelvis, dataset, number(args, "orbit.turns", 1.0),
                                     number(args, "orbit.height"), number(args, "orbit.radius")))
-    module.to(run_device(cfg, args.get("device")))
-    frames = render_sequence(module, table, cameras, dm.window_len, dm.window_step, frame_ids)
+    avatar.to(run_device(cfg, args.get("device")))
+    frames = render_sequence(avatar, table, cameras, dm.window_len, dm.window_step, frame_ids)
     out.parent.mkdir(parents=True, exist_ok=True)
     if out.suffix.lower() == ".gif":
         imageio.mimwrite(out, frames, duration=1000.0 / stage.fps, loop=0)

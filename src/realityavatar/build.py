@@ -14,45 +14,48 @@ from omegaconf import DictConfig, OmegaConf
 # importing config also registers the resolvers
 from realityavatar.config import RAW_CONFIG_NAME, check_settings, compose
 from realityavatar.metrics import build_lpips
-from realityavatar.model.module import AvatarModule, Schedule
+from realityavatar.model.avatar import Avatar, Schedule
 from realityavatar.runs import CKPT_NAME, read_checkpoint
 
 
-def build_module(cfg: DictConfig, body, num_train_frames: int, scene_extent: float, data=None) -> AvatarModule:
-    """Instantiate every component from its config group and hand them to the LightningModule.
+def build_avatar(cfg: DictConfig, body, num_train_frames: int, data=None, training: dict | None = None) -> Avatar:
+    """Instantiate the avatar's components from their config groups (model/avatar.py), without Lightning.
 
     data: the set-up DataModule, for components laid out from the training data (sheet.profile=rest: the rest
-    frame's masks); None when a run is rebuilt from its checkpoint.
+    frame's masks); None when a run is rebuilt from its checkpoint. training (build_module): a dict that receives
+    the density control and the loss terms, built where they always were, between colour and shading.
     """
-    # The order of construction is the order of the global random draws: it fixes every run's initial weights.
+    # The order of construction is the order of the global random draws: it fixes every run's initial weights
+    # (loss=vgg19's layers draw before sheet=skirt's motion basis).
     gaussians = instantiate(cfg.gaussians, body=body)
     encoder = instantiate(cfg.encoder)
     temporal = instantiate(cfg.temporal)
     deformer = instantiate(cfg.deformer)
     skinning = instantiate(cfg.skinning)
     color = instantiate(cfg.color, num_frames=max(int(num_train_frames), 1))  # the per-frame latent table Z_r
-    density = instantiate(cfg.density)
-    losses = build_losses(cfg)
+    if training is not None:
+        training.update(density=instantiate(cfg.density), losses=build_losses(cfg))
     shading = instantiate(cfg.shading)
     sheet = instantiate(cfg.sheet, body=body, data=data)
+    return Avatar(body, gaussians, encoder, temporal, deformer, skinning, color, shading, sheet,
+                  render=OmegaConf.to_container(cfg.render, resolve=True))
+
+
+def build_module(cfg: DictConfig, body, num_train_frames: int, scene_extent: float, data=None):
+    """`build_avatar` and the training around it (model/module.py AvatarModule): loss terms, density control,
+    optimizer, schedule, evaluation metrics."""
+    from realityavatar.model.module import AvatarModule  # Lightning: only where a module is built
+
+    training: dict = {}
+    avatar = build_avatar(cfg, body, num_train_frames, data, training)
     m = cfg.get("metrics", {}) or {}
     lpips, lpips_status = build_lpips("vgg", m.get("lpips_backbone_weights"), m.get("lpips_weights"))
     module = AvatarModule(
-        body=body,
-        gaussians=gaussians,
-        encoder=encoder,
-        temporal=temporal,
-        deformer=deformer,
-        skinning=skinning,
-        color=color,
-        shading=shading,
-        sheet=sheet,
-        density=density,
-        losses=losses,
+        avatar,
+        **training,
         optimizer=instantiate(cfg.optim.optimizer),
         lr=OmegaConf.to_container(cfg.optim.lr, resolve=True),
         final_factor=OmegaConf.to_container(cfg.optim.final_factor, resolve=True),
-        render=OmegaConf.to_container(cfg.render, resolve=True),
         schedule=Schedule.from_config(OmegaConf.to_container(cfg.schedule, resolve=True)),
         grad_clip=cfg.optim.get("grad_clip"),
         max_steps=int(cfg.iterations),
@@ -62,7 +65,7 @@ def build_module(cfg: DictConfig, body, num_train_frames: int, scene_extent: flo
     )
     module.lpips_status = lpips_status  # "computed (<weights' source>)" or why not, recorded in metrics.json
     # where the perceptual loss's VGG19 came from (None: not used)
-    module.perceptual_weights = next((t.weights_from for t in losses.values() if t.weights_from), None)
+    module.perceptual_weights = next((t.weights_from for t in training["losses"].values() if t.weights_from), None)
     return module
 
 
@@ -96,8 +99,8 @@ def _dotlist(overrides: list[str] | None, cfg: DictConfig) -> list[str]:
     return out
 
 
-def load_run(run_dir: str | Path, overrides: list[str] | None = None, ckpt: str | Path | None = None):
-    """Rebuild (cfg, module, run_info) from a run folder written by `realityavatar-train`."""
+def _read_run(run_dir: str | Path, overrides: list[str] | None, ckpt: str | Path | None):
+    """A run folder's config (with `overrides`), checkpoint and run_info block, and its body model."""
     run_dir = Path(run_dir)
     cfg_path = run_dir / "config.yaml"
     if not cfg_path.is_file():
@@ -123,13 +126,37 @@ def load_run(run_dir: str | Path, overrides: list[str] | None = None, ckpt: str 
     info = state.get("realityavatar", {})
     if not info:
         raise KeyError(f"{ckpt}: checkpoint has no 'realityavatar' block (not written by realityavatar-train)")
-    body = instantiate(cfg.body)
+    return cfg, state, info, instantiate(cfg.body)
+
+
+def _rebuild(build, run_dir: str | Path):
+    """build() of a run folder's components; a config.yaml of another version names the commit that trained it."""
     try:
-        module = build_module(cfg, body, info["num_train_frames"], info["scene_extent"])
+        return build()
     except InstantiationException as e:  # a config.yaml of another version (an option or key since removed)
-        raise ValueError(f"{cfg_path} does not build with this version of realityavatar ({e}): an option it sets was "
-                         f"removed (docs/research/removed-options.md). It loads with the commit that trained it: "
-                         f"git checkout {_trained_at(run_dir)}") from e
+        raise ValueError(f"{Path(run_dir) / 'config.yaml'} does not build with this version of realityavatar ({e}): an "
+                         f"option it sets was removed (docs/research/removed-options.md). It loads with the commit that "
+                         f"trained it: git checkout {_trained_at(Path(run_dir))}") from e
+
+
+def load_avatar(run_dir: str | Path, overrides: list[str] | None = None, ckpt: str | Path | None = None):
+    """Rebuild (cfg, avatar, run_info) from a run folder written by `realityavatar-train`: the trained Avatar alone
+    (model/avatar.py; no loss terms, optimizer or Lightning module), in eval mode, as export, view and animate use it."""
+    cfg, state, info, body = _read_run(run_dir, overrides, ckpt)
+    avatar = _rebuild(lambda: build_avatar(cfg, body, info["num_train_frames"]), run_dir)
+    avatar.load_state_dict({k.removeprefix("avatar."): v for k, v in state["state_dict"].items()
+                            if k.startswith("avatar.")})
+    # step-dependent state: the decoder's coarse-to-fine window where the checkpoint's step had it
+    schedule = Schedule.from_config(OmegaConf.to_container(cfg.schedule, resolve=True))
+    avatar.deformer.set_window(schedule.deform_window(state.get("global_step")))
+    return cfg, avatar.eval(), info
+
+
+def load_run(run_dir: str | Path, overrides: list[str] | None = None, ckpt: str | Path | None = None):
+    """Rebuild (cfg, module, run_info) from a run folder written by `realityavatar-train`: the AvatarModule that
+    trained (evaluation's trainer.test, the probes), in eval mode."""
+    cfg, state, info, body = _read_run(run_dir, overrides, ckpt)
+    module = _rebuild(lambda: build_module(cfg, body, info["num_train_frames"], info["scene_extent"]), run_dir)
     module.load_state_dict(state["state_dict"])
     module.set_progress(state.get("global_step"))  # step-dependent state (the decoder's coarse-to-fine window)
     module.eval()

@@ -155,7 +155,7 @@ def evaluate_module(module, dm, trainer, cfg, out_dir: Path) -> dict:
         try:
             trainer.test(module, dataloaders=split_loader(dm, split, ev.get("max_frames_per_split")), verbose=False)
             phases = motion_phases(dm, split)
-            scored = protocol_scores(module.test_records, dm, module.body, protocol, getattr(module, "lpips", None)
+            scored = protocol_scores(module.test_records, dm, module.avatar.body, protocol, getattr(module, "lpips", None)
                                      if any("lpips" in r for r in module.test_records) else None)
             records += [{**r, "phase": phases.get(r["frame"], "all")} for r in scored]
         except Exception as e:  # noqa: BLE001 - recorded; the other split still runs
@@ -258,7 +258,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     overrides = [a for a in args if not a.startswith("run_dir=")]
     cfg, module, info = load_run(run_dir, overrides)  # checks the settings it is given
-    dm = build_data(cfg, module.body)
+    dm = build_data(cfg, module.avatar.body)
     # The run's device: its GPU when it trained on one and CUDA is here, else the CPU (a GPU run evaluates anywhere).
     trainer = pl.Trainer(accelerator=run_device(cfg).type.replace("cuda", "gpu"), devices=1, logger=False,
                          enable_progress_bar=False)

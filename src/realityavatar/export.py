@@ -88,51 +88,15 @@ def read_ply(path: str | Path) -> dict:
     }
 
 
-@torch.no_grad()
-def gaussians_for_export(module, poses: torch.Tensor | None = None, transl: torch.Tensor | None = None) -> dict:
-    """Canonical Gaussians (poses None) or the Gaussians posed by a pose window poses [T,24,3], transl [T,3], as
-    numpy arrays: means [N,3], quats [N,4] wxyz, scales [N,3] (linear), opacities [N], and either rgb [N,3] or sh
-    [N,K,3]. What `export_gaussians` writes and what `realityavatar-view` streams.
-
-    View-dependent colour is baked to its average over six axis-aligned view directions (degree-0 SH), except for
-    the SH colour model in canonical space, whose coefficients are kept (lit, `shading.apply_sh`). With
-    `shading=irradiance` the colour is multiplied by the light of that pose (canonical: the rest orientation).
-    """
-    g = module.gaussians
-    dev, dt = g.means.device, g.means.dtype
-    frame_idx = torch.full((1,), -1, dtype=torch.long, device=dev)
-    feats = module.all_features()  # the free Gaussians, then a garment sheet's (sheet=skirt)
-    if poses is None:
-        can = module.canonical_gaussians()
-        means, quats, scales, opacities = can["means"], can["quats"], can["scales"], can["opacities"]
-        N = means.shape[0]
-        rot = torch.eye(3, device=dev, dtype=dt).expand(N, 3, 3)[None]
-        f_mt = g.means.new_zeros(1, N, module.deformer.feature_dim)  # canonical: no motion-trend feature
-        x_e = means[None]
-    else:
-        posed = module.deform(module.pose_inputs(poses[None].to(dev, dt), transl[None].to(dev, dt)))
-        means, quats, scales, rot, f_mt = posed["means"][0], posed["quats"][0], posed["scales"][0], posed["rot"], posed["f_mt"]
-        x_e, opacities, N = posed["x_e"], posed["opacities"], posed["means"].shape[1]
-    out = {"means": means, "quats": quats, "scales": scales, "opacities": opacities}
-    sh_coeffs = getattr(module.color, "sh_coefficients", None)
-    if callable(sh_coeffs) and poses is None:
-        out["sh"] = module.shading.apply_sh(sh_coeffs(feats), x_e)  # lit by the rest orientation's light
-    else:
-        # One direction at a time: a [6,N,hidden] batch is slower on the CPU at 35k Gaussians (cache), not faster.
-        dirs = torch.tensor([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], dtype=dt, device=dev)
-        rgb = 0
-        for d in dirs:
-            d_c = (rot.transpose(-1, -2) @ d[:, None]).squeeze(-1)  # canonical view dir per Gaussian [1,N,3]
-            d_c = torch.nn.functional.normalize(d_c.expand(1, N, 3), dim=-1)
-            rgb = rgb + module.color(feats, d_c, f_mt, frame_idx)[0]
-        rgb = rgb / len(dirs)
-        out["rgb"] = module.shading.apply(rgb[None], x_e, rot)[0].clamp(0, 1)  # x world-fixed light
-    return {k: v.detach().cpu().float().numpy() for k, v in out.items()}
+def gaussians_for_export(avatar, poses: torch.Tensor | None = None, transl: torch.Tensor | None = None) -> dict:
+    """`avatar.baked(poses, transl)` (model/avatar.py: canonical, or posed by one pose window, colour baked) as
+    numpy arrays: what `export_gaussians` writes and what `realityavatar-view` streams."""
+    return {k: v.detach().cpu().float().numpy() for k, v in avatar.baked(poses, transl).items()}
 
 
-def export_gaussians(module, out: Path, poses: torch.Tensor | None = None, transl: torch.Tensor | None = None) -> Path:
-    """Write `gaussians_for_export(module, poses, transl)` to the PLY `out`."""
-    return write_ply(out, **gaussians_for_export(module, poses, transl))
+def export_gaussians(avatar, out: Path, poses: torch.Tensor | None = None, transl: torch.Tensor | None = None) -> Path:
+    """Write `gaussians_for_export(avatar, poses, transl)` to the PLY `out`."""
+    return write_ply(out, **gaussians_for_export(avatar, poses, transl))
 
 
 ARGS = {"run_dir", "frame", "frames", "poses", "fps", "up", "place", "out"}
@@ -166,18 +130,18 @@ def select_frames(available, frames: slice, source: str) -> list[int]:
     return chosen
 
 
-def export_frames(module, table, frame_ids: list[int], window_len: int, window_step: int, out_dir: Path) -> list[Path]:
+def export_frames(avatar, table, frame_ids: list[int], window_len: int, window_step: int, out_dir: Path) -> list[Path]:
     """One PLY of posed Gaussians per frame id of `table` (a PoseTable; windows look back into the whole table)."""
     paths = []
     for f in frame_ids:
         poses, transl = table.window(int(f), window_len, window_step)
-        paths.append(export_gaussians(module, out_dir / f"posed_{int(f):06d}.ply", poses, transl))
+        paths.append(export_gaussians(avatar, out_dir / f"posed_{int(f):06d}.ply", poses, transl))
     return paths
 
 
 def main(argv: list[str] | None = None) -> int:
     from realityavatar.animate import number, parse_args
-    from realityavatar.build import build_data, load_run
+    from realityavatar.build import build_data, load_avatar
     from realityavatar.data.motion import Stage, load_motion
 
     try:
@@ -197,12 +161,12 @@ def main(argv: list[str] | None = None) -> int:
               f"give both poses=<file.npz> and frames=a:b\n{USAGE}", file=sys.stderr)
         return 2
     frames = parse_frames(args["frames"]) if "frames" in args else None  # checked before the run is loaded
-    cfg, module, _info = load_run(args["run_dir"], [f"{k}={v}" for k, v in args.items() if "." in k])
+    cfg, avatar, _info = load_avatar(args["run_dir"], [f"{k}={v}" for k, v in args.items() if "." in k])
     frame = args.get("frame")
     if frames is not None:
-        dm = build_data(cfg, module.body)
+        dm = build_data(cfg, avatar.body)
         if "poses" in args:
-            table = load_motion(args["poses"], module.body, Stage.of(dm, module.body), number(args, "fps"),
+            table = load_motion(args["poses"], avatar.body, Stage.of(dm, avatar.body), number(args, "fps"),
                                 args.get("up", "auto"), args.get("place", "subject"))
             source = f"pose file {args['poses']}"
             default = Path(args["run_dir"]) / "export" / Path(args["poses"]).stem
@@ -210,16 +174,16 @@ def main(argv: list[str] | None = None) -> int:
             table, source, default = dm.scene.poses, f"run {args['run_dir']}", Path(args["run_dir"]) / "export" / "frames"
         ids = select_frames(table.frames, frames, source)
         out_dir = Path(args.get("out", default))
-        export_frames(module, table, ids, dm.window_len, dm.window_step, out_dir)
+        export_frames(avatar, table, ids, dm.window_len, dm.window_step, out_dir)
         print(f"wrote {len(ids)} PLY files (frames {ids[0]}..{ids[-1]}) to {out_dir}")
         return 0
     out = Path(args.get("out", Path(args["run_dir"]) / "export" / (f"posed_{frame}.ply" if frame else "canonical.ply")))
     if frame is None:
-        export_gaussians(module, out)
+        export_gaussians(avatar, out)
     else:
-        dm = build_data(cfg, module.body)
+        dm = build_data(cfg, avatar.body)
         poses, transl = dm.window_for(dm.scene.poses, int(frame))
-        export_gaussians(module, out, poses, transl)
+        export_gaussians(avatar, out, poses, transl)
     print(f"wrote {out}")
     return 0
 

@@ -129,10 +129,10 @@ def _run(cfg: DictConfig, choices: dict | None, out_dir: Path, resume_from: Path
         "iterations": int(trainer.global_step),
         # training's peak of allocated GPU memory (null on a CPU)
         "peak_gpu_memory_gb": torch.cuda.max_memory_allocated() / 2**30 if torch.cuda.is_initialized() else None,
-        "num_gaussians": int(module.gaussians.num_points),  # the free Gaussians (density control's)
-        "num_sheet_gaussians": int(module.sheet.num_points),  # sheet=skirt's (none: 0)
+        "num_gaussians": int(module.avatar.gaussians.num_points),  # the free Gaussians (density control's)
+        "num_sheet_gaussians": int(module.avatar.sheet.num_points),  # sheet=skirt's (none: 0)
         "sheet": module.run_info.get("sheet", {}),
-        "num_parameters": module.num_parameters(),
+        "num_parameters": module.avatar.num_parameters(),
         "perceptual": module.losses["perceptual"].kind if "perceptual" in module.losses else "none",
         "perceptual_weights": getattr(module, "perceptual_weights", None),  # where its VGG19 came from
         "lpips": module.lpips_status,

@@ -1,5 +1,5 @@
 """Interactive browser viewer of a trained run: viser draws the Gaussians in the browser; the server poses them per frame
-(module.deform + the baked colour of `export.gaussians_for_export`) and streams means, covariances, colours, opacities.
+(`Avatar.baked`: posed Gaussians with their colour baked, as export writes them) and streams means, covariances, colours, opacities.
 
 Command: `realityavatar-view run_dir=<run> [port=8080] [host=127.0.0.1] [split=train] [poses=<file.npz>]
 [fps=<the run's data.fps>] [poses_fps=<the file's frame rate>] [up=auto|z|y] [place=subject|keep]`
@@ -112,10 +112,10 @@ def run_metrics_markdown(metrics: dict) -> str:
 class AvatarViewer:
     """The viser server, its controls and the playback thread for one loaded run.
 
-    module: an AvatarModule in eval mode; dm: the run's set-up DataModule; run_dir: for metrics.json/per_frame.csv.
+    avatar: a trained Avatar (model/avatar.py) in eval mode; dm: the run's set-up DataModule; run_dir: for metrics.json/per_frame.csv.
     """
 
-    def __init__(self, module, dm, run_dir: str | Path, host: str = "127.0.0.1", port: int = 8080, split: str = "train",
+    def __init__(self, avatar, dm, run_dir: str | Path, host: str = "127.0.0.1", port: int = 8080, split: str = "train",
                  poses: str | None = None, fps: float | None = None, frustum_scale: float = 0.1,
                  poses_fps: float | None = None, up: str = "auto", place: str = "subject"):
         import viser
@@ -124,7 +124,7 @@ class AvatarViewer:
         from realityavatar.export import gaussians_for_export
 
         self._gaussians_for = gaussians_for_export
-        self.module, self.dm, self.run_dir = module, dm, Path(run_dir)
+        self.avatar, self.dm, self.run_dir = avatar, dm, Path(run_dir)
         self.motion = {"fps": poses_fps, "up": up, "place": place}  # how pose files are read (data/motion.py)
         fps = float(fps if fps is not None else dm.fps or 10.0)  # the run's frame rate: real time (10: configs before data.fps)
         if fps <= 0:
@@ -145,7 +145,7 @@ class AvatarViewer:
         # The rasterizer adds eps2d px^2 to every projected covariance: at training resolution (64 px for the ci
         # scene) millimetre Gaussians are drawn a pixel wide. The same blur in scene units at the cameras' distance
         # keeps the avatar looking as trained when the browser draws it at many more pixels.
-        self.eps2d = float(module.render_cfg.get("eps2d", 0.3))
+        self.eps2d = float(avatar.render_cfg.get("eps2d", 0.3))
         self.pixel_size = float(np.median([self._pixel_size(c) for c in self.cameras]))
         self.timings: list[dict] = []  # per update: deform_s, pack_s, total_s (wall) and cpu_s
         self.playing = False
@@ -175,7 +175,7 @@ class AvatarViewer:
         from realityavatar.data.motion import Stage, load_motion
 
         try:
-            table = load_motion(path, self.module.body, Stage.of(self.dm, self.module.body), **self.motion)
+            table = load_motion(path, self.avatar.body, Stage.of(self.dm, self.avatar.body), **self.motion)
         except (OSError, KeyError, ValueError) as e:
             raise ViewerError(str(e).strip("'\"")) from None
         name = f"file: {Path(path).name}"
@@ -204,7 +204,7 @@ class AvatarViewer:
     def posed(self, seq: Timeline, index: int) -> dict:
         """The Gaussians of frame `seq.frames[index]` as export writes them: means, quats, scales, opacities, rgb."""
         poses, transl = seq.table.window(seq.frames[index], self.dm.window_len, self.dm.window_step)
-        return self._gaussians_for(self.module, poses, transl)
+        return self._gaussians_for(self.avatar, poses, transl)
 
     # ------------------------------------------------------------------ scene
     def _build_scene(self, frustum_scale: float) -> None:
@@ -338,7 +338,7 @@ class AvatarViewer:
             index = int(np.clip(index, 0, len(self.current.frames) - 1))
             t0, c0 = time.perf_counter(), time.process_time()
             if self.canonical.value:
-                g = self._gaussians_for(self.module)
+                g = self._gaussians_for(self.avatar)
                 if "rgb" not in g:  # SH colour model: its degree-0 term
                     g["rgb"] = np.clip(g["sh"][:, 0] * 0.28209479177387814 + 0.5, 0, 1)
             else:
@@ -388,19 +388,19 @@ class AvatarViewer:
 
 def load_viewer(vcfg, overrides: list[str] | None = None) -> AvatarViewer:
     """Rebuild the run of `vcfg.run_dir` (overrides apply to its config) and start its viewer."""
-    from realityavatar.build import build_data, load_run, run_device
+    from realityavatar.build import build_data, load_avatar, run_device
 
     run_dir = Path(str(vcfg.run_dir))
     check_port_free(str(vcfg.host), int(vcfg.port))  # before the run loads: seconds saved on a busy port
     if not run_dir.is_dir():
         raise ViewerError(f"run_dir={run_dir}: no such folder; expected a run folder written by realityavatar-train")
     try:
-        cfg, module, _ = load_run(run_dir, overrides)
+        cfg, avatar, _ = load_avatar(run_dir, overrides)
     except FileNotFoundError as e:
         raise ViewerError(f"run_dir={run_dir}: {e}") from None
-    module.to(run_device(cfg, vcfg.get("device")))
-    dm = build_data(cfg, module.body)
-    return AvatarViewer(module, dm, run_dir, host=str(vcfg.host), port=int(vcfg.port), split=str(vcfg.split),
+    avatar.to(run_device(cfg, vcfg.get("device")))
+    dm = build_data(cfg, avatar.body)
+    return AvatarViewer(avatar, dm, run_dir, host=str(vcfg.host), port=int(vcfg.port), split=str(vcfg.split),
                         poses=vcfg.get("poses"), fps=vcfg.get("fps"), frustum_scale=float(vcfg.frustum_scale),
                         poses_fps=vcfg.get("poses_fps"), up=str(vcfg.up), place=str(vcfg.place))
 
@@ -436,7 +436,7 @@ def main(argv: list[str] | None = None, block: bool = True) -> int:
     except ViewerError as e:
         print(f"realityavatar-view: {e}", file=sys.stderr)
         return 2
-    print(f"realityavatar-view: {viewer.url}  ({len(viewer.module.canonical_gaussians()['means'])} Gaussians, ready in "
+    print(f"realityavatar-view: {viewer.url}  ({len(viewer.avatar.canonical_gaussians()['means'])} Gaussians, ready in "
           f"{time.perf_counter() - t0:.1f} s; Ctrl-C stops)", flush=True)
     if not block:
         viewer.close()

@@ -59,9 +59,9 @@ def test_amass_file_plays_in_real_time_upright_and_in_view(trained_run, tmp_path
     known = write_motion(tmp_path / "walk.npz", "amass_smplh", fps=120.0, seconds=2.0, omega=3.0)
     seen, real = {}, anim.render_sequence
 
-    def spy(module, table, cameras, *a):
-        seen.update(table=table, cameras=cameras, body=module.body)
-        return real(module, table, cameras, *a)
+    def spy(avatar, table, cameras, *a):
+        seen.update(table=table, cameras=cameras, body=avatar.body)
+        return real(avatar, table, cameras, *a)
 
     monkeypatch.setattr(anim, "render_sequence", spy)
     gif = tmp_path / "walk.gif"
@@ -91,21 +91,21 @@ def test_amass_file_plays_in_real_time_upright_and_in_view(trained_run, tmp_path
 
 
 def test_the_runs_frame_rate_and_up_come_from_its_config_and_training_poses(trained_run):
-    from realityavatar.build import build_data, load_run
+    from realityavatar.build import build_data, load_avatar
     from realityavatar.data.motion import Stage
 
-    cfg, module, _ = load_run(trained_run[0])
-    dm = build_data(cfg, module.body)
-    stage = Stage.of(dm, module.body)
+    cfg, avatar, _ = load_avatar(trained_run[0])
+    dm = build_data(cfg, avatar.body)
+    stage = Stage.of(dm, avatar.body)
     assert stage.fps == cfg.data.fps == 10 and stage.up.tolist() == [0.0, 1.0, 0.0]  # the ci scene: 10 fps, y up
     dm.fps = 25.0
     with pytest.raises(ValueError, match=r"data\.fps=25 but the scene .*skirt_spin_ci was built at 10 fps"):
-        Stage.of(dm, module.body)
+        Stage.of(dm, avatar.body)
     dm.fps = None  # a config written before data.fps: a synthetic scene's own record
-    assert Stage.of(dm, module.body).fps == 10
+    assert Stage.of(dm, avatar.body).fps == 10
     dm.scene.meta.pop("fps")
     with pytest.raises(ValueError, match=r"skirt_spin_ci: the run's config has no data\.fps.*data\.fps=<frames"):
-        Stage.of(dm, module.body)
+        Stage.of(dm, avatar.body)
 
 
 @pytest.mark.parametrize("argv, named", [

@@ -36,7 +36,7 @@ def _planted(trained_run, tmp_path: Path) -> tuple[Path, Path, dict]:
 
 def test_a_checkpoint_carrying_code_is_refused_by_every_tool(trained_run, tmp_path):
     from realityavatar.animate import main as animate_main
-    from realityavatar.build import load_run
+    from realityavatar.build import load_avatar, load_run
     from realityavatar.evaluate import main as evaluate_main
     from realityavatar.export import main as export_main
 
@@ -44,7 +44,8 @@ def test_a_checkpoint_carrying_code_is_refused_by_every_tool(trained_run, tmp_pa
     tools = {
         "realityavatar-export": lambda: export_main([f"run_dir={run}", f"out={tmp_path / 'a.ply'}"]),
         "realityavatar-evaluate": lambda: evaluate_main([f"run_dir={run}", "eval.save_video=false"]),
-        "realityavatar-view (load_run)": lambda: load_run(run),
+        "realityavatar-view (load_avatar)": lambda: load_avatar(run),
+        "load_run (the probes)": lambda: load_run(run),
         "realityavatar-animate": lambda: animate_main([f"run_dir={run}", "views=0", f"out={tmp_path / 'a.gif'}"]),
         "realityavatar-train resume=true": lambda: train(run, *TRAINED_RUN, "resume=true"),
     }

@@ -69,7 +69,7 @@ def test_evaluate_and_probe_a_run_below_its_resolution_supersampled(trained_run,
     from realityavatar.analysis import probe
     from realityavatar.evaluate import main as evaluate_main
     from realityavatar.evaluate import undersampled
-    from realityavatar.model.module import AvatarModule
+    from realityavatar.model.avatar import Avatar
 
     out, full = trained_run
     # rendered directly at half the size: evaluate says what to set (the checkpoint records the training size)
@@ -84,8 +84,8 @@ def test_evaluate_and_probe_a_run_below_its_resolution_supersampled(trained_run,
     m = json.loads((out / "eval" / "metrics.json").read_text())
     assert m["eval_supersample"] == 2 and "eval_undersampled" not in m
     assert m["render_resolution"] == [s // 2 for s in full["render_resolution"]]
-    render, supersampled, folders = AvatarModule.render_batch, [], []
-    monkeypatch.setattr(AvatarModule, "render_batch",
+    render, supersampled, folders = Avatar.render_batch, [], []
+    monkeypatch.setattr(Avatar, "render_batch",
                         lambda self, *a, **k: supersampled.append(k.get("supersample", 1)) or render(self, *a, **k))
     phases = probe.novel_pose_phases
     monkeypatch.setattr(probe, "novel_pose_phases", lambda folder, mesh: folders.append(folder) or phases(folder, mesh))

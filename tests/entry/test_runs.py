@@ -354,7 +354,7 @@ def test_a_run_folder_of_an_older_version_names_its_config_and_the_commit(traine
     metrics.json records), not hydra's instantiation trace."""
     import yaml
 
-    from realityavatar.build import load_run
+    from realityavatar.build import load_avatar, load_run
 
     out, _ = trained_run
     run = tmp_path / "old"
@@ -369,8 +369,9 @@ def test_a_run_folder_of_an_older_version_names_its_config_and_the_commit(traine
     cfg["color"]["use_fmt"] = True
     (run / "config.yaml").write_text(yaml.safe_dump(cfg))
     (run / "metrics.json").write_text(json.dumps({"commit": "3b9168b-dirty"}))
-    with pytest.raises(ValueError, match=r"(?s)old/config\.yaml does not build.*use_fmt.*git checkout 3b9168b$"):
-        load_run(run)
+    for load in (load_run, load_avatar):  # evaluate's and export's, view's, animate's
+        with pytest.raises(ValueError, match=r"(?s)old/config\.yaml does not build.*use_fmt.*git checkout 3b9168b$"):
+            load(run)
 
 
 def test_compile_trains_through_the_compiled_path(scenes_root, tmp_path, monkeypatch):

@@ -51,7 +51,7 @@ def test_training_step_and_evaluation_in_float64(scenes_root, tmp_path):
     # animate: float32 poses and cameras from the data feed the float64 module
     from realityavatar.animate import dataset_cameras, render_sequence
 
-    frames = render_sequence(module, dm.scene.poses, dataset_cameras(dm, [0]), dm.window_len, dm.window_step,
+    frames = render_sequence(module.avatar, dm.scene.poses, dataset_cameras(dm, [0]), dm.window_len, dm.window_step,
                              dm.pose_sequence("novel_pose")[0].tolist()[:1])
     assert len(frames) == 1 and frames[0].dtype.name == "uint8"
 

@@ -208,7 +208,7 @@ def test_controls_pose_file_cameras_canonical_and_metrics(view_run, tmp_path):
         assert viewer.play_button.label == "Play"
         # canonical Gaussians: what export writes for canonical space
         viewer.canonical.value = True
-        canon = gaussians_for_export(viewer.module)
+        canon = gaussians_for_export(viewer.avatar)
         np.testing.assert_allclose(viewer.splats.centers, canon["means"], atol=1e-6)
         with pytest.raises(Exception, match="not a dataset camera"):
             viewer.jump_to_camera(99)

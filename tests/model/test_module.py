@@ -20,7 +20,7 @@ def body():
 
 @pytest.mark.slow
 def test_canonical_gaussians_land_on_the_posed_body_after_skinning_prefit(body):
-    """Posing end to end (module.deform -> skinning field -> canonical_transforms -> LBS, then render_batch): after
+    """Posing end to end (module.avatar.deform -> skinning field -> canonical_transforms -> LBS, then render_batch): after
     the skinning pre-fit, the initial canonical Gaussians of a random pose lie on that pose's body surface and
     render where the posed mesh projects."""
     from realityavatar.build import build_module
@@ -36,8 +36,8 @@ def test_canonical_gaussians_land_on_the_posed_body_after_skinning_prefit(body):
     poses = torch.stack([0.2 * pose, 0.5 * pose, pose])[None]  # a window ending in the pose: its current frame
     transls = torch.stack([transl - 0.3, transl - 0.1, transl])[None]
     with torch.no_grad():
-        posed = module.deform(module.pose_inputs(poses, transls))
-    d_canon = torch.cdist(module.gaussians.means, body.canonical_vertices()).min(-1).values  # [N]
+        posed = module.avatar.deform(module.avatar.pose_inputs(poses, transls))
+    d_canon = torch.cdist(module.avatar.gaussians.means, body.canonical_vertices()).min(-1).values  # [N]
     d_posed = torch.cdist(posed["means"][0], verts).min(-1).values
     # distance gained by posing: 0 for a perfect LBS; the learnt weights blur near joints (measured: median ~0,
     # 95% 1.1 cm, max 9 cm). A wrong bone transform or an unfitted field moves limbs by tens of centimetres.
@@ -51,10 +51,10 @@ def test_canonical_gaussians_land_on_the_posed_body_after_skinning_prefit(body):
     E[:3, :3], E[:3, 3] = R, -R @ (centre + torch.tensor([0.0, 0.0, 3.0]))
     S = 64
     K = torch.tensor([[60.0, 0, S / 2], [0, 60.0, S / 2], [0, 0, 1]])
-    batch = {**module.pose_inputs(poses, transls), "frame_idx": torch.tensor([0]), "viewmat": E[None], "K": K[None],
+    batch = {**module.avatar.pose_inputs(poses, transls), "frame_idx": torch.tensor([0]), "viewmat": E[None], "K": K[None],
              "width": torch.tensor([S]), "height": torch.tensor([S])}
     with torch.no_grad():
-        _, alpha, _, _ = module.render_batch(batch)
+        _, alpha, _, _ = module.avatar.render_batch(batch)
     cam = verts @ R.T + E[:3, 3]
     uv = (cam[:, :2] / cam[:, 2:] * 60.0 + S / 2).long().clamp(0, S - 1)
     hit = alpha[0, uv[:, 1], uv[:, 0], 0]
@@ -87,19 +87,19 @@ def test_module_wiring_optimizer_groups_decoder_box_and_sh_export(body, tmp_path
     ids = [id(p) for g in groups.values() for p in g["params"]]
     assert sorted(ids) == sorted(id(p) for p in module.parameters() if p.requires_grad)  # each exactly once
     # decoder box: fitted now, around the initial canonical Gaussians (not at its first forward, at deform_start)
-    m = module.gaussians.means.detach()
-    assert bool(module.deformer.bounds_fitted)
-    assert (module.deformer.bbox_min <= m.min(0).values).all() and (module.deformer.bbox_max >= m.max(0).values).all()
-    assert (module.deformer.bbox_max - module.deformer.bbox_min).max() < 1.3 * (m.max(0).values - m.min(0).values).max()
+    m = module.avatar.gaussians.means.detach()
+    assert bool(module.avatar.deformer.bounds_fitted)
+    assert (module.avatar.deformer.bbox_min <= m.min(0).values).all() and (module.avatar.deformer.bbox_max >= m.max(0).values).all()
+    assert (module.avatar.deformer.bbox_max - module.avatar.deformer.bbox_min).max() < 1.3 * (m.max(0).values - m.min(0).values).max()
     # SH export writes the model's coefficients: the PLY's colour along any direction is the model's colour
     with torch.no_grad():
-        module.gaussians.features.normal_(0, 0.3)
-    ply = read_ply(export_gaussians(module, tmp_path / "sh.ply"))
+        module.avatar.gaussians.features.normal_(0, 0.3)
+    ply = read_ply(export_gaussians(module.avatar, tmp_path / "sh.ply"))
     sh = torch.from_numpy(ply["sh"])  # [N,16,3]
     assert sh.shape == (500, 16, 3) and sh[:, 1:].abs().sum() > 0
     d = torch.nn.functional.normalize(torch.randn(1, 500, 3), dim=-1)
     with torch.no_grad():
-        ref = module.color(module.gaussians.features, d, None, torch.tensor([0]))
+        ref = module.avatar.color(module.avatar.gaussians.features, d, None, torch.tensor([0]))
     assert torch.allclose(torch.clamp_min(eval_sh(3, sh[None], d) + 0.5, 0.0), ref, atol=1e-5)
 
 
@@ -136,17 +136,17 @@ def test_checkpoint_with_refined_gaussians_restores_model_and_optimizer(trained_
     state = torch.load(out / "last.ckpt", map_location="cpu", weights_only=False)
     cfg = compose(TRAINED_RUN)
     module = build_module(cfg, body, state["realityavatar"]["num_train_frames"], state["realityavatar"]["scene_extent"])
-    assert module.gaussians.num_points == NUM_POINTS != metrics["num_gaussians"]
+    assert module.avatar.gaussians.num_points == NUM_POINTS != metrics["num_gaussians"]
     module.load_state_dict(state["state_dict"])
     module.on_load_checkpoint(state)
-    assert module.gaussians.num_points == metrics["num_gaussians"]
+    assert module.avatar.gaussians.num_points == metrics["num_gaussians"]
     opt = module.configure_optimizers()["optimizer"]
     opt.load_state_dict(state["optimizer_states"][0])
     for p in module.parameters():
         if p.requires_grad:
             p.grad = torch.zeros_like(p)
     opt.step()  # a size mismatch between the restored Adam rows and the parameters raises here
-    g = module.gaussians
+    g = module.avatar.gaussians
     assert all(opt.state[getattr(g, n)]["exp_avg"].shape == getattr(g, n).shape for n in ("means", "features"))
     assert module.density.grad2d is None or module.density.grad2d.shape[0] == g.num_points
 
@@ -181,17 +181,17 @@ def test_views_of_one_frame_pose_it_once_and_render_as_separate_samples(body, mo
     batch = make()
     assert batch["views_per_frame"] == 3
     shapes = []
-    module.deformer.register_forward_hook(lambda m, args, out: shapes.append(tuple(args[1].shape)))
-    rgb, alpha, metas, posed = module.render_batch(batch)
-    assert shapes == [(1, module.deformer.in_h.in_features)] and posed["B"] == 3
+    module.avatar.deformer.register_forward_hook(lambda m, args, out: shapes.append(tuple(args[1].shape)))
+    rgb, alpha, metas, posed = module.avatar.render_batch(batch)
+    assert shapes == [(1, module.avatar.deformer.in_h.in_features)] and posed["B"] == 3
     assert len(metas) == 1 and metas[0]["means2d"].shape[0] == 3  # one rasterizer call for the frame's 3 cameras
-    g = torch.autograd.grad(rgb.square().sum() + alpha.sum(), module.deformer.out.weight)[0]
+    g = torch.autograd.grad(rgb.square().sum() + alpha.sum(), module.avatar.deformer.out.weight)[0]
     separate = {k: v for k, v in batch.items() if k != "views_per_frame"}
-    rgb1, alpha1, _, _ = module.render_batch(separate)
-    assert shapes[1] == (3, module.deformer.in_h.in_features)
+    rgb1, alpha1, _, _ = module.avatar.render_batch(separate)
+    assert shapes[1] == (3, module.avatar.deformer.in_h.in_features)
     torch.testing.assert_close(rgb, rgb1, atol=1e-5, rtol=0)
     torch.testing.assert_close(alpha, alpha1, atol=1e-5, rtol=0)
-    g1 = torch.autograd.grad(rgb1.square().sum() + alpha1.sum(), module.deformer.out.weight)[0]
+    g1 = torch.autograd.grad(rgb1.square().sum() + alpha1.sum(), module.avatar.deformer.out.weight)[0]
     torch.testing.assert_close(g, g1, atol=1e-4, rtol=1e-4)
     assert not torch.allclose(rgb[0], rgb[1])  # three different cameras
 
@@ -207,10 +207,10 @@ def test_views_of_two_frames_in_one_batch(body, monkeypatch):
     batch = {k: torch.cat([a[k], b[k]]) if torch.is_tensor(a[k]) else a[k] for k in a}
     batch.update(width=a["width"] + b["width"], height=a["height"] + b["height"])
     shapes = []
-    module.deformer.register_forward_hook(lambda m, args, out: shapes.append(tuple(args[1].shape)))
+    module.avatar.deformer.register_forward_hook(lambda m, args, out: shapes.append(tuple(args[1].shape)))
     with torch.no_grad():
-        rgb, alpha, metas, posed = module.render_batch(batch)
-        rgb1, alpha1, _, _ = module.render_batch({k: v for k, v in batch.items() if k != "views_per_frame"})
+        rgb, alpha, metas, posed = module.avatar.render_batch(batch)
+        rgb1, alpha1, _, _ = module.avatar.render_batch({k: v for k, v in batch.items() if k != "views_per_frame"})
     assert shapes[0][0] == 2 and shapes[1][0] == 4 and len(metas) == 2 and posed["B"] == 4
     torch.testing.assert_close(rgb, rgb1, atol=1e-5, rtol=0)
     torch.testing.assert_close(alpha, alpha1, atol=1e-5, rtol=0)
@@ -230,9 +230,9 @@ def test_a_supersampled_image_is_the_larger_image_averaged(body, monkeypatch):
     big = benchmark("step").make_batch_fn(module, 128, int(compose([]).data.window_len))()
     at128 = {**batch, "K": big["K"], "width": big["width"], "height": big["height"]}
     with torch.no_grad():
-        rgb, alpha, _, _ = module.render_batch(batch)
-        rgb4, alpha4, _, _ = module.render_batch(batch, supersample=4)
-        rgb_big, alpha_big, _, _ = module.render_batch(at128)
+        rgb, alpha, _, _ = module.avatar.render_batch(batch)
+        rgb4, alpha4, _, _ = module.avatar.render_batch(batch, supersample=4)
+        rgb_big, alpha_big, _, _ = module.avatar.render_batch(at128)
 
     def pooled(x):
         return F.avg_pool2d(x.permute(0, 3, 1, 2), 4).permute(0, 2, 3, 1)
@@ -271,7 +271,7 @@ def test_a_training_step_reads_the_device_only_on_log_steps(body, monkeypatch):
     assert {"train/loss", "train/num_gaussians"} <= {k for k, (_, bar) in logged.items() if bar}
     assert all(torch.is_tensor(v) and v.device.type == "cpu" and v.dim() == 0 for v, _ in logged.values()), logged
     with torch.no_grad():
-        module.gaussians.features[0, 0] = float("nan")
+        module.avatar.gaussians.features[0, 0] = float("nan")
     module._test_step = 5
     module.training_step(make_batch(), 0)  # not a log step: nothing read, the flag is kept on the device
     module._test_step = 9
@@ -304,8 +304,8 @@ def test_no_step_reads_an_output_of_the_compiled_functions_of_an_earlier_step(bo
             return out
         return call
 
-    for name in ("deform", "shade", "loss"):  # where compile_path puts the compiled functions
-        setattr(module, name, recorded(getattr(module, name)))
+    for owner, name in ((module.avatar, "deform"), (module.avatar, "shade"), (module, "loss")):  # compile_path's
+        setattr(owner, name, recorded(getattr(owner, name)))
     reads: list = []
 
     class Reads(TorchDispatchMode):
@@ -379,7 +379,7 @@ def test_compiled_steps_on_a_gpu_replay_cuda_graphs(body, monkeypatch):
     finally:
         torch._dynamo.reset()
     assert counters["inductor"]["cudagraph_skips"] == 0
-    assert 0 < module.deformer.encoding.alpha < module.deformer.encoding.num_freqs  # the window moved every step
+    assert 0 < module.avatar.deformer.encoding.alpha < module.avatar.deformer.encoding.num_freqs  # the window moved every step
 
 
 def test_a_compiled_run_traces_each_graph_once(body, monkeypatch):
@@ -405,12 +405,12 @@ def test_a_compiled_run_traces_each_graph_once(body, monkeypatch):
         for s in range(14):
             module._test_step = s
             module.training_step(make_batch(), 0)
-            counts.append(module.gaussians.num_points)
+            counts.append(module.avatar.gaussians.num_points)
             graphs.append(counters["stats"]["unique_graphs"])
     finally:
         torch._dynamo.reset()
     assert len(set(counts)) >= 3, counts  # two refinements changed the count
-    assert module.losses["skinning"].switch == 2 and module.deformer.encoding.alpha == module.deformer.encoding.num_freqs
+    assert module.losses["skinning"].switch == 2 and module.avatar.deformer.encoding.alpha == module.avatar.deformer.encoding.num_freqs
     assert graphs[0] == 3 and graphs[-1] == graphs[0], graphs
 
 

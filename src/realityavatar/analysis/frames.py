@@ -29,7 +29,7 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     torch.set_num_threads(1)
     cfg, module, _ = load_run(Path(a.run))
-    ds = build_data(cfg, module.body).datasets[a.split]
+    ds = build_data(cfg, module.avatar.body).datasets[a.split]
     module.to(run_device(cfg))  # a GPU run renders with its own backend (gsplat needs CUDA tensors)
     views = sorted({r.view for r in ds.records})
     view = views[0] if a.view is None else a.view
@@ -43,7 +43,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"--frames: frame {f} is not in split {a.split}", file=sys.stderr)
             return 2
         batch = module.device_batch(default_collate([ds[idx[0]]]))
-        rgb = module.render_batch(batch)[0][0].clamp(0, 1).cpu().numpy()
+        rgb = module.avatar.render_batch(batch)[0][0].clamp(0, 1).cpu().numpy()
         gt = batch["image"][0].cpu().numpy()
         rows.append(np.concatenate([rgb, gt, np.clip(4 * np.abs(rgb - gt), 0, 1)], 1))
     import matplotlib.pyplot as plt

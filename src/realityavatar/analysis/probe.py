@@ -136,7 +136,7 @@ def probe_run(run_dir: Path, threads: int = 1, kinds: tuple[str, ...] = ("train"
     `realityavatar-evaluate run_dir=<run> <the same overrides>` (<run>/eval/)."""
     torch.set_num_threads(threads)
     cfg, module, info = load_run(run_dir, overrides)
-    dm = build_data(cfg, module.body)
+    dm = build_data(cfg, module.avatar.body)
     module.to(run_device(cfg))  # a GPU run renders with its own backend (gsplat needs CUDA tensors)
     meta = dm.scene.meta or {}
     events = meta.get("motion", {}).get("events", {})
@@ -154,10 +154,10 @@ def probe_run(run_dir: Path, threads: int = 1, kinds: tuple[str, ...] = ("train"
             batch = module.device_batch(default_collate([ds[i]]))
             if not rows and (note := undersampled(info, module.eval_supersample, int(batch["width"][0]))):
                 print(f"probe: {run_dir}: {note}", file=sys.stderr)
-            rgb, alpha, _, posed = module.render_batch(batch, supersample=module.eval_supersample)
+            rgb, alpha, _, posed = module.avatar.render_batch(batch, supersample=module.eval_supersample)
             if rec.frame not in offsets:
-                n = module.gaussians.num_points  # the free Gaussians (a garment sheet's follow after them)
-                dx = (posed["x_e"][0][:n] - module.gaussians.means).norm(dim=-1)
+                n = module.avatar.gaussians.num_points  # the free Gaussians (a garment sheet's follow after them)
+                dx = (posed["x_e"][0][:n] - module.avatar.gaussians.means).norm(dim=-1)
                 q = torch.quantile(dx, torch.tensor([0.5, 0.99], dtype=dx.dtype, device=dx.device))
                 offsets[rec.frame] = (float(q[0]), float(q[1]), float(dx.max()))
                 if tracker is not None and int(rec.frame) in tracker.frames:

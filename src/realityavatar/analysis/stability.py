@@ -58,7 +58,7 @@ def render_items(module, ds, indices) -> tuple[torch.Tensor, torch.Tensor]:
     preds, gts = [], []
     for i in indices:
         batch = module.device_batch(default_collate([ds[i]]))
-        rgb, _, _, _ = module.render_batch(batch)
+        rgb, _, _, _ = module.avatar.render_batch(batch)
         preds.append(rgb[0].clamp(0, 1))
         gts.append(batch["image"][0])
     return torch.stack(preds), torch.stack(gts)
@@ -101,8 +101,8 @@ def extreme_poses(module, dm, n: int = 48, seed: int = 0, show: int = 6) -> dict
         trans.append(base_t.expand(T, 3))
     poses_w, transl_w = torch.stack(windows), torch.stack(trans)
     renders = render_poses(module, dm, poses_w[0:2 * show:2], transl_w[0:2 * show:2])  # the first joint-limit poses
-    posed = module.deform(module.pose_inputs(poses_w, transl_w))
-    joints = module.body.joints(poses_w[:, -1], transl_w[:, -1])  # [n,24,3]
+    posed = module.avatar.deform(module.avatar.pose_inputs(poses_w, transl_w))
+    joints = module.avatar.body.joints(poses_w[:, -1], transl_w[:, -1])  # [n,24,3]
     dist = torch.cdist(posed["means"], joints).min(-1).values  # [n,N] distance to the nearest joint
     finite = bool(torch.isfinite(posed["means"]).all() and torch.isfinite(posed["scales"]).all())
     canonical_scale = float(module.canonical_gaussians()["scales"].max())  # free Gaussians and a sheet's
@@ -131,8 +131,8 @@ def render_poses(module, dm, poses_w: torch.Tensor, transl_w: torch.Tensor) -> n
     batch = default_collate([ds[0]])
     out = []
     for w, t in zip(poses_w, transl_w):
-        b = {**batch, **module.pose_inputs(w[None], t[None]), "frame_idx": torch.full_like(batch["frame_idx"], -1)}
-        rgb = module.render_batch(b)[0][0].clamp(0, 1)
+        b = {**batch, **module.avatar.pose_inputs(w[None], t[None]), "frame_idx": torch.full_like(batch["frame_idx"], -1)}
+        rgb = module.avatar.render_batch(b)[0][0].clamp(0, 1)
         out.append((rgb.numpy() * 255).round().astype(np.uint8))
     return np.stack(out)
 
@@ -149,7 +149,7 @@ def training_scales(module, dm, batch: int = 16) -> dict[int, float]:
     frames, out = list(first), {}
     for k in range(0, len(frames), batch):
         b = default_collate([ds[first[f]] for f in frames[k:k + batch]])
-        s = module.deform(b)["scales"].flatten(1).max(1).values
+        s = module.avatar.deform(b)["scales"].flatten(1).max(1).values
         out.update({f: float(v) for f, v in zip(frames[k:k + batch], s)})
     return out
 
@@ -173,8 +173,8 @@ def pose_noise(module, dm, view: int | None, sigmas=NOISE_SIGMAS, seed: int = 0)
         for i in idx:
             batch = module.device_batch(default_collate([ds[i]]))
             noisy = batch["poses"] + sigma * torch.randn(batch["poses"].shape, generator=g).to(batch["poses"])
-            batch.update(module.pose_inputs(noisy, batch["transl"]))  # what the model reads of the poses
-            rgb, _, _, _ = module.render_batch(batch)
+            batch.update(module.avatar.pose_inputs(noisy, batch["transl"]))  # what the model reads of the poses
+            rgb, _, _, _ = module.avatar.render_batch(batch)
             vals.append(float(psnr(rgb[0].clamp(0, 1), batch["image"][0])))
         out[f"{sigma:g}"] = float(np.mean(vals))
     return {"split": split, "view": view, "psnr_by_sigma": out}
@@ -185,7 +185,7 @@ def analyse_run(run: Path, view: int | None, window: int) -> dict:
 
     cfg, module, _ = load_run(run)
     torch.manual_seed(0)
-    dm = build_data(cfg, module.body)
+    dm = build_data(cfg, module.avatar.body)
     metrics = json.loads((run / "metrics.json").read_text())
     frames, vals, pred, gt, used_view = per_frame_sequence(module, dm, "novel_view" if "novel_view" in dm.datasets else "train", view)
     stops = [s for s in stop_frames(dm) if frames[0] <= s <= frames[-1]]

@@ -17,6 +17,8 @@ garment surface's vertices and its Gaussians follow their cells; NoSheet: no poi
 
 from __future__ import annotations
 
+from dataclasses import dataclass, fields
+
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -32,6 +34,8 @@ from realityavatar.runtime import constant
 # Per-point entries of a posed dict, split between the sources and joined again in source order.
 PER_POINT = ("means", "quats", "scales", "rot", "f_mt", "weights", "x_e")
 POSE_INPUTS = ("pose_features", "bone_transforms")  # pose_inputs' keys: what deform reads of a batch
+# The view directions `Avatar.baked` averages a Gaussian's colour over.
+AXES = ((1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0), (0, 0, 1), (0, 0, -1))
 
 
 @torch.no_grad()
@@ -58,6 +62,33 @@ def cut(x: torch.Tensor, sizes: list[int], dim: int) -> list[torch.Tensor]:
     if sum(1 for n in sizes if n) != 1:
         return list(x.split(sizes, dim))
     return [x if n else x.narrow(dim, 0, 0) for n in sizes]
+
+
+@dataclass
+class Schedule:
+    """The step-dependent switches of the model (the loss terms carry their own, e.g. loss.skinning.switch)."""
+
+    deform_start: int
+    skin_pretrain_steps: int  # skinning=mlp: fit the field to the body's weights before the first step
+    deform_anneal: int  # the decoder's frequency bands open linearly over steps deform_start .. + this (0: all)
+
+    @classmethod
+    def from_config(cls, schedule: dict) -> Schedule:
+        """The config's schedule block (other keys there, e.g. skin_switch, reach loss terms by interpolation); a
+        missing key is an error naming it."""
+        missing = [f.name for f in fields(cls) if f.name not in schedule]
+        if missing:
+            raise KeyError(f"schedule: missing {', '.join(missing)} (conf/train.yaml's schedule block)")
+        return cls(**{f.name: schedule[f.name] for f in fields(cls)})
+
+    def deform_on(self, step: int) -> bool:
+        return step >= self.deform_start
+
+    def deform_window(self, step: int | None) -> float:
+        """How far the decoder's coarse-to-fine window is open at `step` (None: a finished run): 0 .. 1."""
+        if step is None or self.deform_anneal <= 0:
+            return 1.0
+        return min(1.0, max(0.0, (step - self.deform_start) / self.deform_anneal))
 
 
 class Avatar(nn.Module):
@@ -192,6 +223,62 @@ class Avatar(nn.Module):
                             for x in (image, alpha))
         return image, alpha, metas, posed
 
+    def posed(self, poses: torch.Tensor, transl: torch.Tensor) -> dict:
+        """`deform` of one pose window poses [T,24,3], transl [T,3] from anywhere (moved to the avatar's device and
+        dtype): the posed Gaussians of its last frame, B=1."""
+        dev, dt = self.gaussians.means.device, self.gaussians.means.dtype
+        return self.deform(self.pose_inputs(poses[None].to(dev, dt), transl[None].to(dev, dt)))
+
+    @torch.no_grad()
+    def render_view(self, posed: dict, viewmat: torch.Tensor, K: torch.Tensor, W: int, H: int) -> torch.Tensor:
+        """Sample 0 of `posed` seen by one camera viewmat [4,4], K [3,3] (moved to the avatar's device and dtype)
+        without a training frame's colour latent (frame -1): an animation frame [H,W,3]."""
+        dev, dt = self.gaussians.means.device, self.gaussians.means.dtype
+        vm = viewmat[None].to(dev, dt)
+        rgb = self.shade(posed, vm, torch.full((1,), -1, dtype=torch.long, device=dev))[0]
+        return self.splat(posed, 0, rgb, vm, K[None].to(dev, dt), W, H)[0][0]
+
+    @torch.no_grad()
+    def baked(self, poses: torch.Tensor | None = None, transl: torch.Tensor | None = None) -> dict:
+        """Every rendered Gaussian with its colour baked, as export writes it and the viewer streams it: canonical
+        (poses None) or posed by one pose window poses [T,24,3], transl [T,3]. Returns means [N,3], quats [N,4] wxyz,
+        scales [N,3] (linear), opacities [N], and either rgb [N,3] in [0,1] or sh [N,K,3].
+
+        `shade`'s colour without a camera: averaged over the six axis-aligned view directions, then lit
+        (shading=irradiance: the light of that pose; canonical: the rest orientation). The SH colour model in
+        canonical space keeps its coefficients instead (lit, `shading.apply_sh`)."""
+        dev, dt = self.gaussians.means.device, self.gaussians.means.dtype
+        frame_idx = torch.full((1,), -1, dtype=torch.long, device=dev)
+        feats = self.all_features()  # the free Gaussians, then a garment sheet's (sheet=skirt)
+        if poses is None:
+            out = self.canonical_gaussians()
+            N = out["means"].shape[0]
+            rot = torch.eye(3, device=dev, dtype=dt).expand(N, 3, 3)[None]
+            f_mt = feats.new_zeros(1, N, self.deformer.feature_dim)  # canonical: no motion-trend feature
+            x_e = out["means"][None]
+        else:
+            posed = self.posed(poses, transl)
+            out = {k: posed[k][0] for k in ("means", "quats", "scales")} | {"opacities": posed["opacities"]}
+            rot, f_mt, x_e, N = posed["rot"], posed["f_mt"], posed["x_e"], posed["means"].shape[1]
+        sh_coeffs = getattr(self.color, "sh_coefficients", None)
+        if callable(sh_coeffs) and poses is None:
+            out["sh"] = self.shading.apply_sh(sh_coeffs(feats), x_e)  # lit by the rest orientation's light
+            return out
+        # One direction at a time: a [6,N,hidden] batch is slower on the CPU at 35k Gaussians (cache), not faster.
+        rgb = 0
+        for d in torch.tensor(AXES, dtype=dt, device=dev):
+            d_c = (rot.transpose(-1, -2) @ d[:, None]).squeeze(-1)  # canonical view direction per Gaussian [1,N,3]
+            rgb = rgb + self.color(feats, F.normalize(d_c.expand(1, N, 3), dim=-1), f_mt, frame_idx)[0]
+        out["rgb"] = self.shading.apply((rgb / len(AXES))[None], x_e, rot)[0].clamp(0, 1)  # x world-fixed light
+        return out
+
+
+    def num_parameters(self) -> int:
+        """Learnable parameters of the avatar: Gaussians and every network (the body model has none); the encoder
+        counts the entries it trains (its part split holds the input layer's off-block entries at zero)."""
+        mine = {id(p) for p in self.encoder.parameters()}
+        rest = sum(p.numel() for p in self.parameters() if p.requires_grad and id(p) not in mine)
+        return int(rest + self.encoder.num_parameters())
 
 def views_of(posed: dict, V: int) -> dict:
     """The posed Gaussians of F frames [F,...] -> those of their V cameras each [F*V,...] (views, no copy for F=1)."""

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, fields
 from typing import Any
 
 import pytorch_lightning as pl
@@ -12,10 +11,9 @@ import torch
 from pytorch_lightning.utilities import move_data_to_device
 from torch import nn
 
-from realityavatar.body.base import BodyModel
 from realityavatar.data.datamodule import composite
 from realityavatar.losses import LossTerm, TrainingRender, total_loss
-from realityavatar.model.avatar import PER_POINT, Avatar
+from realityavatar.model.avatar import PER_POINT, Avatar, Schedule
 
 # Networks whose gradient norm optim.grad_clip bounds (not the Gaussians', nor the sheet's), in this order.
 CLIPPED = ("encoder", "temporal", "deformer", "skinning", "color", "shading")
@@ -31,54 +29,19 @@ DYNAMO_CONFIG = {"force_parameter_static_shapes": False, "allow_rnn": True}
 SHEET_RATES = {"sheet_normal_offset": "means", "sheet_basis": "deformer", "sheet_coeff": "deformer"}
 
 
-@dataclass
-class Schedule:
-    """The step-dependent switches of the model (the loss terms carry their own, e.g. loss.skinning.switch)."""
-
-    deform_start: int
-    skin_pretrain_steps: int  # skinning=mlp: fit the field to the body's weights before the first step
-    deform_anneal: int  # the decoder's frequency bands open linearly over steps deform_start .. + this (0: all)
-
-    @classmethod
-    def from_config(cls, schedule: dict) -> Schedule:
-        """The config's schedule block (other keys there, e.g. skin_switch, reach loss terms by interpolation); a
-        missing key is an error naming it."""
-        missing = [f.name for f in fields(cls) if f.name not in schedule]
-        if missing:
-            raise KeyError(f"schedule: missing {', '.join(missing)} (conf/train.yaml's schedule block)")
-        return cls(**{f.name: schedule[f.name] for f in fields(cls)})
-
-    def deform_on(self, step: int) -> bool:
-        return step >= self.deform_start
-
-    def deform_window(self, step: int | None) -> float:
-        """How far the decoder's coarse-to-fine window is open at `step` (None: a finished run): 0 .. 1."""
-        if step is None or self.deform_anneal <= 0:
-            return 1.0
-        return min(1.0, max(0.0, (step - self.deform_start) / self.deform_anneal))
-
-
-class AvatarModule(Avatar, pl.LightningModule):
-    """The avatar (model/avatar.py: its components and its one forward path) with Lightning's training and test loop:
-    loss terms (losses.py), density control, optimizer groups and LR decay, checkpoint hooks, metrics."""
+class AvatarModule(pl.LightningModule):
+    """Lightning's training and test loop around an avatar (model/avatar.py: its components and its one forward path,
+    held as `self.avatar`): loss terms (losses.py), density control, optimizer groups and LR decay, checkpoint hooks,
+    metrics."""
 
     def __init__(
         self,
-        body: BodyModel,
-        gaussians: nn.Module,
-        encoder: nn.Module,
-        temporal: nn.Module,
-        deformer: nn.Module,
-        skinning: nn.Module,
-        color: nn.Module,
-        shading: nn.Module,
-        sheet: nn.Module,
+        avatar: Avatar,
         density: Any,
         losses: dict[str, nn.Module],
         optimizer: Callable[..., torch.optim.Optimizer],
         lr: dict,
         final_factor: dict,
-        render: dict,
         schedule: Schedule,
         grad_clip: float | None,
         max_steps: int,
@@ -86,14 +49,15 @@ class AvatarModule(Avatar, pl.LightningModule):
         lpips: nn.Module | None = None,
         eval_supersample: int = 1,
     ):
-        super().__init__(body, gaussians, encoder, temporal, deformer, skinning, color, shading, sheet, render)
+        super().__init__()
+        self.avatar = avatar
         self.automatic_optimization = False  # density control edits parameters between optimizer steps
         self.density = density
         self.losses = nn.ModuleDict(losses)  # summed in this order (losses.total_loss)
         for name, term in self.losses.items():
             if not isinstance(term, LossTerm):
                 raise TypeError(f"loss.{name}: {type(term).__name__} is not a realityavatar.losses.LossTerm")
-            term.bind(self)  # what the term draws from the avatar, before any step (and outside torch.compile)
+            term.bind(avatar)  # what the term draws from the avatar, before any step (and outside torch.compile)
         self.optimizer_factory = optimizer
         self.lr = dict(lr)
         self.final_factor = dict(final_factor)
@@ -122,7 +86,7 @@ class AvatarModule(Avatar, pl.LightningModule):
         coarse-to-fine window (schedule.deform_anneal) and the loss terms' scheduled weights. Called every training
         step, and by `load_run` with the checkpoint's step, so a checkpoint saved mid-anneal renders as it trained.
         Outside the compiled graphs: they read tensors this writes, and are not traced again as the step advances."""
-        self.deformer.set_window(self.schedule.deform_window(step))
+        self.avatar.deformer.set_window(self.schedule.deform_window(step))
         for term in self.losses.values():
             term.set_progress(step)
 
@@ -145,9 +109,9 @@ class AvatarModule(Avatar, pl.LightningModule):
 
     def on_fit_start(self) -> None:
         self.run_info["device"] = str(self.device)  # Lightning's teardown moves the module back to the CPU
-        if not bool(self.shading.built):  # the normal grid of shading=irradiance (a checkpoint restores it)
+        if not bool(self.avatar.shading.built):  # the normal grid of shading=irradiance (a checkpoint restores it)
             t0 = time.perf_counter()
-            record = self.shading.init_from_body(self.body.canonical_vertices().detach(), self.body.faces)
+            record = self.avatar.shading.init_from_body(self.avatar.body.canonical_vertices().detach(), self.avatar.body.faces)
             self.run_info["shading_grid"] = {**record, "seconds": time.perf_counter() - t0}
         # The skinning field starts from the body's weights: the MLP is pre-fitted for schedule.skin_pretrain_steps
         # cheap steps on surface samples (learnt from scratch at the paper's small LR it is still far from them after
@@ -157,20 +121,20 @@ class AvatarModule(Avatar, pl.LightningModule):
         if "skin_pretrain" in self.run_info:
             return
         t0 = time.perf_counter()
-        record = self.skinning.init_from_body(self.body.canonical_vertices().detach(), self.body.faces,
-                                              self.body.skin_weights, steps=self.schedule.skin_pretrain_steps)
+        record = self.avatar.skinning.init_from_body(self.avatar.body.canonical_vertices().detach(), self.avatar.body.faces,
+                                              self.avatar.body.skin_weights, steps=self.schedule.skin_pretrain_steps)
         if record is not None:
             self.run_info["skin_pretrain"] = {**record, "seconds": time.perf_counter() - t0}
-        record = self.sheet.canonicalise(self.body, self.skinning)  # sheet.profile=rest, once per run
-        self.run_info["sheet"] = {**self.sheet.layout, **({"canonicalise": record} if record else {})}
+        record = self.avatar.sheet.canonicalise(self.avatar.body, self.avatar.skinning)  # sheet.profile=rest, once per run
+        self.run_info["sheet"] = {**self.avatar.sheet.layout, **({"canonicalise": record} if record else {})}
 
     def training_loss(self, batch: dict, step: int, check: bool = True
                       ) -> tuple[torch.Tensor, dict, TrainingRender, list[dict]]:
         """Render the batch and sum the loss terms: (total, {term: detached value}, the render, rasterizer metas).
         check: the rasterizer's input checks, which read the device (training runs them on log steps only)."""
         self.set_progress(step)
-        rgb, alpha, metas, posed = self.render_batch(batch, deform=self.schedule.deform_on(step), check_finite=check)
-        out = TrainingRender(rgb, alpha, batch, posed, self)
+        rgb, alpha, metas, posed = self.avatar.render_batch(batch, deform=self.schedule.deform_on(step), check_finite=check)
+        out = TrainingRender(rgb, alpha, batch, posed, self.avatar)
         total, terms = self.loss(out)
         return total, terms, out, metas
 
@@ -180,7 +144,7 @@ class AvatarModule(Avatar, pl.LightningModule):
         return total_loss(self.losses, out)
 
     def compile_path(self, mode: str) -> None:
-        """torch.compile (`mode`, one of COMPILE_MODES) the networks' path, `deform` and `shade`, and the losses,
+        """torch.compile (`mode`, one of COMPILE_MODES) the networks' path, the avatar's `deform` and `shade`, and the losses,
         `loss`: one graph each (DYNAMO_CONFIG); the rasterizer and the optimizer stay eager. "none" leaves them eager.
         reduce-overhead replays the graphs as CUDA graphs: each training step then marks a new iteration of them."""
         if mode not in COMPILE_MODES:
@@ -190,9 +154,10 @@ class AvatarModule(Avatar, pl.LightningModule):
         for key, value in DYNAMO_CONFIG.items():
             setattr(torch._dynamo.config, key, value)
         kw = {} if mode == "default" else {"mode": mode}
-        self.deform, self.shade, self.loss = (torch.compile(f, **kw) for f in (self.deform, self.shade, self.loss))
+        a = self.avatar  # its render_batch calls the compiled deform and shade
+        a.deform, a.shade, self.loss = (torch.compile(f, **kw) for f in (a.deform, a.shade, self.loss))
         if self.density.changes_count:
-            self.deform, self.shade, self.loss = self._count_dynamic(self.deform, self.shade, self.loss)
+            a.deform, a.shade, self.loss = self._count_dynamic(a.deform, a.shade, self.loss)
         if mode == "reduce-overhead":
             self.mark_step = torch.compiler.cudagraph_mark_step_begin
 
@@ -210,7 +175,7 @@ class AvatarModule(Avatar, pl.LightningModule):
             mark(posed["opacities"], 0)  # [N]
 
         def deform_any_count(inputs: dict, deform: bool = True) -> dict:
-            for p in self.gaussians.parameters():
+            for p in self.avatar.gaussians.parameters():
                 mark(p, 0)
             return compiled_deform(inputs, deform=deform)
 
@@ -259,7 +224,7 @@ class AvatarModule(Avatar, pl.LightningModule):
         self.run_info["render"] = {"backend": metas[0]["backend"], "device": str(rgb.device), "dtype": str(rgb.dtype),
                                    "resolution": [W, H]}  # the training images' (evaluate: eval.supersample)
         raw = getattr(opt, "optimizer", opt)  # the torch optimizer under Lightning's wrapper
-        stats = self.density.step_post_backward(self.gaussians, raw, metas, step, (W, H))
+        stats = self.density.step_post_backward(self.avatar.gaussians, raw, metas, step, (W, H))
         # Logged values are host tensors: Lightning turns progress-bar values into numbers after every step (a read of a
         # GPU tensor waits for the GPU), and a number it is given becomes a tensor on the module's device (a copy that
         # waits too).
@@ -267,7 +232,7 @@ class AvatarModule(Avatar, pl.LightningModule):
         if log_now:
             for name, v in logged.items():
                 self.log(f"train/{name}", v, prog_bar=name == "loss", batch_size=bs)
-            self.log("train/num_gaussians", torch.tensor(float(self.gaussians.num_points)), prog_bar=True, batch_size=bs)
+            self.log("train/num_gaussians", torch.tensor(float(self.avatar.gaussians.num_points)), prog_bar=True, batch_size=bs)
         # Density control's counts are host ints: a refinement's (cloned / split / pruned / reset) is logged at its step.
         for k, v in stats.items():
             if isinstance(v, (int, float)) and (log_now or k != "num_points"):
@@ -287,9 +252,9 @@ class AvatarModule(Avatar, pl.LightningModule):
 
     def components(self) -> dict[str, nn.Module]:
         """The trained components, in optimizer-group order."""
-        return {"gaussians": self.gaussians, "encoder": self.encoder, "temporal": self.temporal,
-                "deformer": self.deformer, "skinning": self.skinning, "color": self.color, "shading": self.shading,
-                "sheet": self.sheet}
+        a = self.avatar
+        return {"gaussians": a.gaussians, "encoder": a.encoder, "temporal": a.temporal, "deformer": a.deformer,
+                "skinning": a.skinning, "color": a.color, "shading": a.shading, "sheet": a.sheet}
 
     def param_groups(self) -> list[dict]:
         """Optimizer groups as each component names them (`param_groups()`); a group without its own entry in
@@ -320,7 +285,7 @@ class AvatarModule(Avatar, pl.LightningModule):
 
     def on_save_checkpoint(self, checkpoint: dict) -> None:
         checkpoint["density_state"] = self.density.state_dict()
-        checkpoint["num_gaussians"] = self.gaussians.num_points
+        checkpoint["num_gaussians"] = self.avatar.gaussians.num_points
         checkpoint["realityavatar"] = dict(self.run_info)
 
     def on_load_checkpoint(self, checkpoint: dict) -> None:
@@ -338,7 +303,7 @@ class AvatarModule(Avatar, pl.LightningModule):
 
         split = batch["split"][0]
         with torch.no_grad():
-            rgb, alpha, _, _ = self.render_batch(batch, supersample=self.eval_supersample)
+            rgb, alpha, _, _ = self.avatar.render_batch(batch, supersample=self.eval_supersample)
         rgb = rgb.clamp(0, 1)
         garment = batch.get("garment")  # synthetic scenes: the pixels that show the garment
         for b in range(rgb.shape[0]):
@@ -355,25 +320,18 @@ class AvatarModule(Avatar, pl.LightningModule):
         """Frames per second of the full path (encoder .. rasterize) for one camera, synchronised on CUDA."""
         one = {k: (v[:1] if torch.is_tensor(v) else v[:1] if isinstance(v, list) else v) for k, v in batch.items()}
         one = self.device_batch(one)
-        _, _, metas, _ = self.render_batch(one)
+        _, _, metas, _ = self.avatar.render_batch(one)
         self.run_info["fps"] = {"backend": metas[0]["backend"], "device": str(self.device)}
         for _ in range(warmup):
-            self.render_batch(one)
+            self.avatar.render_batch(one)
         if self.device.type == "cuda":
             torch.cuda.synchronize()
         t0 = time.perf_counter()
         for _ in range(repeats):
-            self.render_batch(one)
+            self.avatar.render_batch(one)
         if self.device.type == "cuda":
             torch.cuda.synchronize()
         return repeats / (time.perf_counter() - t0)
-
-    def num_parameters(self) -> int:
-        """Learnable parameters of the avatar: Gaussians and every network (the body model has none); the encoder
-        counts the entries it trains (its part split holds the input layer's off-block entries at zero)."""
-        mine = {id(p) for p in self.encoder.parameters()}
-        rest = sum(p.numel() for p in self.parameters() if p.requires_grad and id(p) not in mine)
-        return int(rest + self.encoder.num_parameters())
 
 
 FROZEN_NETWORKS = ("lpips.", "losses.perceptual.vgg.")  # state-dict prefixes of networks loaded from weight files
