@@ -105,7 +105,7 @@ def extreme_poses(module, dm, n: int = 48, seed: int = 0, show: int = 6) -> dict
     joints = module.avatar.body.joints(poses_w[:, -1], transl_w[:, -1])  # [n,24,3]
     dist = torch.cdist(posed["means"], joints).min(-1).values  # [n,N] distance to the nearest joint
     finite = bool(torch.isfinite(posed["means"]).all() and torch.isfinite(posed["scales"]).all())
-    canonical_scale = float(module.canonical_gaussians()["scales"].max())  # free Gaussians and a sheet's
+    canonical_scale = float(module.avatar.canonical_gaussians()["scales"].max())  # free Gaussians and a sheet's
     trained_scale = training_scale_max(module, dm)
     return {
         "poses": n,
