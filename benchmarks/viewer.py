@@ -54,7 +54,7 @@ def build_viewer(run_dir: Path, num_points: int):
     module = build_module(cfg, body, dm.num_train_frames, dm.scene_extent)
     module.on_fit_start()  # skinning=grid: the weight grid from the body, as at the start of training
     module.eval()
-    return AvatarViewer(module, dm, run_dir, port=0), module, dm
+    return AvatarViewer(module.avatar, dm, run_dir, port=0), module, dm
 
 
 def browser_fps(url: str, seconds: float, playing) -> dict | None:
@@ -93,7 +93,7 @@ def measure_count(run_dir: Path, n: int, frames: int, size: int, browser: bool) 
     try:
         seq = viewer.current
         idx = lambda i=0: i % len(seq.frames)
-        row = {"num_gaussians": int(module.gaussians.num_points)}
+        row = {"num_gaussians": int(module.avatar.gaussians.num_points)}
         # browser path: viewer.show = pose + colour + covariances + viser's buffer (the send runs on viser's thread)
         t = timed(lambda i=0: viewer.show(idx(i)), frames)
         row.update({f"browser_path_update_{k}": v for k, v in t.items()})
@@ -107,14 +107,14 @@ def measure_count(run_dir: Path, n: int, frames: int, size: int, browser: bool) 
         K[:2] *= s
         W, H = round(int(cam["width"]) * s), round(int(cam["height"]) * s)
         vm = cam["viewmat"][None]
-        module.render_cfg["backend"] = "numba"
+        module.avatar.render_cfg["backend"] = "numba"
 
         @torch.no_grad()
         def server_frame(i=0):
             poses, transl = seq.table.window(seq.frames[idx(i)], dm.window_len, dm.window_step)
-            posed = module.deform(module.pose_inputs(poses[None], transl[None]))
-            rgb = module.shade(posed, vm, torch.full((1,), -1, dtype=torch.long))[0]
-            img, _, meta = module.splat(posed, 0, rgb, vm, K[None], W, H)
+            posed = module.avatar.deform(module.avatar.pose_inputs(poses[None], transl[None]))
+            rgb = module.avatar.shade(posed, vm, torch.full((1,), -1, dtype=torch.long))[0]
+            img, _, meta = module.avatar.splat(posed, 0, rgb, vm, K[None], W, H)
             buf = io.BytesIO()
             Image.fromarray((img[0].clamp(0, 1).numpy() * 255).astype(np.uint8)).save(buf, "JPEG", quality=85)
             server_frame.backend = meta["backend"]

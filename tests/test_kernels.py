@@ -195,8 +195,8 @@ def test_the_networks_and_losses_compile_whole():
     batch = step.make_batch_fn(module, 32, int(cfg.data.window_len))()
 
     def networks(b):
-        posed = module.deform(b)
-        return module.shade(posed, b["viewmat"], b["frame_idx"]), posed["means"]
+        posed = module.avatar.deform(b)
+        return module.avatar.shade(posed, b["viewmat"], b["frame_idx"]), posed["means"]
 
     from realityavatar.model.module import DYNAMO_CONFIG
 
@@ -214,7 +214,7 @@ def test_the_networks_and_losses_compile_whole():
 
     from realityavatar.losses import TrainingRender
 
-    rgb, alpha, _, posed = module.render_batch(batch)
+    rgb, alpha, _, posed = module.avatar.render_batch(batch)
     out = TrainingRender(rgb, alpha, batch, posed, module)
     ex = torch._dynamo.explain(module.loss)(out)  # the first call, as in training: nothing drawn while tracing
     assert ex.graph_count == 1 and not ex.break_reasons, [str(r.reason).splitlines()[0] for r in ex.break_reasons]
@@ -252,8 +252,8 @@ def test_compiled_graphs_take_no_host_scalars_as_training_steps_advance():
 
     torch._dynamo.reset()
     with torch._dynamo.config.patch(**DYNAMO_CONFIG):
-        for name in ("deform", "shade", "loss"):
-            setattr(module, name, torch.compile(getattr(module, name), backend=recording(name)))
+        for owner, name in ((module.avatar, "deform"), (module.avatar, "shade"), (module, "loss")):
+            setattr(owner, name, torch.compile(getattr(owner, name), backend=recording(name)))
         first = step.timed_step(cfg)
         step._stub_trainer_hooks(module, opt, sched, first)
         at = {"step": first}
@@ -262,6 +262,6 @@ def test_compiled_graphs_take_no_host_scalars_as_training_steps_advance():
             module.training_step(make_batch(), 0)
             at["step"] += 1
     torch._dynamo.reset()
-    assert 0 < module.deformer.encoding.alpha < module.deformer.encoding.num_freqs
+    assert 0 < module.avatar.deformer.encoding.alpha < module.avatar.deformer.encoding.num_freqs
     assert len(graphs["deform"]) == 1 and len(graphs["shade"]) == 1, {k: len(v) for k, v in graphs.items()}
     assert all(not scalars for g in graphs.values() for scalars in g), graphs

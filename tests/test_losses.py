@@ -172,11 +172,11 @@ def test_every_default_loss_term_reaches_a_trained_parameter():
     S = 32
     mask = torch.zeros(1, S, S, 1)
     mask[:, 4:28, 10:22] = 1.0
-    batch = {**module.pose_inputs(poses, transl), "frame_idx": torch.tensor([0]), "viewmat": E[None],
+    batch = {**module.avatar.pose_inputs(poses, transl), "frame_idx": torch.tensor([0]), "viewmat": E[None],
              "K": torch.tensor([[[30.0, 0, S / 2], [0, 30.0, S / 2], [0, 0, 1]]]), "width": torch.tensor([S]),
              "height": torch.tensor([S]), "image": mask.expand(-1, -1, -1, 3) * 0.5, "mask": mask,
              "mask_dist": mask_distance(mask[0, ..., 0])[None]}
-    rgb, alpha, _, posed = module.render_batch(batch)
+    rgb, alpha, _, posed = module.avatar.render_batch(batch)
     out = TrainingRender(rgb, alpha, batch, posed, module)
     assert {"rgb", "mask", "perceptual", "silhouette"} <= set(module.losses)
     for name, term in module.losses.items():

@@ -123,7 +123,7 @@ def test_frames_renders_on_the_runs_device(trained_run, monkeypatch, tmp_path):
 
     monkeypatch.setattr(frames, "run_device", device_of)
     cfg, module, _ = load_run(trained_run[0])
-    first = build_data(cfg, module.body).datasets["novel_view"].records[0].frame
+    first = build_data(cfg, module.avatar.body).datasets["novel_view"].records[0].frame
     out = tmp_path / "frames.png"
     assert frames.main([str(trained_run[0]), "--frames", str(first), "--out", str(out)]) == 0
     assert asked == ["cpu"] and out.is_file()

@@ -108,7 +108,7 @@ def test_training_opens_the_coarse_to_fine_window_and_a_checkpoint_keeps_it(scen
     run(cfg, choices)
     assert [s for s in steps if s is not None][:4] == list(range(4))
     _, module, _ = load_run(tmp_path / "run")
-    assert module.deformer.encoding.alpha == module.deformer.encoding.num_freqs * 4 / 8
+    assert module.avatar.deformer.encoding.alpha == module.avatar.deformer.encoding.num_freqs * 4 / 8
 
 
 def test_a_box_fitted_to_points_flat_along_an_axis_gives_finite_offsets():

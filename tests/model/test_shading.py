@@ -138,12 +138,12 @@ def test_module_builds_the_grid_before_step_0_and_multiplies_the_colour(body):
 
     cfg = compose(["gaussians.num_points=300", "shading=irradiance", "skinning=grid"])
     module = build_module(cfg, body, num_train_frames=2, scene_extent=1.0)
-    assert isinstance(module.shading, IrradianceShading) and not bool(module.shading.built)
+    assert isinstance(module.avatar.shading, IrradianceShading) and not bool(module.avatar.shading.built)
     assert "shading" in {g["name"] for g in module.param_groups()}
     module.on_fit_start()
-    assert bool(module.shading.built) and "shading_grid" in module.run_info
+    assert bool(module.avatar.shading.built) and "shading_grid" in module.run_info
     with torch.no_grad():
-        module.shading.coeffs[3] = -2.0
+        module.avatar.shading.coeffs[3] = -2.0
     poses = torch.zeros(1, 3, 24, 3)
     turned = poses.clone()
     turned[..., 0, 1] = math.pi  # the root turned half a circle about the vertical axis
@@ -151,13 +151,13 @@ def test_module_builds_the_grid_before_step_0_and_multiplies_the_colour(body):
     viewmat[0, 2, 3] = 3.0
     idx = torch.zeros(1, dtype=torch.long)
     with torch.no_grad():
-        posed = module.deform(module.pose_inputs(poses, torch.zeros(1, 3, 3)))
-        rgb = module.shade(posed, viewmat, idx)
-        light = module.shading(posed["x_e"], posed["rot"])
-        posed_turned = module.deform(module.pose_inputs(turned, torch.zeros(1, 3, 3)))
-        light_turned = module.shading(posed_turned["x_e"], posed_turned["rot"])
-        module.shading = NoShading()
-        base = module.shade(posed, viewmat, idx)
+        posed = module.avatar.deform(module.avatar.pose_inputs(poses, torch.zeros(1, 3, 3)))
+        rgb = module.avatar.shade(posed, viewmat, idx)
+        light = module.avatar.shading(posed["x_e"], posed["rot"])
+        posed_turned = module.avatar.deform(module.avatar.pose_inputs(turned, torch.zeros(1, 3, 3)))
+        light_turned = module.avatar.shading(posed_turned["x_e"], posed_turned["rot"])
+        module.avatar.shading = NoShading()
+        base = module.avatar.shade(posed, viewmat, idx)
     assert torch.allclose(rgb, base * light)
     assert not torch.allclose(light, torch.ones_like(light))
     assert (light_turned - light).abs().max() > 0.5  # same canonical Gaussians and pose features, other heading
@@ -172,13 +172,13 @@ def test_export_bakes_the_light_of_the_pose(body):
                           scene_extent=1.0)
     module.on_fit_start()
     poses, transl = torch.zeros(3, 24, 3), torch.zeros(3, 3)
-    plain = gaussians_for_export(module, poses, transl)["rgb"]  # coefficients 0: E = 1
+    plain = gaussians_for_export(module.avatar, poses, transl)["rgb"]  # coefficients 0: E = 1
     with torch.no_grad():
-        module.shading.coeffs[0] = -1.0  # everything darker by exp(-Y_0)
-    lit = gaussians_for_export(module, poses, transl)["rgb"]
+        module.avatar.shading.coeffs[0] = -1.0  # everything darker by exp(-Y_0)
+    lit = gaussians_for_export(module.avatar, poses, transl)["rgb"]
     factor = math.exp(-0.28209479177387814)
     assert abs(float((lit / plain.clip(1e-6)).mean()) - factor) < 1e-3
-    assert "sh" not in gaussians_for_export(module) and "rgb" in gaussians_for_export(module)
+    assert "sh" not in gaussians_for_export(module.avatar) and "rgb" in gaussians_for_export(module.avatar)
 
 
 def test_grids_share_the_nearest_sample_query_only_for_the_same_voxel_centres(body):
@@ -250,12 +250,12 @@ def test_learnt_normal_grid_is_one_parameter_through_build_and_checkpoint(body):
     module = build_module(cfg, body, num_train_frames=2, scene_extent=1.0)
     groups = {g["name"]: g for g in module.param_groups()}
     assert groups["shading_normals"]["lr"] == cfg.optim.lr.shading_normals
-    grid = module.shading.grid
+    grid = module.avatar.shading.grid
     module.on_fit_start()
-    assert module.shading.grid is grid and grid.shape[2:] != (2, 2, 2)
+    assert module.avatar.shading.grid is grid and grid.shape[2:] != (2, 2, 2)
     fresh = instantiate(cfg.shading)
-    fresh.load_state_dict(module.shading.state_dict())
-    assert fresh.grid.requires_grad and torch.equal(fresh.grid, module.shading.grid)
+    fresh.load_state_dict(module.avatar.shading.state_dict())
+    assert fresh.grid.requires_grad and torch.equal(fresh.grid, module.avatar.shading.grid)
     assert "shading_normals" not in {g["name"] for g in build_module(
         compose(["gaussians.num_points=300", "shading=irradiance", "shading.normals=body"]), body, num_train_frames=2,
         scene_extent=1.0).param_groups()}

@@ -92,7 +92,7 @@ def test_rest_sheet_is_laid_out_at_the_hem_and_poses_back_onto_its_layout(scenes
     from realityavatar.model.skinning import lbs_gaussians
 
     body, _, module = _ci_sheet_module()
-    sh = module.sheet
+    sh = module.avatar.sheet
     lay = sh.layout
     assert lay["profile"] == "rest" and -0.9 < lay["bottom"] < 0.08 - 0.15
     assert all(0.05 < r < 0.4 for r in lay["radii"])
@@ -102,7 +102,7 @@ def test_rest_sheet_is_laid_out_at_the_hem_and_poses_back_onto_its_layout(scenes
     A = body.canonical_transforms(sh.rest_pose[None], sh.rest_transl[None])
     q = torch.zeros(1, sh.vertices.shape[0], 4)
     q[..., 0] = 1.0
-    posed = lbs_gaussians(sh.vertices[None], q, module.skinning(sh.vertices[None]), A)[0][0]
+    posed = lbs_gaussians(sh.vertices[None], q, module.avatar.skinning(sh.vertices[None]), A)[0][0]
     assert float((posed - sh.posed_rest).norm(dim=-1).max()) < 1e-3
     first = sh.vertices.clone()
     module.on_fit_start()  # once per run
@@ -136,15 +136,15 @@ def test_sheet_trains_beside_the_free_gaussians_and_reloads(scenes_root, tmp_pat
                                         "eval.save_images=0"]), tmp_path / "run")
     run(cfg, choices)
     _, module, _ = load_run(tmp_path / "run")
-    assert module.sheet.num_points == 4 * 12 * 2 and "sheet_strain" in module.losses
+    assert module.avatar.sheet.num_points == 4 * 12 * 2 and "sheet_strain" in module.losses
     import json
 
     m = json.loads((tmp_path / "run" / "metrics.json").read_text())
     assert np.isfinite(m["test/novel_view/psnr"])
-    assert m["num_gaussians"] == module.gaussians.num_points  # density control edited the free Gaussians only
+    assert m["num_gaussians"] == module.avatar.gaussians.num_points  # density control edited the free Gaussians only
     assert m["num_sheet_gaussians"] == 96 and m["sheet"]["profile"] == "rest"
-    assert not math.isclose(float(module.sheet.opacity_logits.std()), 0.0)  # the sheet was trained
-    assert float(module.sheet.basis.abs().max()) > 0  # its motion basis too (zero at the start), and it reloads
+    assert not math.isclose(float(module.avatar.sheet.opacity_logits.std()), 0.0)  # the sheet was trained
+    assert float(module.avatar.sheet.basis.abs().max()) > 0  # its motion basis too (zero at the start), and it reloads
     groups = {g["name"]: g["lr"] for g in module.param_groups()}
     assert groups["sheet_basis"] == groups["sheet_coeff"] == groups["deformer"]
 
@@ -155,14 +155,14 @@ def test_export_and_viewer_frames_carry_the_sheet(scenes_root):
     from realityavatar.export import gaussians_for_export
 
     _, dm, module = _ci_sheet_module(rows=4, per_cell=2)
-    n = module.gaussians.num_points + module.sheet.num_points
+    n = module.avatar.gaussians.num_points + module.avatar.sheet.num_points
     batch = next(iter(dm.train_dataloader()))
     for poses, transl in ((None, None), (batch["poses"][0], batch["transl"][0])):
-        out = gaussians_for_export(module, poses, transl)
+        out = gaussians_for_export(module.avatar, poses, transl)
         assert {k: v.shape[0] for k, v in out.items()} == {k: n for k in out}, {k: v.shape for k, v in out.items()}
         assert np.isfinite(out["means"]).all() and np.isfinite(out["rgb"]).all()
-    can = gaussians_for_export(module)["means"][module.gaussians.num_points:]
-    assert np.allclose(can, module.sheet.place(module.sheet.vertices[None])["means"][0].detach().numpy(), atol=1e-6)
+    can = gaussians_for_export(module.avatar)["means"][module.avatar.gaussians.num_points:]
+    assert np.allclose(can, module.avatar.sheet.place(module.avatar.sheet.vertices[None])["means"][0].detach().numpy(), atol=1e-6)
 
 
 def test_a_cell_torn_open_caps_its_gaussians_stretch():

@@ -141,19 +141,19 @@ def test_skinning_query_reads_the_weights_where_it_says(scenes_root, query):
     body = instantiate(cfg.body)
     dm = build_data(cfg, body)
     module = build_module(cfg, body, dm.num_train_frames, dm.scene_extent, data=dm)
-    assert type(module.skinning.query).__name__ == query
-    module.skinning.init_from_body(body.canonical_vertices().detach(), body.faces, body.skin_weights, steps=0)
-    forward = module.deformer.forward
+    assert type(module.avatar.skinning.query).__name__ == query
+    module.avatar.skinning.init_from_body(body.canonical_vertices().detach(), body.faces, body.skin_weights, steps=0)
+    forward = module.avatar.deformer.forward
 
     def far(*args, **kwargs):  # the decoder moves every point 40 cm along x
         out = forward(*args, **kwargs)
         return {**out, "dx": out["dx"] + torch.tensor([0.4, 0.0, 0.0])}
 
-    module.deformer.forward = far
+    module.avatar.deformer.forward = far
     b = default_collate([dm.datasets["train"][0]])
     with torch.no_grad():
-        posed = module.deform(b)
-        at_rest, moved = module.skinning(module.gaussians.means), module.skinning(posed["x_e"][0])
+        posed = module.avatar.deform(b)
+        at_rest, moved = module.avatar.skinning(module.avatar.gaussians.means), module.avatar.skinning(posed["x_e"][0])
     expected, other = (at_rest, moved) if query == "AtCanonical" else (moved, at_rest)
     assert torch.allclose(posed["weights"][0], expected, atol=1e-6)
     assert (posed["weights"][0] - other).abs().max() > 0.1

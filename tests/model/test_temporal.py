@@ -45,10 +45,10 @@ def test_trained_lstm_model_depends_on_motion_history(trained_run):
     from realityavatar.build import load_run
 
     _, module, _ = load_run(trained_run[0])
-    assert isinstance(module.temporal, RecurrentTemporal)
+    assert isinstance(module.avatar.temporal, RecurrentTemporal)
     still, spin, transl = _still_and_spin(module.run_info.get("window_len", 6))
     with torch.no_grad():
-        diff = (module.deform(module.pose_inputs(still, transl))["means"] - module.deform(module.pose_inputs(spin, transl))["means"]).norm(dim=-1)
+        diff = (module.avatar.deform(module.avatar.pose_inputs(still, transl))["means"] - module.avatar.deform(module.avatar.pose_inputs(spin, transl))["means"]).norm(dim=-1)
     # 60 CPU steps move the zero-initialised decoder output only a little (~1e-5 m); the sweep-scale effect is
     # measured by python -m realityavatar.analysis.probe. What must hold: with an LSTM the history moves every Gaussian.
     assert float(diff.min()) > 1e-7 and float(diff.mean()) > 2e-6, f"history moved the Gaussians {float(diff.mean()):.2e} m"
@@ -62,14 +62,14 @@ def test_model_without_temporal_module_ignores_motion_history():
 
     module = build_module(compose(["temporal=none", "gaussians.num_points=300"]), build_body("mannequin"),
                           num_train_frames=2, scene_extent=1.0)
-    assert isinstance(module.temporal, NoTemporal)
+    assert isinstance(module.avatar.temporal, NoTemporal)
     still, spin, transl = _still_and_spin(4)
     g = torch.Generator().manual_seed(0)
     with torch.no_grad():
-        start = module.deform(module.pose_inputs(still, transl))["means"]
-        for part in (module.encoder, module.temporal, module.deformer):
+        start = module.avatar.deform(module.avatar.pose_inputs(still, transl))["means"]
+        for part in (module.avatar.encoder, module.avatar.temporal, module.avatar.deformer):
             for p in part.parameters():
                 p.add_(0.05 * torch.randn(p.shape, generator=g))
-        a, b = module.deform(module.pose_inputs(still, transl))["means"], module.deform(module.pose_inputs(spin, transl))["means"]
+        a, b = module.avatar.deform(module.avatar.pose_inputs(still, transl))["means"], module.avatar.deform(module.avatar.pose_inputs(spin, transl))["means"]
     assert float((a - start).norm(dim=-1).mean()) > 1e-3, "the decoder does not move the Gaussians: nothing is checked"
     assert float((a - b).norm(dim=-1).max()) == 0.0
