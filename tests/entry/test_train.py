@@ -134,7 +134,7 @@ def test_resume_continues_from_checkpoint_step(trained_run, tmp_path):
     from realityavatar.train import run
 
     out, _ = trained_run
-    state = torch.load(out / "last.ckpt", map_location="cpu", weights_only=False)
+    state = torch.load(out / "last.ckpt", map_location="cpu", weights_only=True)
     assert state["global_step"] == ITERATIONS
     cfg, choices = _prepare(
         compose([*TRAINED_RUN, f"iterations={ITERATIONS + 10}", f"ckpt_path={out / 'last.ckpt'}", "test_after_fit=false"]),

@@ -125,9 +125,9 @@ def test_density_control_fires_inside_the_training_loop(trained_run):
                                                                       "train/density_pruned")}
     assert sum(fired.values()) > 0, f"refinement never changed the Gaussians: {fired}"
     assert metrics["num_gaussians"] != NUM_POINTS
-    state = torch.load(out / "last.ckpt", map_location="cpu", weights_only=False)
+    state = torch.load(out / "last.ckpt", map_location="cpu", weights_only=True)
     N = metrics["num_gaussians"]
-    assert state["state_dict"]["gaussians.means"].shape[0] == N
+    assert state["state_dict"]["avatar.gaussians.means"].shape[0] == N
     opt = state["optimizer_states"][0]
     sched = state["lr_schedulers"][0]
     assert len(sched["base_lrs"]) == len(opt["param_groups"]) and sched["last_epoch"] == ITERATIONS
@@ -137,7 +137,7 @@ def test_density_control_fires_inside_the_training_loop(trained_run):
             continue
         (idx,) = group["params"]
         st = opt["state"][idx]
-        shape = tuple(state["state_dict"][f"gaussians.{group['name']}"].shape)
+        shape = tuple(state["state_dict"][f"avatar.gaussians.{group['name']}"].shape)
         assert tuple(st["exp_avg"].shape) == shape == tuple(st["exp_avg_sq"].shape), group["name"]
         assert st["exp_avg_sq"].abs().sum() > 0, f"{group['name']}: Adam state lost at refinement"
         f = cfg.optim.final_factor.get(group["name"], cfg.optim.final_factor.default)

@@ -133,7 +133,7 @@ def test_checkpoint_with_refined_gaussians_restores_model_and_optimizer(trained_
     from realityavatar.build import build_module
 
     out, metrics = trained_run
-    state = torch.load(out / "last.ckpt", map_location="cpu", weights_only=False)
+    state = torch.load(out / "last.ckpt", map_location="cpu", weights_only=True)
     cfg = compose(TRAINED_RUN)
     module = build_module(cfg, body, state["realityavatar"]["num_train_frames"], state["realityavatar"]["scene_extent"])
     assert module.avatar.gaussians.num_points == NUM_POINTS != metrics["num_gaussians"]
