@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import multiprocessing as mp
 import platform
 import resource
@@ -19,53 +18,7 @@ from pathlib import Path
 
 import torch
 
-
-def human_scene(n: int, size: int, seed: int = 0, device: str = "cpu", dtype=torch.float32):
-    """N Gaussians on a 1.7 m body-like shape (head, torso, arms, legs), one camera 3 m away filling the image.
-
-    World is z-up, the person stands at the origin facing -y; scales 5-15 mm, opacities mostly high.
-    Returns the positional arguments of `rasterize` minus width/height.
-    """
-    g = torch.Generator().manual_seed(seed)
-    # (centre xyz, radii xyz) of ellipsoids; points are sampled on their surfaces in proportion to area
-    parts = [
-        ((0.0, 0.0, 1.62), (0.09, 0.10, 0.12)),  # head
-        ((0.0, 0.0, 1.47), (0.05, 0.05, 0.06)),  # neck
-        ((0.0, 0.0, 1.18), (0.18, 0.11, 0.27)),  # torso
-        ((0.0, 0.0, 0.92), (0.17, 0.11, 0.12)),  # hips
-        ((-0.09, 0.0, 0.45), (0.07, 0.07, 0.42)),  # legs
-        ((0.09, 0.0, 0.45), (0.07, 0.07, 0.42)),
-        ((-0.24, 0.0, 1.08), (0.045, 0.045, 0.33)),  # arms
-        ((0.24, 0.0, 1.08), (0.045, 0.045, 0.33)),
-        ((-0.09, -0.05, 0.03), (0.05, 0.11, 0.03)),  # feet
-        ((0.09, -0.05, 0.03), (0.05, 0.11, 0.03)),
-    ]
-    centre = torch.tensor([p[0] for p in parts])
-    radii = torch.tensor([p[1] for p in parts])
-    # approximate ellipsoid area (Knud Thomsen) for the sampling weights
-    a, b, c = radii.unbind(-1)
-    pw = 1.6075
-    area = 4 * math.pi * (((a * b) ** pw + (a * c) ** pw + (b * c) ** pw) / 3) ** (1 / pw)
-    part = torch.multinomial(area / area.sum(), n, replacement=True, generator=g)
-    d = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1)
-    shell = 1.0 + 0.03 * torch.randn(n, 1, generator=g)  # a little thickness, like cloth over skin
-    means = centre[part] + radii[part] * d * shell
-    scales = torch.exp(torch.empty(n, 3).uniform_(math.log(0.005), math.log(0.015), generator=g))
-    quats = torch.randn(n, 4, generator=g)
-    opac = torch.where(torch.rand(n, generator=g) < 0.75, torch.empty(n).uniform_(0.6, 1.0, generator=g),
-                       torch.empty(n).uniform_(0.05, 0.6, generator=g))
-    colors = torch.rand(n, 3, generator=g)
-    # OpenCV camera at (0,-3,0.85) looking along +y: x_cam = x, y_cam = -z, z_cam = y
-    R = torch.tensor([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]])
-    campos = torch.tensor([0.0, -3.0, 0.85])
-    vm = torch.eye(4)
-    vm[:3, :3] = R
-    vm[:3, 3] = -R @ campos
-    f = 0.92 * size * 3.0 / 1.7  # the 1.7 m person spans ~92% of the image height
-    K = torch.tensor([[f, 0, size / 2], [0, f, size / 2], [0, 0, 1.0]])
-    out = [means, quats, scales, opac, colors, vm[None], K[None]]
-    return [t.to(device=device, dtype=dtype) for t in out]
-
+from realityavatar.render.reference import human_scene  # the renderer tests' scene
 
 _loadavg_before: list = []
 

@@ -1,4 +1,4 @@
-"""What several test packages share: the repository's paths and the benchmarks' scripts as modules."""
+"""What several test packages share: the repository's paths and the benchmarks' scripts as modules (for their tests)."""
 
 from __future__ import annotations
 
@@ -19,11 +19,6 @@ def benchmark(name: str):
         sys.modules[key] = module
         spec.loader.exec_module(module)
     return sys.modules[key]
-
-
-def human_scene(*args, **kwargs):
-    """The benchmarks' human-shaped test scene (benchmarks/render.py)."""
-    return benchmark("render").human_scene(*args, **kwargs)
 
 
 def random_poses(B: int = 2, T: int = 5, seed: int = 0):

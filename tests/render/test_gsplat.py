@@ -13,7 +13,7 @@ import torch
 
 import realityavatar.render.splat as rast_mod
 from realityavatar.render import rasterize
-from tests.helpers import human_scene
+from realityavatar.render.reference import human_scene
 from tests.render.scenes import random_scene
 
 

@@ -8,8 +8,7 @@ import torch
 from omegaconf import OmegaConf
 
 from realityavatar.render import rasterize
-from realityavatar.render.reference import rasterize_reference
-from tests.helpers import human_scene
+from realityavatar.render.reference import human_scene, rasterize_reference
 from tests.render.scenes import CONF, F64, gradcheck_gaussians, look_at, random_scene, single_gaussian
 
 nb = pytest.importorskip("realityavatar.render.numba_backend")

@@ -12,8 +12,7 @@ from omegaconf import OmegaConf
 import realityavatar.render.splat as rast_mod
 from realityavatar.geometry import camera_centres
 from realityavatar.render import eval_sh, rasterize, sh_basis
-from realityavatar.render.reference import rasterize_reference
-from tests.helpers import human_scene
+from realityavatar.render.reference import human_scene, rasterize_reference
 from tests.render.scenes import CONF, F64, gradcheck_gaussians, look_at, random_scene, single_gaussian
 
 
