@@ -155,8 +155,7 @@ def evaluate_module(module, dm, trainer, cfg, out_dir: Path) -> dict:
         try:
             trainer.test(module, dataloaders=split_loader(dm, split, ev.get("max_frames_per_split")), verbose=False)
             phases = motion_phases(dm, split)
-            scored = protocol_scores(module.test_records, dm, module.avatar.body, protocol, getattr(module, "lpips", None)
-                                     if any("lpips" in r for r in module.test_records) else None)
+            scored = protocol_scores(module.test_records, dm, module.avatar.body, protocol, module.lpips)
             records += [{**r, "phase": phases.get(r["frame"], "all")} for r in scored]
         except Exception as e:  # noqa: BLE001 - recorded; the other split still runs
             errors[f"test/{split}"] = f"{type(e).__name__}: {e}"

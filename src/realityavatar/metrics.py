@@ -52,6 +52,12 @@ def _gaussian_1d(size: int = 11, sigma: float = 1.5, device=None) -> torch.Tenso
     return g / g.sum()  # [size] float64
 
 
+def _ssim_index(mx, my, vx, vy, vxy):
+    """Wang et al.'s SSIM from local means, variances and covariance (any shape), K1=0.01, K2=0.03, data range 1."""
+    c1, c2 = 0.01**2, 0.03**2
+    return ((2 * mx * my + c1) * (2 * vxy + c2)) / ((mx * mx + my * my + c1) * (vx + vy + c2))
+
+
 def ssim_map(pred: torch.Tensor, gt: torch.Tensor, window: int = 11, sigma: float = 1.5) -> torch.Tensor:
     """Local SSIM of each 'valid' window position, averaged over channels: [B,H-2r,W-2r] float64 (r = window // 2;
     `ssim` is its mean). Images smaller than the window are edge-padded up to it first."""
@@ -84,9 +90,7 @@ def ssim_map(pred: torch.Tensor, gt: torch.Tensor, window: int = 11, sigma: floa
     sxx = filt(x * x) - mx * mx
     syy = filt(y * y) - my * my
     sxy = filt(x * y) - mx * my
-    c1, c2 = 0.01**2, 0.03**2
-    s = ((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx * mx + my * my + c1) * (sxx + syy + c2))
-    return s.mean(1)
+    return _ssim_index(mx, my, sxx, syy, sxy).mean(1)
 
 
 def ssim(pred: torch.Tensor, gt: torch.Tensor, window: int = 11, sigma: float = 1.5) -> torch.Tensor:
@@ -119,9 +123,8 @@ def ssim_skimage(pred: torch.Tensor, gt: torch.Tensor, window: int = 7) -> torch
     mx, my = filt(x), filt(y)
     vx, vy = cov * (filt(x * x) - mx * mx), cov * (filt(y * y) - my * my)
     vxy = cov * (filt(x * y) - mx * my)
-    c1, c2 = 0.01**2, 0.03**2
-    s = ((2 * mx * my + c1) * (2 * vxy + c2)) / ((mx * mx + my * my + c1) * (vx + vy + c2))
-    out = s.flatten(2).mean(2).mean(1)  # per channel, then over channels (skimage's channel_axis)
+    # per channel, then over channels (skimage's channel_axis)
+    out = _ssim_index(mx, my, vx, vy, vxy).flatten(2).mean(2).mean(1)
     return out[0] if single else out
 
 
@@ -138,9 +141,7 @@ def ssim_3dgs(pred: torch.Tensor, gt: torch.Tensor, window: int = 11, sigma: flo
     filt = lambda t: F.conv2d(t, w, padding=r, groups=C)
     mx, my = filt(x), filt(y)
     sxx, syy, sxy = filt(x * x) - mx * mx, filt(y * y) - my * my, filt(x * y) - mx * my
-    c1, c2 = 0.01**2, 0.03**2
-    s = ((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx * mx + my * my + c1) * (sxx + syy + c2))
-    out = s.flatten(1).mean(1)
+    out = _ssim_index(mx, my, sxx, syy, sxy).flatten(1).mean(1)
     return out[0] if single else out
 
 
@@ -336,10 +337,6 @@ class EvalProtocol:
             p_in, g_in = (p, g) if self.lpips_range == "[-1,1]" else ((p + 1) / 2, (g + 1) / 2)
             out["lpips"] = float(lpips(p_in, g_in)) * 1000.0
         return out
-
-
-def _ssim_ours(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
-    return ssim(pred, gt)
 
 
 PROTOCOLS = {
