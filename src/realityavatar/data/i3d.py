@@ -35,7 +35,7 @@ FOLDERS = {"train": "train", "novel_view": "novelview", "novel_pose": "novelpose
 # {'poses': [23,3] (joints 1..23; the root's rotation is Rh) or [72], 'Rh': [3], 'Th': [3]}.
 FRAMEID_POSE = "frameid_pose.pkl"
 # Synthetic scenes only: the pixels whose surface is the garment (the scene builder's ray hits on the cloth mesh), which
-# evaluation scores on their own (metrics.garment_metrics). Never read for training: a real capture has none.
+# evaluation scores on their own (metrics.image_metrics). Never read for training: a real capture has none.
 GARMENT_FOLDER = "garment_masks"
 FRAME_NAME = re.compile(r"^frame_(\d+)(?:_view_(\d+))?$")
 
