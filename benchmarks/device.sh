@@ -18,6 +18,10 @@
 # overrides to the paper_scale run (e.g. data.num_workers=2). LOADER=1 times the training process's work per paper_scale
 # batch moved to the GPU, with the training set on the host and kept on the GPU (data.device_cache).
 # COMPILE=auto: the STEP_COMPILE mode whose step was fastest in this call if 30 % faster than eager, else none.
+# PAPER_VARIANTS="name:overrides;name:overrides" trains each as `+experiment=paper_scale <PAPER_ARGS> <its overrides>`, all at
+# once on the one GPU (PAPER_THREADS CPU threads each), evaluates each at 512² (the garment per motion phase) and brings
+# back their metrics, logs, held-out grids and checkpoints (those under 16 MiB); PAPER_VARIANTS_S caps their training
+# time (default: what DEADLINE leaves after PAPER_RESERVE).
 # STEP_ARGS="<step.py arguments>" adds them to every step row (e.g. "--override density=off": a fixed Gaussian count,
 # which compiled graphs specialise on; with density control they take it as dynamic).
 #
@@ -57,7 +61,7 @@ print('gsplat_status:', gsplat_status()[-1500:], '| build_s', round(time.time() 
 # The scenes the trainings below read, built by their own data configs while the gpu tests run (ray casting on every
 # core, after gsplat's build: beside it, nvcc took 225 s instead of 85 s on an H100). The step profile waits for
 # them: no timing shares the CPU.
-SCENES=(); [ -n "${PAPER_SCALE:-}${PAPER_SCENE:-}" ] && SCENES+=("+experiment=paper_scale")  # *_SCENE=1: for a later call
+SCENES=(); [ -n "${PAPER_SCALE:-}${PAPER_SCENE:-}${PAPER_VARIANTS:-}" ] && SCENES+=("+experiment=paper_scale ${PAPER_ARGS:-}")  # *_SCENE=1: for a later call
 # the sweep scene: the sweep preset's, and the one paper_scale is evaluated on beside it (below)
 [ -n "${SWEEP:-}${SWEEP_SCENE:-}${PAPER_SCALE:-}${PAPER_SCENE:-}" ] && SCENES+=("+preset=sweep data=synthetic_sweep")
 if [ ${#SCENES[@]} -gt 0 ]; then
@@ -157,6 +161,26 @@ if [ -n "${PAPER_SCALE:-}" ]; then
   el "+experiment=paper_scale ${RESUME[*]} (training stops after ${PAPER_SCALE}s more: max_time $MAXT)"
   run_train "$PWD" "$WORK/paper_scale" $(( $(left) - 5 )) +experiment=paper_scale +trainer.max_time=$MAXT \
     +trainer.profiler=simple ${COMPILE:+compile=$COMPILE} "${RESUME[@]}" ${PAPER_ARGS:-}
+fi
+if [ -n "${PAPER_VARIANTS:-}" ]; then
+  # Several paper_scale variants trained side by side on the one GPU (each step is host-bound: ~4 ms of kernels in a
+  # ~22 ms eager step), each stopped by Lightning's max_time if its iterations do not fit, then tested at 512².
+  S=$(( $(left) - ${PAPER_RESERVE:-110} )); [ -n "${PAPER_VARIANTS_S:-}" ] && [ "$PAPER_VARIANTS_S" -lt "$S" ] && S=$PAPER_VARIANTS_S
+  MAXT=$(printf '00:%02d:%02d:%02d' $((S / 3600)) $((S % 3600 / 60)) $((S % 60)))
+  IFS=";" read -ra VARIANTS <<< "$PAPER_VARIANTS"; PIDS=()
+  for V in "${VARIANTS[@]}"; do NAME=${V%%:*}; read -ra OV <<< "${V#*:}"
+    el "paper_scale variant $NAME: ${OV[*]} (training stops after ${S}s at the latest)"
+    run_train "$PWD" "$WORK/$NAME" $(( $(left) - 5 )) +experiment=paper_scale +trainer.max_time=$MAXT \
+      threads=${PAPER_THREADS:-4} ${PAPER_ARGS:-} "${OV[@]}" > "$WORK/$NAME.summary" 2>&1 &
+    PIDS+=($!)
+  done
+  wait "${PIDS[@]}"; el "paper_scale variants done"
+  for V in "${VARIANTS[@]}"; do NAME=${V%%:*}; echo "== $NAME"; cat "$WORK/$NAME.summary"
+    [ -f "$WORK/$NAME/metrics.json" ] && python3 -c "import json, sys; from realityavatar.evaluate import format_table
+print(format_table(json.load(open(sys.argv[1]))))" "$WORK/$NAME/metrics.json"  # a row per split and motion phase
+    [ -f "$WORK/$NAME/last.ckpt" ] && [ "$(stat -c %s "$WORK/$NAME/last.ckpt")" -lt 16000000 ] && cp "$WORK/$NAME/last.ckpt" "$OUT/$NAME.ckpt"
+  done
+  (cd "$WORK" && tar czf "$OUT/grids.tgz" */images/*.png 2>/dev/null)
 fi
 if [ -n "${PAPER_SCALE:-}${PAPER_EVAL:-}" ] && [ -f "$WORK/paper_scale/metrics.json" ] && [ "$(left)" -gt 40 ]; then
   # Beside the CPU sweep preset on equal terms: the 512 px model on the sweep scene (the same sequence and cameras at
