@@ -13,6 +13,7 @@ from omegaconf import OmegaConf, open_dict
 from torch.utils.data import default_collate
 
 from realityavatar.data.datamodule import AvatarDataModule, composite
+from realityavatar.data.i3d import I3DReader
 from realityavatar.data.poses import PoseTable
 from tests.fixtures_data import SIZE, RandomBody, project, write_i3d, write_zju
 from tests.helpers import CONF
@@ -41,7 +42,7 @@ def compose_data(option: str):
 
 
 def make(scene_root, body, **kw):
-    dm = AvatarDataModule(str(scene_root), "seq", body=body, **{"window_len": 3, "window_step": 2, **kw})
+    dm = AvatarDataModule(str(scene_root), "seq", I3DReader(1), body=body, **{"window_len": 3, "window_step": 2, **kw})
     dm.setup("fit")
     return dm
 
@@ -190,9 +191,9 @@ def test_pose_sequence_and_window_for(scene_root, body):
 
 def test_cache_images_keeps_decoded_images(tmp_path, body):
     write_i3d(tmp_path, "c", body, train_frames=(0, 1), pose_frames=(2,), train_views=(0,), test_views=(1,))
-    dm = AvatarDataModule(str(tmp_path), "c", body=body, cache_images=True)
+    dm = AvatarDataModule(str(tmp_path), "c", I3DReader(1), body=body, cache_images=True)
     dm.setup()
-    dm2 = AvatarDataModule(str(tmp_path), "c", body=body, cache_images=False)
+    dm2 = AvatarDataModule(str(tmp_path), "c", I3DReader(1), body=body, cache_images=False)
     dm2.setup()
     first = dm.datasets["train"][0]["pixels"]
     dm.datasets["train"].records[0].image_path.unlink()
@@ -230,19 +231,21 @@ def test_pose_inputs_are_made_once_per_frame(scene_root, body, monkeypatch):
 
 def test_missing_scene_folder_error_says_how_to_get_it(tmp_path):
     """The folder could be I3D-Human's (downloaded) or an embedded scene's (built): the error says both."""
-    dm = AvatarDataModule(str(tmp_path), "demo_skirt_spin")
+    dm = AvatarDataModule(str(tmp_path), "demo_skirt_spin", I3DReader(1))
     with pytest.raises(FileNotFoundError, match=r"scene folder .*demo_skirt_spin-train not found; I3D-Human: download "
                                                 r"it .* set I3D_ROOT or data\.root; an embedded scene: build it with"):
         dm.setup()
 
 
 def test_bad_arguments_fail_fast():
-    with pytest.raises(ValueError, match="unknown reader 'h36m'"):
-        AvatarDataModule("x", "y", reader="h36m")
+    with pytest.raises(TypeError, match=r"data\.reader: expected a scene reader .*, got 'i3d'"):
+        AvatarDataModule("x", "y", reader="i3d")  # a config from before the readers were components
     with pytest.raises(ValueError, match="background"):
-        AvatarDataModule("x", "y", background=[0, 0])
+        AvatarDataModule("x", "y", I3DReader(1), background=[0, 0])
     with pytest.raises(TypeError, match=r"data.device_cache: expected true or false, got .no."):
-        AvatarDataModule("x", "y", device_cache="no")
+        AvatarDataModule("x", "y", I3DReader(1), device_cache="no")
+    with pytest.raises(ValueError, match=r"data\.reader\.frame_interval: expected a whole number >= 1"):
+        I3DReader(0)
 
 
 def test_build_preset_builds_missing_scene(tmp_path, body, monkeypatch):
@@ -257,19 +260,23 @@ def test_build_preset_builds_missing_scene(tmp_path, body, monkeypatch):
         return Path(root) / f"{sequence}_{preset}"
 
     monkeypatch.setattr(synthetic, "build_scene", fake_build)
-    dm = AvatarDataModule(str(tmp_path), "skirt_spin_ci", body=body, build_preset="ci", build_sequence="skirt_spin")
+    dm = AvatarDataModule(str(tmp_path), "skirt_spin_ci", I3DReader(1), body=body, build_preset="ci",
+                          build_sequence="skirt_spin")
     dm.prepare_data()
     dm.setup()
     assert calls == [("ci", str(tmp_path), 0, "skirt_spin")] and dm.num_train_frames == 2
-    bad = AvatarDataModule(str(tmp_path), "other_name", body=body, build_preset="ci", build_sequence="skirt_spin")
+    bad = AvatarDataModule(str(tmp_path), "other_name", I3DReader(1), body=body, build_preset="ci",
+                           build_sequence="skirt_spin")
     with pytest.raises(FileNotFoundError, match="set data.sequence to 'skirt_spin_ci'"):
         bad.prepare_data()
 
 
 def test_zju_datamodule(tmp_path, body):
     write_zju(tmp_path, "CoreView_377", body, n_frames=6, cams=("1", "2", "3"))
-    dm = AvatarDataModule(str(tmp_path), "CoreView_377", reader="zju", body=body, train_views=[1], test_views=[2, 3],
-                          zju_train_frames=[0, 4, 1], zju_novel_view_frames=[0, 4, 2], zju_novel_pose_frames=[4, 0, 1],
+    from realityavatar.data.zju import ZJUReader
+
+    reader = ZJUReader(train_frames=[0, 4, 1], novel_view_frames=[0, 4, 2], novel_pose_frames=[4, 0, 1])
+    dm = AvatarDataModule(str(tmp_path), "CoreView_377", reader, body=body, train_views=[1], test_views=[2, 3],
                           window_len=2, window_step=1, background=[1, 1, 1], image_scale=0.5)
     dm.setup()
     assert dm.train_frame_ids == [0, 1, 2, 3] and dm.image_size == (SIZE // 2, SIZE // 2)
@@ -288,12 +295,14 @@ def _datasets(pattern: str) -> list[Path]:
 def test_every_data_config_instantiates(path, body, monkeypatch):
     """Invariants each data config must keep (no YAML value re-typed here): disjoint train/test cameras, and for
     ZJU-MoCap every one of its 23 cameras used once."""
+    from realityavatar.data.zju import ZJUReader
+
     monkeypatch.delenv("I3D_ROOT", raising=False)
     dm = instantiate(compose_data(path.stem), body=body)
     assert isinstance(dm, AvatarDataModule) and dm.body is body
     if dm.train_views is not None and dm.test_views is not None:
         assert not set(dm.train_views) & set(dm.test_views), "a camera is in both the training and the test split"
-    if dm.reader == "zju":
+    if isinstance(dm.reader, ZJUReader):
         assert sorted(dm.train_views + dm.test_views) == list(range(1, 24))
 
 
@@ -375,7 +384,7 @@ def test_hard_frame_sampler_draws_frames_in_proportion_to_their_loss():
     """After a uniform first pass, a frame whose images had 9x the loss of the others is drawn about as often as
     mix/n + (1-mix) * 9/(9 + n_frames - 1) predicts; every draw is one of that frame's cameras; a resumed sampler
     continues with the draws the uninterrupted one makes."""
-    from realityavatar.data.datamodule import HardFrameSampler
+    from realityavatar.data.samplers import HardFrameSampler
 
     frames = [f for f in range(10) for _ in range(4)]  # 10 frames x 4 cameras, image i belongs to frame i // 4
     s = HardFrameSampler(frames, seed=3, mix=0.5, power=1.0, ema=1.0)
@@ -406,7 +415,7 @@ def test_sampler_feedback_passes_per_image_losses_to_the_sampler():
     """SamplerFeedback hands the training step's per-image losses to the sampler by dataset index."""
     from types import SimpleNamespace
 
-    from realityavatar.data.datamodule import HardFrameSampler, SamplerFeedback
+    from realityavatar.data.samplers import HardFrameSampler, SamplerFeedback
 
     s = HardFrameSampler([0, 0, 1, 1], seed=0)
     trainer = SimpleNamespace(datamodule=SimpleNamespace(train_sampler=s))
@@ -420,7 +429,7 @@ def test_sampler_feedback_on_a_gpu_reads_once_per_log_step():
     """Losses on a GPU wait on the device until a log step, then reach the sampler in step order, in one copy."""
     from types import SimpleNamespace
 
-    from realityavatar.data.datamodule import HardFrameSampler, SamplerFeedback
+    from realityavatar.data.samplers import HardFrameSampler, SamplerFeedback
 
     class OnGpu(torch.Tensor):  # reports a GPU device: the callback keeps it until a log step
         @property
@@ -445,7 +454,7 @@ def test_unknown_sampler_option_names_the_field(scene_root, body):
     images' frames and the seed): each option gives its class, a value that is not a sampler names data.sampler, an
     unknown option names itself, an unknown sampler names the group."""
     from realityavatar.config import compose
-    from realityavatar.data.datamodule import EpochShuffle, HardFrameSampler
+    from realityavatar.data.samplers import EpochShuffle, HardFrameSampler
 
     for name, cls in (("uniform", EpochShuffle), ("hard_frames", HardFrameSampler)):
         dm = make(scene_root, body, sampler=instantiate(compose([f"sampler={name}"]).data.sampler))
@@ -459,6 +468,22 @@ def test_unknown_sampler_option_names_the_field(scene_root, body):
         dm.train_dataloader()
     with pytest.raises(Exception, match="sampler"):
         compose(["sampler=hardest"])
+
+
+def test_reader_options_belong_to_their_reader(body):
+    """Each layout's options are its reader's: a key the chosen reader does not take, or one left at the data
+    module's level from before the readers were components, is an error naming it."""
+    from hydra.errors import InstantiationException
+
+    from realityavatar.config import compose
+
+    for override, name in (("+data.reader.train_frames=[0,4,1]", "train_frames"),
+                           ("+data.zju_train_frames=[0,4,1]", "zju_train_frames"),
+                           ("+data.frame_interval=3", "frame_interval")):
+        with pytest.raises(InstantiationException, match=f"unexpected keyword argument '{name}'"):
+            instantiate(compose(["data=synthetic_ci", override]).data, body=body)
+    with pytest.raises(InstantiationException, match="unexpected keyword argument 'frame_interval'"):
+        instantiate(compose(["data=zju_377_mono", "+data.reader.frame_interval=3"]).data, body=body)
 
 
 def test_missing_scene_folder_is_named(tmp_path, body):

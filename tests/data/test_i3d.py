@@ -291,8 +291,6 @@ def test_frameid_pose_that_disagrees_with_mesh_infos_is_refused(tmp_path, body):
     with pytest.raises(ValueError, match=r"frame 15 has different poses in .*rel-train/mesh_infos\.pkl and "
                                          r".*rel-train/frameid_pose\.pkl"):
         read_i3d(tmp_path, "rel", body.rest_joints[0])
-    with pytest.raises(ValueError, match=r"data\.frame_interval: expected a whole number >= 1"):
-        read_i3d(tmp_path, "rel", body.rest_joints[0], frame_interval=0)
 
 
 def test_frameid_pose_in_72_values_reads_like_23_by_3(tmp_path, body):
@@ -326,17 +324,18 @@ def test_write_release_keeps_the_chosen_frames_and_the_whole_motion(i3d, body, t
         write_release(root / "seq", tmp_path / "release", train_every=0)
 
 
-def test_i3d_datamodule_passes_frame_interval(tmp_path, body):
-    from realityavatar.data.i3d import I3DDataModule
+def test_i3d_reader_passes_frame_interval(tmp_path, body):
+    from realityavatar.data.datamodule import AvatarDataModule
+    from realityavatar.data.i3d import I3DReader
 
     w = write_i3d_release(tmp_path, "rel", body, frame_interval=3)
-    dm = I3DDataModule(str(tmp_path), "rel", body=body, window_len=3, window_step=4, frame_interval=3)
+    dm = AvatarDataModule(str(tmp_path), "rel", I3DReader(frame_interval=3), body=body, window_len=3, window_step=4)
     dm.setup("fit")
     item = next(it for it in dm.datasets["novel_pose"] if it["frame"] == 50)
     p_ref, _ = _dense_smpl(w, body, [42, 45, 50])  # 42 // 3 * 3, 46 // 3 * 3, the frame itself
     torch.testing.assert_close(item["poses"], p_ref, atol=1e-5, rtol=0)
-    with pytest.raises(ValueError, match=r"data\.frame_interval: expected a whole number >= 1"):
-        I3DDataModule(str(tmp_path), "rel", body=body, frame_interval=0)
+    with pytest.raises(ValueError, match=r"data\.reader\.frame_interval: expected a whole number >= 1"):
+        I3DReader(frame_interval=0)
 
 
 def test_make_scene_release_arguments_are_checked_before_building():

@@ -217,6 +217,7 @@ def test_bad_training_image_found_before_step_0(scenes_root, tmp_path, damage, b
     from PIL import Image
 
     from realityavatar.data.datamodule import AvatarDataModule
+    from realityavatar.data.i3d import I3DReader
 
     for p in scenes_root.glob("skirt_spin_ci-*"):
         (shutil.copytree if p.is_dir() else shutil.copy)(p, tmp_path / p.name)
@@ -225,10 +226,10 @@ def test_bad_training_image_found_before_step_0(scenes_root, tmp_path, damage, b
         victim.write_bytes(victim.read_bytes()[:100])
     else:
         Image.open(victim).resize((32, 32)).save(victim)
-    dm = AvatarDataModule(str(tmp_path), "skirt_spin_ci", body=body_model, window_len=4, window_step=2)
+    dm = AvatarDataModule(str(tmp_path), "skirt_spin_ci", I3DReader(1), body=body_model, window_len=4, window_step=2)
     with pytest.raises((OSError, ValueError), match=victim.name):
         dm.setup("fit")
-    good = AvatarDataModule(str(scenes_root), "skirt_spin_ci", body=body_model, window_len=4, window_step=2)
+    good = AvatarDataModule(str(scenes_root), "skirt_spin_ci", I3DReader(1), body=body_model, window_len=4, window_step=2)
     with caplog.at_level(logging.INFO, logger="realityavatar.data.datamodule"):
         good.setup("fit")
     assert any("checked" in r.getMessage() and " s" in r.getMessage() for r in caplog.records)
@@ -402,11 +403,12 @@ def test_compile_trains_through_the_compiled_path(scenes_root, tmp_path, monkeyp
 
 
 def test_a_run_with_its_training_set_on_the_device_trains_as_one_without(scenes_root, tmp_path, monkeypatch):
-    """data.device_cache (a GPU's training set kept there, data/datamodule.py DeviceSamples) is invisible to training:
+    """data.device_cache (a GPU's training set kept there, data/device_cache.py DeviceSamples) is invisible to training:
     the trainer takes every batch's tensors from the kept set (the datamodule's transfer hook), the steps leave the
     kept tensors as they were (a batch of one sample is a view of them), and the run ends bit-equal to one whose
     batches are collated and copied. Kept on the CPU here, where a run would not keep it."""
-    from realityavatar.data.datamodule import AvatarDataModule, DeviceSamples
+    from realityavatar.data.datamodule import AvatarDataModule
+    from realityavatar.data.device_cache import DeviceSamples
 
     ref = _run(tmp_path / "host", "iterations=4", "data.device_cache=false")
     gathered = []  # (the kept set, index, its tensors as they were when gathered)

@@ -182,7 +182,7 @@ def test_training_on_a_gpu_synchronises_only_on_log_steps(scenes_root, tmp_path,
     from hydra.utils import instantiate
 
     from realityavatar.build import build_data, build_module
-    from realityavatar.data.datamodule import SamplerFeedback
+    from realityavatar.data.samplers import SamplerFeedback
     from realityavatar.render.splat import gsplat_status
 
     if not torch.cuda.is_available() or gsplat_status() != "ok":

@@ -1,4 +1,4 @@
-"""The LightningDataModule over the scene readers (I3D-Human/synthetic layout, ZJU-MoCap) and its sample Dataset.
+"""The LightningDataModule over a scene reader (`data.reader`: i3d.I3DReader, zju.ZJUReader) and its sample Dataset.
 
 Samples follow docs/CONTRACTS.md ("Samples"): pixels, inside, background (`composite` makes image and mask of them),
 mask_dist, K, viewmat, width, height, poses [T,24,3], transl [T,3], pose_features [T,D], bone_transforms [24,4,4],
@@ -16,6 +16,7 @@ import pytorch_lightning as pl
 import torch
 from torch.utils.data import DataLoader, Dataset
 
+from realityavatar.data.device_cache import DeviceSamples, keep_on_device
 from realityavatar.data.poses import PoseTable
 from realityavatar.data.records import (
     SPLITS,
@@ -27,11 +28,11 @@ from realityavatar.data.records import (
     load_record,
     mask_distance,
 )
+from realityavatar.data.samplers import EpochShuffle, ResumableLoader, SameFrameViews
 from realityavatar.geometry import camera_centres
 from realityavatar.model.avatar import pose_inputs
 
 log = logging.getLogger(__name__)
-READERS = ("i3d", "zju")
 
 
 class AvatarDataset(Dataset):
@@ -148,239 +149,13 @@ def composite(batch: dict, dtype: torch.dtype = torch.float32) -> dict:
     return out
 
 
-def draw_seed(seed: int, epoch: int, draw: int) -> int:
-    """The generator seed of draw `draw` of `epoch` (below 2**63 for any run seed)."""
-    return ((seed * 1_000_003 + epoch) * 1_000_033 + draw) % (2**63 - 1)
-
-
-class EpochShuffle(torch.utils.data.Sampler):
-    """Random order that depends only on (seed, epoch), with a position: a resumed run continues the epoch it
-    stopped in with the samples it had not seen yet, in the order the uninterrupted run would have used."""
-
-    def __init__(self, frames: Sequence[int], seed: int) -> None:
-        self.n, self.seed = len(frames), int(seed)
-        self.epoch, self.consumed = 0, 0  # consumed: samples of `epoch` already handed out
-
-    def set_epoch(self, epoch: int) -> None:  # Lightning calls this at every epoch start
-        if int(epoch) != self.epoch:
-            self.epoch, self.consumed = int(epoch), 0
-
-    def __len__(self) -> int:
-        return self.n
-
-    def __iter__(self):
-        if self.consumed >= self.n:  # the previous pass finished without set_epoch: next epoch
-            self.epoch, self.consumed = self.epoch + 1, 0
-        g = torch.Generator().manual_seed(self.seed * 1_000_003 + self.epoch)
-        order = torch.randperm(self.n, generator=g).tolist()
-        while self.consumed < self.n:
-            i = order[self.consumed]
-            self.consumed += 1
-            yield i
-
-    def observe(self, indices: torch.Tensor, losses: torch.Tensor) -> None:
-        """The uniform order ignores the training losses (HardFrameSampler draws by them)."""
-
-    def state_dict(self) -> dict:
-        return {"epoch": self.epoch, "consumed": self.consumed, "n": self.n, "seed": self.seed}
-
-    def load_state_dict(self, state: dict) -> None:
-        if state.get("n") != self.n or state.get("seed") != self.seed:
-            log.warning("training data changed since the checkpoint (%s samples, seed %s, now %s, %s): the resumed "
-                        "epoch starts over", state.get("n"), state.get("seed"), self.n, self.seed)
-            return
-        self.epoch, self.consumed = int(state["epoch"]), int(state["consumed"])
-
-
-class HardFrameSampler(EpochShuffle):
-    """Frames drawn in proportion to their recent training loss, mixed with uniform draws (`data.sampler=hard_frames`).
-
-    The first pass over the training images is the uniform EpochShuffle order, so every frame is seen and scored.
-    From then on each draw is, with probability `mix`, a uniform image; otherwise a frame chosen with probability
-    proportional to score_f ** power, then one of that frame's images (camera) uniformly. score_f is an exponential
-    moving average (weight `ema` on the newest value) of the per-image training losses that `observe` receives for
-    the frame's images (SamplerFeedback, conf/callbacks/default.yaml, passes them after every step), so one camera's
-    loss updates the whole frame. Frames the garment flares in (the spin) and the swing after an abrupt stop have the
-    highest photometric error: uniform sampling spends most steps on the easy rest frames.
-    Resumable like EpochShuffle: scores, epoch and position are in the checkpoint, and draw k of epoch e comes from a
-    generator seeded by (seed, e, k), so a resumed run draws what the uninterrupted run would have.
-    """
-
-    def __init__(self, frames: Sequence[int], seed: int, mix: float = 0.3, power: float = 2.0, ema: float = 0.3) -> None:
-        super().__init__(frames, seed)
-        if not 0.0 <= float(mix) <= 1.0:
-            raise ValueError(f"data.sampler.mix must be in [0, 1], got {mix!r}")
-        if not 0.0 < float(ema) <= 1.0:
-            raise ValueError(f"data.sampler.ema must be in (0, 1], got {ema!r}")
-        if float(power) < 0.0:
-            raise ValueError(f"data.sampler.power must be >= 0, got {power!r}")
-        self.mix, self.power, self.ema = float(mix), float(power), float(ema)
-        ids = sorted({int(f) for f in frames})
-        col = {f: j for j, f in enumerate(ids)}
-        self.frame_of = torch.tensor([col[int(f)] for f in frames], dtype=torch.long)  # image -> frame column
-        self.images_of = [torch.nonzero(self.frame_of == j).flatten() for j in range(len(ids))]
-        self.score = torch.full((len(ids),), float("nan"), dtype=torch.float64)  # NaN: not observed yet
-        self.observed = 0
-
-    def observe(self, indices: torch.Tensor, losses: torch.Tensor) -> None:
-        """Per-image training losses of the images `indices` (dataset positions) just trained on."""
-        for i, v in zip(torch.as_tensor(indices).flatten().tolist(), torch.as_tensor(losses).flatten().tolist()):
-            if not np.isfinite(v):
-                continue
-            j = int(self.frame_of[int(i)])
-            old = float(self.score[j])
-            self.score[j] = v if np.isnan(old) else (1.0 - self.ema) * old + self.ema * v
-            self.observed += 1
-
-    def frame_probabilities(self) -> torch.Tensor:
-        """Probability of each frame column on a loss-driven draw (before mixing with the uniform draw)."""
-        s = self.score.clone()
-        seen = ~torch.isnan(s)
-        if not bool(seen.any()):
-            return torch.full_like(s, 1.0 / len(s))
-        s[~seen] = s[seen].max()  # a frame nobody has scored counts as the hardest seen so far
-        w = s.clamp_min(1e-12) ** self.power
-        return w / w.sum()
-
-    def __iter__(self):
-        if self.epoch == 0 or self.observed == 0:
-            if self.epoch >= 1 and self.consumed == 0:
-                log.warning("data.sampler=hard_frames received no training losses (is callbacks.sampler_feedback "
-                            "disabled?): it samples uniformly")
-            yield from super().__iter__()
-            return
-        if self.consumed >= self.n:
-            self.epoch, self.consumed = self.epoch + 1, 0
-        while self.consumed < self.n:
-            g = torch.Generator().manual_seed(draw_seed(self.seed, self.epoch, self.consumed))
-            self.consumed += 1
-            if float(torch.rand((), generator=g)) < self.mix:
-                yield int(torch.randint(self.n, (), generator=g))
-            else:
-                j = int(torch.multinomial(self.frame_probabilities().float(), 1, generator=g))
-                imgs = self.images_of[j]
-                yield int(imgs[int(torch.randint(len(imgs), (), generator=g))])
-
-    def state_dict(self) -> dict:
-        return {**super().state_dict(), "score": self.score.tolist(), "observed": self.observed}
-
-    def load_state_dict(self, state: dict) -> None:
-        super().load_state_dict(state)
-        if state.get("n") == self.n and len(state.get("score", [])) == len(self.score):
-            self.score = torch.tensor(state["score"], dtype=torch.float64)
-            self.observed = int(state.get("observed", 0))
-
-
-class SameFrameViews(torch.utils.data.Sampler):
-    """`data.views_per_step` V > 1: each image the training order (`base`) draws is followed by V-1 other training
-    images of the same frame (other cameras, drawn at random), so one batch holds V views of one pose and
-    Avatar.render_batch runs the networks once for them. Epochs, resume and the hard-frames feedback are the base
-    order's; draw k of epoch e picks its cameras with a generator seeded by (seed, e, k)."""
-
-    def __init__(self, base: EpochShuffle, frames: Sequence[int], views: int, seed: int) -> None:
-        self.base, self.views, self.seed = base, int(views), int(seed)
-        self.frame_of = [int(f) for f in frames]
-        self.images_of: dict[int, list[int]] = {}
-        for i, f in enumerate(self.frame_of):
-            self.images_of.setdefault(f, []).append(i)
-        short = sorted((len(v), f) for f, v in self.images_of.items() if len(v) < self.views)
-        if short:
-            n, f = short[0]
-            raise ValueError(f"data.views_per_step={self.views}: frame {f} has {n} training image(s) (cameras); "
-                             f"{len(short)} frame(s) have fewer than {self.views}")
-
-    def __len__(self) -> int:
-        return len(self.base) * self.views
-
-    def __iter__(self):
-        for i in self.base:
-            others = [j for j in self.images_of[self.frame_of[i]] if j != i]
-            g = torch.Generator().manual_seed(draw_seed(self.seed, self.base.epoch, self.base.consumed))
-            yield i
-            for k in torch.randperm(len(others), generator=g)[: self.views - 1].tolist():
-                yield others[k]
-
-    def set_epoch(self, epoch: int) -> None:
-        self.base.set_epoch(epoch)
-
-    def observe(self, indices: torch.Tensor, losses: torch.Tensor) -> None:
-        self.base.observe(indices, losses)
-
-    def state_dict(self) -> dict:
-        return self.base.state_dict()
-
-    def load_state_dict(self, state: dict) -> None:
-        self.base.load_state_dict(state)
-
-
-class SamplerFeedback(pl.Callback):
-    """Passes each training step's per-image losses to the training sampler (`observe`). Losses on a GPU are kept
-    there and passed every `log_every_n_steps` steps (with the logging): each read of the device waits for it."""
-
-    def __init__(self) -> None:
-        self._pending: list[tuple[torch.Tensor, torch.Tensor]] = []
-
-    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
-        sampler = getattr(trainer.datamodule, "train_sampler", None) if trainer.datamodule is not None else None
-        if sampler is None:
-            return
-        if not isinstance(outputs, dict) or "image_loss" not in outputs or "index" not in batch:
-            return
-        loss = outputs["image_loss"].detach()
-        self._pending.append((batch["index"].detach(), loss))
-        if loss.device.type == "cpu" or trainer.global_step % max(int(trainer.log_every_n_steps), 1) == 0:
-            index, value = (torch.cat(t).cpu() for t in zip(*self._pending))  # in step order: one copy each
-            sampler.observe(index, value)
-            self._pending.clear()
-
-
-class ResumableLoader(DataLoader):
-    """A DataLoader whose position Lightning saves in the checkpoint and restores on resume (its sampler's state)."""
-
-    def state_dict(self) -> dict:
-        return self.sampler.state_dict()
-
-    def load_state_dict(self, state: dict) -> None:
-        if state:
-            self.sampler.load_state_dict(state)
-
-
-class DeviceSamples(Dataset):
-    """A training set kept where the model trains (`data.device_cache` on a GPU): every sample's tensors are moved
-    there once; the loader serves each sample's host entries (its ints and split name) and `gather` puts a batch's
-    tensors together on the device. A GPU step then waits for no image collation, pinning or copy: 2.6 + 0.6 ms of a
-    29.9 ms paper_scale step on the H100 machine (docs/research/2026-11-27-h100-15000-steps.md)."""
-
-    def __init__(self, ds: Dataset, device: torch.device) -> None:
-        self.host: list[dict] = []
-        self.tensors: list[dict[str, torch.Tensor]] = []
-        for i in range(len(ds)):
-            sample = ds[i]
-            self.host.append({k: v for k, v in sample.items() if not torch.is_tensor(v)})
-            self.tensors.append({k: v.to(device) for k, v in sample.items() if torch.is_tensor(v)})
-
-    def __len__(self) -> int:
-        return len(self.host)
-
-    def __getitem__(self, i: int) -> dict:
-        return dict(self.host[i])
-
-    def gather(self, index: list[int]) -> dict[str, torch.Tensor]:
-        """The tensors of samples `index` (dataset positions), stacked as the loader's collation stacks them."""
-        rows = [self.tensors[i] for i in index]
-        if len(rows) == 1:  # views: no kernel
-            return {k: v[None] for k, v in rows[0].items()}
-        return {k: torch.stack([r[k] for r in rows]) for k in rows[0]}
-
-
 class AvatarDataModule(pl.LightningDataModule):
     """Train / val (a few novel-view images) / test ([novel_view, novel_pose]) loaders over one sequence.
 
-    reader "i3d": <root>/<sequence>-train|-novelview|-novelpose (I3D-Human, synthetic scenes, converted captures);
-    train_views / test_views filter the cameras of the -train and of the -novelview/-novelpose folders.
+    reader: the layout's reader (conf/data: `reader._target_`), which reads <root>/<sequence> and keeps the cameras
+    train_views / test_views: i3d.I3DReader (I3D-Human, synthetic scenes, converted captures), zju.ZJUReader (ZJU-MoCap,
+    with its frame ranges). This module subsamples the frames it keeps.
     fps: the capture's frame rate, the time base of the pose window (window_step frames) and of animations.
-    reader "zju": <root>/<sequence> in the ARAH layout; splits come from train_views/test_views and the frame ranges
-    zju_train_frames / zju_novel_view_frames / zju_novel_pose_frames ([start, end, step], end 0 = to the last frame).
     body: the BodyModel in use; its rest pelvis converts Rh/Th placement to the SMPL convention (`pelvis` overrides;
     with neither, canonical_joints.pkl's pelvis is used). build_preset/build_sequence/build_seed: prepare_data() calls
     realityavatar.data.synthetic.build_scene(build_preset, root, build_seed, sequence=build_sequence), which reuses an
@@ -393,7 +168,7 @@ class AvatarDataModule(pl.LightningDataModule):
         self,
         root: str,
         sequence: str,
-        reader: str = "i3d",
+        reader,
         train_views: Sequence[int] | None = None,
         test_views: Sequence[int] | None = None,
         window_len: int = 6,
@@ -417,16 +192,14 @@ class AvatarDataModule(pl.LightningDataModule):
         build_sequence: str | None = None,
         build_seed: int = 0,
         build_overrides: dict | None = None,
-        zju_train_frames: Sequence[int] = (0, 0, 1),
-        zju_novel_view_frames: Sequence[int] | None = None,
-        zju_novel_pose_frames: Sequence[int] | None = None,
         check_images: bool = True,
         shuffle_seed: int | None = None,
         sampler: Callable[..., EpochShuffle] = EpochShuffle,
     ) -> None:
         super().__init__()
-        if reader not in READERS:
-            raise ValueError(f"data.reader: unknown reader {reader!r}; expected one of {READERS}")
+        if not callable(getattr(reader, "read", None)):
+            raise TypeError(f"data.reader: expected a scene reader (conf/data: reader._target_, e.g. "
+                             f"realityavatar.data.i3d.I3DReader or realityavatar.data.zju.ZJUReader), got {reader!r}")
         if window_len < 1 or window_step < 0:
             raise ValueError(f"data.window_len must be >= 1 and data.window_step >= 0, got {window_len}, {window_step}")
         if frame_subsample < 1 or train_frame_subsample < 1:
@@ -457,16 +230,11 @@ class AvatarDataModule(pl.LightningDataModule):
             raise TypeError(f"data.device_cache: expected true or false, got {device_cache!r}")
         self.undistort, self.cache_images, self.device_cache = undistort, cache_images, device_cache
         self.device_samples: DeviceSamples | None = None  # the training set on the device (device_cache)
-        self.training_set: str | dict = "host"  # where it is kept, for metrics.json (`_on_device`)
+        self.training_set: str | dict = "host"  # where it is kept, for metrics.json (device_cache.keep_on_device)
         self.body = body
         self.pelvis = pelvis
         self.build_preset, self.build_sequence, self.build_seed = build_preset, build_sequence, int(build_seed)
         self.build_overrides = dict(build_overrides or {})
-        self.zju_frames = {
-            "train": list(zju_train_frames),
-            "novel_view": None if zju_novel_view_frames is None else list(zju_novel_view_frames),
-            "novel_pose": None if zju_novel_pose_frames is None else list(zju_novel_pose_frames),
-        }
         self.check_images = bool(check_images)
         # the training order: a sampler class (or hydra partial, conf/sampler) called with (frames, seed) at set-up
         self.sampler = sampler
@@ -490,7 +258,7 @@ class AvatarDataModule(pl.LightningDataModule):
     def _scene_missing(self) -> bool:
         from realityavatar.data.i3d import split_folder
 
-        return self.reader == "i3d" and not split_folder(Path(self.root), self.sequence, "train").is_dir()
+        return not split_folder(Path(self.root), self.sequence, "train").is_dir()  # build_preset's scenes: i3d layout
 
     def prepare_data(self) -> None:
         """With `build_preset` set, (re)build the synthetic scene unless an identical build exists (one process)."""
@@ -509,32 +277,14 @@ class AvatarDataModule(pl.LightningDataModule):
             )
 
     def read_scene(self) -> SceneData:
-        if self.reader == "i3d":
-            from realityavatar.data.i3d import read_i3d
-
-            hint = ("I3D-Human: download it (Dyco's layout, docs/data.md) and set I3D_ROOT or data.root; an embedded "
-                    "scene: build it with `realityavatar-make-scene` or set data.build_preset (ci|demo|full); "
-                    "otherwise check data.root and data.sequence")
-            return read_i3d(self.root, self.sequence, self._pelvis(), build_hint=hint)
-        from realityavatar.data.zju import read_zju
-
-        return read_zju(
-            Path(self.root) / self.sequence, self.train_views, self.test_views, self.zju_frames["train"],
-            self.zju_frames["novel_view"], self.zju_frames["novel_pose"],
-        )
+        """The scene as the reader selects it (train_views / test_views)."""
+        return self.reader.read(self.root, self.sequence, self.train_views, self.test_views, self._pelvis())
 
     def _select(self, scene: SceneData) -> dict[str, list[ImageRecord]]:
-        for key, splits in (("train_views", ["train"]), ("test_views", [s for s in scene.splits if s != "train"])):
-            wanted, have = getattr(self, key), sorted({r.view for s in splits for r in scene.splits[s]})
-            missing = sorted(set(wanted or []) - set(have))
-            if missing and self.reader == "i3d":  # (the ZJU reader names its own)
-                raise ValueError(f"data.{key}: camera(s) {missing} not in {scene.source}'s {', '.join(splits)} "
-                                 f"images (cameras {have})")
+        """The images of the frames kept: every train_frame_subsample-th training frame up to max_train_frames, every
+        frame_subsample-th held-out frame."""
         out = {}
         for split, records in scene.splits.items():
-            views = self.train_views if split == "train" else self.test_views
-            if views is not None and self.reader == "i3d":
-                records = [r for r in records if r.view in views]
             frames = np.unique([r.frame for r in records])
             if split == "train":
                 frames = frames[:: self.train_frame_subsample]
@@ -658,7 +408,9 @@ class AvatarDataModule(pl.LightningDataModule):
             if self.views_per_step > 1:
                 sampler = SameFrameViews(sampler, frames, self.views_per_step, self.shuffle_seed or 0)
             self.train_sampler = sampler
-            self.device_samples = self._on_device(ds)
+            device = self._store_device()
+            if device is not None and len(ds):
+                self.device_samples, self.training_set = keep_on_device(ds, device)
             workers = 0 if self.device_samples is not None else self.num_workers  # no work left for a worker
             return ResumableLoader(ds if self.device_samples is None else self.device_samples,
                                    batch_size=self.batch_size * self.views_per_step, sampler=sampler,
@@ -674,28 +426,6 @@ class AvatarDataModule(pl.LightningDataModule):
             return None
         device = self.trainer.strategy.root_device
         return device if device.type == "cuda" else None
-
-    def _on_device(self, ds: AvatarDataset) -> DeviceSamples | None:
-        """The training set moved to the trainer's GPU (DeviceSamples) when device_cache is on and it takes at most half
-        of the GPU's free memory; None otherwise (batches are then collated on the host and copied)."""
-        import time
-
-        device = self._store_device()
-        if device is None or len(ds) == 0:
-            return None
-        need = len(ds) * sum(v.numel() * v.element_size() for v in ds[0].values() if torch.is_tensor(v))
-        free = torch.cuda.mem_get_info(device)[0] if device.type == "cuda" else need * 2
-        if need > free // 2:
-            self.training_set = (f"host: its {len(ds)} samples would take {need / 2**30:.1f} GiB of the GPU's "
-                                 f"{free / 2**30:.1f} GiB free")
-            log.info("data.device_cache: the training set stays on the %s; batches are copied", self.training_set)
-            return None
-        t0 = time.perf_counter()
-        samples = DeviceSamples(ds, device)
-        self.training_set = {"device": str(device), "samples": len(ds), "gb": round(need / 2**30, 3),
-                             "seconds": round(time.perf_counter() - t0, 2)}
-        log.info("data.device_cache: the training set kept on the device: %s", self.training_set)
-        return samples
 
     def transfer_batch_to_device(self, batch: dict, device: torch.device, dataloader_idx: int) -> dict:
         """The trainer's move of a batch; a batch of the training set kept on the device (device_cache) brings only

@@ -357,11 +357,9 @@ def read_i3d(root: str | Path, sequence: str, pelvis: torch.Tensor | None = None
     pelvis: [3] rest pelvis of the body model in use (for Rh/Th -> SMPL); None takes it from canonical_joints.pkl.
     frame_interval: frames between frameid_pose.pkl's entries (Dyco's `frame_interval`: 1 for ID1_x, 3 for ID2_x
     and ID3_x). With every split's frameid_pose.pkl the pose windows are exact (PoseTable.dense_every); without
-    any, they take the latest image frame at or before each target, which the reader warns about.
+    any, they take the latest image frame at or before each target, which the reader warns about. I3DReader checks
+    frame_interval.
     """
-    if isinstance(frame_interval, bool) or int(frame_interval) != frame_interval or frame_interval < 1:
-        raise ValueError(f"data.frame_interval: expected a whole number >= 1 (frames between {FRAMEID_POSE}'s "
-                         f"entries), got {frame_interval!r}")
     root = Path(root)
     train = split_folder(root, sequence, "train")
     if not train.is_dir():
@@ -409,37 +407,37 @@ def read_i3d(root: str | Path, sequence: str, pelvis: torch.Tensor | None = None
     return SceneData(splits=splits, poses=poses, source=str(root / sequence), meta=meta)
 
 
-def _i3d_datamodule_class():
-    """AvatarDataModule for I3D-Human with `frame_interval` (Dyco's: frames between frameid_pose.pkl's entries),
-    which the I3D configs set per sequence. Built on first use: the DataModule's imports (Lightning, the model's
-    pose inputs) stay out of the scene builder's and the fixtures' way."""
-    from realityavatar.data.datamodule import AvatarDataModule
+class I3DReader:
+    """`data.reader` for this layout: I3D-Human, our synthetic scenes and converted captures. It reads
+    <root>/<sequence>-train|-novelview|-novelpose and keeps the cameras `train_views` (of -train) and `test_views` (of
+    -novelview/-novelpose) name; None keeps every camera. frame_interval: frames between frameid_pose.pkl's entries
+    (Dyco's `frame_interval`: 1 for ID1_x, 3 for ID2_x and ID3_x)."""
 
-    class I3DDataModule(AvatarDataModule):
-        """AvatarDataModule(reader="i3d") whose reader takes `frame_interval` (conf/data/i3d_base.yaml)."""
+    HINT = ("I3D-Human: download it (Dyco's layout, docs/data.md) and set I3D_ROOT or data.root; an embedded scene: "
+            "build it with `realityavatar-make-scene` or set data.build_preset (ci|demo|full); otherwise check "
+            "data.root and data.sequence")
 
-        def __init__(self, *args, frame_interval: int = 1, **kwargs) -> None:
-            super().__init__(*args, **kwargs)
-            if isinstance(frame_interval, bool) or not isinstance(frame_interval, int) or frame_interval < 1:
-                raise ValueError(f"data.frame_interval: expected a whole number >= 1 (frames between "
-                                 f"{FRAMEID_POSE}'s entries; Dyco's frame_interval), got {frame_interval!r}")
-            if self.reader != "i3d":
-                raise ValueError(f"data.reader: I3DDataModule reads the I3D-Human layout, got {self.reader!r}")
-            self.frame_interval = frame_interval
+    def __init__(self, frame_interval: int) -> None:
+        if isinstance(frame_interval, bool) or not isinstance(frame_interval, int) or frame_interval < 1:
+            raise ValueError(f"data.reader.frame_interval: expected a whole number >= 1 (frames between "
+                             f"{FRAMEID_POSE}'s entries; Dyco's frame_interval), got {frame_interval!r}")
+        self.frame_interval = frame_interval
 
-        def read_scene(self) -> SceneData:
-            hint = "I3D-Human: download it (Dyco's layout, docs/data.md) and set I3D_ROOT or data.root"
-            return read_i3d(self.root, self.sequence, self._pelvis(), build_hint=hint,
-                            frame_interval=self.frame_interval)
-
-    I3DDataModule.__module__ = __name__
-    I3DDataModule.__qualname__ = "I3DDataModule"
-    return I3DDataModule
-
-
-def __getattr__(name: str):
-    """`realityavatar.data.i3d.I3DDataModule` (hydra's `_target_`), made on first access and kept."""
-    if name == "I3DDataModule":
-        cls = globals()[name] = _i3d_datamodule_class()
-        return cls
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    def read(self, root: str | Path, sequence: str, train_views: list[int] | None, test_views: list[int] | None,
+             pelvis: torch.Tensor | None) -> SceneData:
+        """The scene with the images of the selected cameras (pelvis: as read_i3d's)."""
+        scene = read_i3d(root, sequence, pelvis, build_hint=self.HINT, frame_interval=self.frame_interval)
+        splits = {}
+        for key, wanted, names in (("train_views", train_views, ["train"]),
+                                   ("test_views", test_views, [s for s in scene.splits if s != "train"])):
+            have = sorted({r.view for s in names for r in scene.splits[s]})
+            missing = sorted(set(wanted or []) - set(have))
+            if missing:
+                raise ValueError(f"data.{key}: camera(s) {missing} not in {scene.source}'s {', '.join(names)} "
+                                 f"images (cameras {have})")
+            for s in names:
+                splits[s] = [r for r in scene.splits[s] if wanted is None or r.view in wanted]
+        if not splits["train"]:
+            raise ValueError(f"{scene.source}: no training images left after selecting views {train_views} "
+                             f"(available {scene.views('train')})")
+        return SceneData(splits=splits, poses=scene.poses, source=scene.source, meta=scene.meta)

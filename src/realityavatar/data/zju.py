@@ -134,13 +134,13 @@ def read_zju(
     for v in tv + ev:
         if v not in cams:
             raise SceneFormatError(f"{subject_dir / 'cam_params.json'}: no camera {v!r} (have {all_views})")
-    train_ids = frame_range(train_frames, n, "zju_train_frames")
-    nv_ids = (frame_range(novel_view_frames, n, "zju_novel_view_frames") if novel_view_frames is not None
+    train_ids = frame_range(train_frames, n, "reader.train_frames")
+    nv_ids = (frame_range(novel_view_frames, n, "reader.novel_view_frames") if novel_view_frames is not None
               else train_ids[::30])
-    np_ids = frame_range(novel_pose_frames, n, "zju_novel_pose_frames")
+    np_ids = frame_range(novel_pose_frames, n, "reader.novel_pose_frames")
     overlap = sorted(set(np_ids) & set(train_ids))
     if overlap:
-        raise ValueError(f"data.zju_novel_pose_frames overlaps the training frames (e.g. {overlap[:5]})")
+        raise ValueError(f"data.reader.novel_pose_frames overlaps the training frames (e.g. {overlap[:5]})")
 
     def records(views, ids):
         out = []
@@ -163,3 +163,19 @@ def read_zju(
         splits["novel_pose"] = records(ev, np_ids)
     return SceneData(splits=splits, poses=table, source=str(subject_dir),
                      meta={"reader": "zju", "betas": betas.tolist()})
+
+
+class ZJUReader:
+    """`data.reader` for ZJU-MoCap in the ARAH layout: <root>/<sequence> (CoreView_XXX). The splits are the cameras
+    train_views / test_views (names in cam_params.json) at the frame ranges train_frames, novel_view_frames and
+    novel_pose_frames ([start, end, step], end 0 = to the last frame; novel_view_frames null: every 30th training
+    frame)."""
+
+    def __init__(self, train_frames: Sequence[int], novel_view_frames: Sequence[int] | None,
+                 novel_pose_frames: Sequence[int] | None) -> None:
+        self.frames = [None if f is None else list(f) for f in (train_frames, novel_view_frames, novel_pose_frames)]
+
+    def read(self, root: str | Path, sequence: str, train_views: Sequence[int] | None,
+             test_views: Sequence[int] | None, pelvis=None) -> SceneData:
+        """The scene of the selected cameras and frames (poses are SMPL-convention already: `pelvis` is not used)."""
+        return read_zju(Path(root) / sequence, train_views, test_views, *self.frames)
