@@ -12,8 +12,9 @@ calls them: data (the batch) -> networks fwd (the avatar's deform and shade) -> 
 (its step and the LR schedule's) -> density (control after the backward); `other` is the rest of the step (gradient
 clipping, bookkeeping).
 The body grids are built as training builds them (skinning weights, shading normals: ~171k voxels for the
-mannequin). Data is a synthetic batch (one of 4 random pose windows with their pose inputs, one camera framing the
-body, a random target image: each made once, as the dataset caches them) built the way the DataModule collates one.
+mannequin). Data is a synthetic batch (realityavatar.data.random_batch: one of 4 random pose windows with their pose
+inputs, one camera framing the body, a random target image: each made once, as the dataset caches them) built the way
+the DataModule collates one.
 --views V adds the whole step of a batch of V images (data.views_per_step=V): the same pose
 window seen by V cameras around the body, the networks run once for them; its parts are not split out.
 --device cuda runs the module and its batches on the GPU (backends `gsplat torch` there); every clock reading waits
@@ -66,17 +67,6 @@ def gemm_unit(repeats: int = 5) -> list[float]:
     return times
 
 
-def look_at(campos, target, up):
-    """World-to-camera OpenCV matrix (z forward, y down) for a camera at campos looking at target."""
-    z = torch.nn.functional.normalize(target - campos, dim=0)
-    x = torch.nn.functional.normalize(torch.linalg.cross(z, up), dim=0)
-    y = torch.linalg.cross(z, x)
-    vm = torch.eye(4)
-    vm[:3, :3] = torch.stack([x, y, z])
-    vm[:3, 3] = -vm[:3, :3] @ campos
-    return vm
-
-
 def build(n: int, backend: str, overrides: list[str]):
     from hydra import compose, initialize_config_dir
     from hydra.utils import instantiate
@@ -101,73 +91,6 @@ def build(n: int, backend: str, overrides: list[str]):
         g["lr"] = 0.0
     sched.base_lrs = [0.0] * len(opt.param_groups)
     return cfg, module, opt, sched
-
-
-def make_batch_fn(module, size: int, window: int, views: int = 1):
-    """A DataModule-shaped batch: one pose window seen by `views` cameras framing the body (turned about the up axis),
-    target images and masks."""
-    from realityavatar.data.records import mask_distance
-
-    verts = module.avatar.body.canonical_vertices().detach().float().cpu()
-    lo, hi = verts.min(0).values, verts.max(0).values
-    centre, ext = 0.5 * (lo + hi), hi - lo
-    up_axis = int(torch.argmax(ext))
-    up = torch.zeros(3)
-    up[up_axis] = 1.0
-    side = (up_axis + 1) % 3
-    campos = centre.clone()
-    campos[side] -= 3.0
-    vms = []
-    for v in range(views):
-        a = 2 * math.pi * v / views
-        c, s_ = math.cos(a), math.sin(a)
-        d = campos - centre
-        k = torch.nn.functional.normalize(up, dim=0)
-        d = d * c + torch.linalg.cross(k, d) * s_ + k * (k @ d) * (1 - c)  # Rodrigues about the up axis
-        vms.append(look_at(centre + d, centre, up))
-    vm = torch.stack(vms)
-    f = 0.92 * size * 3.0 / float(ext[up_axis])
-    K = torch.tensor([[f, 0, size / 2], [0, f, size / 2], [0, 0, 1.0]])
-    g = torch.Generator().manual_seed(0)
-    # the images, masks and distance fields a dataset with cache_images (the demo's) holds: made once
-    images = [torch.rand(views, size, size, 3, generator=g) for _ in range(4)]
-    masks = [(torch.rand(views, size, size, 1, generator=g) > 0.5).float() for _ in images]
-    dists = [torch.stack([mask_distance(m[..., 0]) for m in ms]) for ms in masks]
-    from realityavatar.model.avatar import pose_inputs
-
-    body = module.avatar.body.host_copy()  # the dataset's copy, on the host
-    windows = []  # pose windows and their pose inputs, made once per frame as the dataset makes them
-    for _ in images:
-        poses = (torch.randn(1, window, 24, 3, generator=g) * 0.1).expand(views, -1, -1, -1).clone()
-        transl = torch.zeros(views, window, 3)
-        windows.append({"poses": poses, "transl": transl, **pose_inputs(body, poses, transl)})
-
-    if _device != "cpu":  # the training set kept on the GPU, as training keeps it there (data.device_cache)
-        images, masks, dists = ([t.to(_device) for t in ts] for ts in (images, masks, dists))
-        windows = [{name: x.to(_device) for name, x in w.items()} for w in windows]
-        vm, K = vm.to(_device), K.to(_device)
-
-    def make():
-        """Per sample, as the DataModule serves it: a frame's cached pose window and inputs, a cached image. On the
-        CPU collation copies them; on a GPU they are the kept set's tensors, and only the frame index travels."""
-        V = views
-        k = int(torch.randint(len(images), (), generator=g))
-        copy = (lambda x: x.clone()) if _device == "cpu" else (lambda x: x)
-        batch = {
-            **{name: copy(x) for name, x in windows[k].items()},
-            "frame_idx": torch.full((V,), 3),
-            "viewmat": copy(vm),
-            "K": K[None] if _device != "cpu" and V == 1 else K[None].repeat(V, 1, 1),
-            "image": images[k],
-            "mask": masks[k],
-            "mask_dist": dists[k],
-        }
-        if _device != "cpu":  # the host entry (the frame index) pinned, copied without waiting for a kernel
-            batch["frame_idx"] = batch["frame_idx"].pin_memory().to(_device, non_blocking=True)
-        # host ints and the views of one frame (AvatarDataModule.on_before_batch_transfer, data.views_per_step=V)
-        return {**batch, "width": [size] * V, "height": [size] * V, **({"views_per_frame": V} if V > 1 else {})}
-
-    return make
 
 
 def step_parts(module, opt, sched, make_batch, step: int) -> dict:
@@ -324,10 +247,12 @@ def run_config(n: int, size: int, backend: str, repeats: int, overrides: list[st
         from torch._dynamo.utils import counters
 
         counters.clear()
+    from realityavatar.data.random_batch import make_batch_fn
+
     cfg, module, opt, sched = build(n, backend, overrides)
     # as training compiles (compile=MODE): the networks' path (Avatar.deform, .shade) and the losses, one graph each
     module.compile_path(compile_mode)
-    make_batch = make_batch_fn(module, size, int(cfg.data.window_len))
+    make_batch = make_batch_fn(module.avatar.body, size, int(cfg.data.window_len), device=_device)
     step = timed_step(cfg)
     _stub_trainer_hooks(module, opt, sched, step)
     t0 = _clock()
@@ -362,7 +287,7 @@ def run_config(n: int, size: int, backend: str, repeats: int, overrides: list[st
     for V in views:
         if V == 1:
             continue
-        make_v = make_batch_fn(module, size, int(cfg.data.window_len), V)
+        make_v = make_batch_fn(module.avatar.body, size, int(cfg.data.window_len), V, device=_device)
         step_whole(module, opt, sched, make_v, step)  # warm-up
         multi[str(V)] = statistics.median([step_whole(module, opt, sched, make_v, step) for _ in range(repeats)])
     return {"n": n, "size": size, "backend": backend, "device": _device, "compile": compile_mode,

@@ -1,4 +1,5 @@
-"""What several test packages share: the repository's paths and the benchmarks' scripts as modules (for their tests)."""
+"""What several test packages share: the repository's paths, model and run builders, and the benchmarks' scripts as
+modules (for the benchmarks' own tests)."""
 
 from __future__ import annotations
 
@@ -19,6 +20,26 @@ def benchmark(name: str):
         sys.modules[key] = module
         spec.loader.exec_module(module)
     return sys.modules[key]
+
+
+def stepping_module(body, monkeypatch, device: str = "cpu", log_every: int = 5, *overrides: str):
+    """The default model (silhouette term included; conf/ with `overrides`) with the trainer's hooks stubbed, so its
+    training_step runs without a Trainer at global step `module._test_step`, and a maker of 32 px batches of random
+    targets (realityavatar.data.random_batch)."""
+    from realityavatar.build import build_module
+    from realityavatar.config import compose
+    from realityavatar.data.random_batch import make_batch_fn
+
+    cfg = compose(["gaussians.num_points=400", *overrides])
+    module = build_module(cfg, body, num_train_frames=4, scene_extent=1.0).to(device)
+    opt_cfg = module.configure_optimizers()
+    opt, sched = opt_cfg["optimizer"], opt_cfg["lr_scheduler"]["scheduler"]
+    monkeypatch.setattr(type(module), "global_step", property(lambda self: self._test_step))
+    module.optimizers, module.lr_schedulers = (lambda: opt), (lambda: sched)
+    module.manual_backward = lambda loss: loss.backward()
+    module.log = lambda *args, **kwargs: None
+    module.log_every = log_every
+    return module, make_batch_fn(module.avatar.body, 32, int(cfg.data.window_len), device=device)
 
 
 def random_poses(B: int = 2, T: int = 5, seed: int = 0):

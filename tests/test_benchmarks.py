@@ -152,9 +152,11 @@ def test_step_benchmark_times_one_model_state():
     """The timed steps do not train: learning rates 0, so every row and repeat sees the initial model (steps towards
     random targets drifted it, and a later row's rasterizer had more to draw). Whole and in parts, they are the
     module's training_step."""
+    from realityavatar.data.random_batch import make_batch_fn
+
     step = benchmark("step")
     cfg, module, opt, sched = step.build(500, "numba", ["skinning.voxel_size=0.1", "shading.voxel_size=0.1"])
-    make = step.make_batch_fn(module, 32, int(cfg.data.window_len))
+    make = make_batch_fn(module.avatar.body, 32, int(cfg.data.window_len))
     s = step.timed_step(cfg)
     step._stub_trainer_hooks(module, opt, sched, s)
     before = {k: v.clone() for k, v in module.state_dict().items()}

@@ -179,7 +179,7 @@ def test_decoder_condition_as_first_layer_bias_equals_the_concatenated_input():
     torch.testing.assert_close(out["f_mt"], o[..., 10:])
 
 
-def test_the_networks_and_losses_compile_whole():
+def test_the_networks_and_losses_compile_whole(monkeypatch):
     """torch.compile of Avatar.deform and .shade and of the losses (benchmarks/step.py --compile, the GPU's lever
     against its launch count): dynamo breaks the networks' graph only at the LSTM, which it runs eagerly by default
     (with compile_path's settings it traces the LSTM too: one graph), and traces every loss term as one graph. The polar rotation's numba call, the device-constant cache (runtime.constant), the
@@ -188,11 +188,8 @@ def test_the_networks_and_losses_compile_whole():
     graph inside total_loss's loop, and dynamo ran total_loss eagerly from then on (LossTerm.bind draws it now).
     No graph takes a module-level host tensor as an input: twelve did until runtime.Table, each copied to the GPU
     with a wait at every call (the compiled step's 13 syncs on an H200), and CUDA graphs skip such a graph."""
-    from tests.helpers import benchmark
-
-    step = benchmark("step")
-    cfg, module, _, _ = step.build(300, "numba", ["skinning.voxel_size=0.1", "shading.voxel_size=0.1"])
-    batch = step.make_batch_fn(module, 32, int(cfg.data.window_len))()
+    module, make_batch = _model_at_fit_start(monkeypatch)
+    batch = make_batch()
 
     def networks(b):
         posed = module.avatar.deform(b)
@@ -228,17 +225,26 @@ def _global_inputs(ex) -> list[str]:
     return [n.name for g in ex.graphs for n in g.graph.nodes if n.op == "placeholder" and n.name.startswith("g_")]
 
 
-def test_compiled_graphs_take_no_host_scalars_as_training_steps_advance():
+def _model_at_fit_start(monkeypatch):
+    """The default model as training starts it (its body grids built, on_fit_start), stepping without a Trainer
+    (tests/helpers.py stepping_module; log steps every 25), and its batch maker."""
+    from realityavatar.body import build_body
+    from tests.helpers import stepping_module
+
+    module, make_batch = stepping_module(build_body("mannequin"), monkeypatch, "cpu", 25, "gaussians.num_points=300",
+                                         "render.backend=numba", "skinning.voxel_size=0.1", "shading.voxel_size=0.1")
+    module.on_fit_start()
+    return module, make_batch
+
+
+def test_compiled_graphs_take_no_host_scalars_as_training_steps_advance(monkeypatch):
     """In training the step changes every call: the decoder's coarse-to-fine window and the loss terms' scheduled
     weights follow it (set_progress). No compiled graph may take a Python number or a 0-d host tensor as an input
     for it: dynamo made the window's alpha such an input after its first change (a host scalar per call; CUDA graphs
     skip the graph). The window's weights and the skinning term's weight are device buffers set outside the graphs."""
     from realityavatar.model.module import DYNAMO_CONFIG
-    from tests.helpers import benchmark
 
-    step = benchmark("step")
-    cfg, module, opt, sched = step.build(300, "numba", ["skinning.voxel_size=0.1", "shading.voxel_size=0.1"])
-    make_batch = step.make_batch_fn(module, 32, int(cfg.data.window_len))
+    module, make_batch = _model_at_fit_start(monkeypatch)
     graphs: dict[str, list[list[str]]] = {}
 
     def recording(name):
@@ -254,13 +260,9 @@ def test_compiled_graphs_take_no_host_scalars_as_training_steps_advance():
     with torch._dynamo.config.patch(**DYNAMO_CONFIG):
         for owner, name in ((module.avatar, "deform"), (module.avatar, "shade"), (module, "loss")):
             setattr(owner, name, torch.compile(getattr(owner, name), backend=recording(name)))
-        first = step.timed_step(cfg)
-        step._stub_trainer_hooks(module, opt, sched, first)
-        at = {"step": first}
-        module.__class__ = type("Stepping", (type(module).__mro__[1],), {"global_step": property(lambda s: at["step"])})
-        for k in range(4):  # the window opens a little at every step (schedule.deform_anneal)
+        for s in range(2, 6):  # the window opens a little at every step (schedule.deform_anneal); no log step
+            module._test_step = s
             module.training_step(make_batch(), 0)
-            at["step"] += 1
     torch._dynamo.reset()
     assert 0 < module.avatar.deformer.encoding.alpha < module.avatar.deformer.encoding.num_freqs
     assert len(graphs["deform"]) == 1 and len(graphs["shade"]) == 1, {k: len(v) for k, v in graphs.items()}

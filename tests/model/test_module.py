@@ -8,7 +8,8 @@ import pytest
 import torch
 
 from realityavatar.config import compose
-from tests.helpers import NUM_POINTS, TRAINED_RUN
+from realityavatar.data.random_batch import make_batch_fn
+from tests.helpers import NUM_POINTS, TRAINED_RUN, stepping_module
 
 
 @pytest.fixture(scope="module")
@@ -151,33 +152,12 @@ def test_checkpoint_with_refined_gaussians_restores_model_and_optimizer(trained_
     assert module.density.grad2d is None or module.density.grad2d.shape[0] == g.num_points
 
 
-def _stepping_module(body, monkeypatch, device: str = "cpu", log_every: int = 5, *overrides: str):
-    """The default model (silhouette term included) with the trainer's hooks stubbed, a step counter and a batch."""
-    from realityavatar.build import build_module
-    from tests.helpers import benchmark
-
-    cfg = compose(["gaussians.num_points=400", *overrides])
-    module = build_module(cfg, body, num_train_frames=4, scene_extent=1.0).to(device)
-    opt_cfg = module.configure_optimizers()
-    opt, sched = opt_cfg["optimizer"], opt_cfg["lr_scheduler"]["scheduler"]
-    monkeypatch.setattr(type(module), "global_step", property(lambda self: self._test_step))
-    module.optimizers, module.lr_schedulers = (lambda: opt), (lambda: sched)
-    module.manual_backward = lambda loss: loss.backward()
-    module.log = lambda *args, **kwargs: None
-    module.log_every = log_every
-    step = benchmark("step")
-    monkeypatch.setattr(step, "_device", device)
-    return module, step.make_batch_fn(module, 32, int(cfg.data.window_len))
-
-
 def test_views_of_one_frame_pose_it_once_and_render_as_separate_samples(body, monkeypatch):
     """data.views_per_step: a batch of V cameras of one frame (views_per_frame) runs the networks for one frame,
     rasterizes its cameras in one call and renders what the same batch renders sample by sample, gradients
     included."""
-    from tests.helpers import benchmark
-
-    module, _ = _stepping_module(body, monkeypatch)
-    make = benchmark("step").make_batch_fn(module, 32, int(compose([]).data.window_len), views=3)
+    module, _ = stepping_module(body, monkeypatch)
+    make = make_batch_fn(module.avatar.body, 32, int(compose([]).data.window_len), views=3)
     batch = make()
     assert batch["views_per_frame"] == 3
     shapes = []
@@ -199,10 +179,8 @@ def test_views_of_one_frame_pose_it_once_and_render_as_separate_samples(body, mo
 def test_views_of_two_frames_in_one_batch(body, monkeypatch):
     """batch_size 2 x views_per_step 2: each frame's pose inputs are read once (every V-th sample) and its images come
     from its own pose, as when every sample is rendered on its own."""
-    from tests.helpers import benchmark
-
-    module, _ = _stepping_module(body, monkeypatch)
-    make = benchmark("step").make_batch_fn(module, 32, int(compose([]).data.window_len), views=2)
+    module, _ = stepping_module(body, monkeypatch)
+    make = make_batch_fn(module.avatar.body, 32, int(compose([]).data.window_len), views=2)
     a, b = make(), make()  # two pose windows, two cameras each
     batch = {k: torch.cat([a[k], b[k]]) if torch.is_tensor(a[k]) else a[k] for k in a}
     batch.update(width=a["width"] + b["width"], height=a["height"] + b["height"])
@@ -223,11 +201,9 @@ def test_a_supersampled_image_is_the_larger_image_averaged(body, monkeypatch):
     rasterizer's 2D filter (0.3 px^2) widens the sub-pixel Gaussians: the silhouette grows by over 10 %."""
     import torch.nn.functional as F
 
-    from tests.helpers import benchmark
-
-    module, make = _stepping_module(body, monkeypatch)
+    module, make = stepping_module(body, monkeypatch)
     batch = make()  # 32 px
-    big = benchmark("step").make_batch_fn(module, 128, int(compose([]).data.window_len))()
+    big = make_batch_fn(module.avatar.body, 128, int(compose([]).data.window_len))()
     at128 = {**batch, "K": big["K"], "width": big["width"], "height": big["height"]}
     with torch.no_grad():
         rgb, alpha, _, _ = module.avatar.render_batch(batch)
@@ -249,7 +225,7 @@ def test_a_training_step_reads_the_device_only_on_log_steps(body, monkeypatch):
     CPU with OpCount. A non-finite loss between log steps stops the run at the next log step, naming the steps."""
     from realityavatar.runtime import OpCount
 
-    module, make_batch = _stepping_module(body, monkeypatch)
+    module, make_batch = stepping_module(body, monkeypatch)
     module._test_step = 1
     module.training_step(make_batch(), 0)  # one-time set-up reads (e.g. the skinning loss's surface sample pool)
     for s in range(2, 4):
@@ -289,7 +265,7 @@ def test_no_step_reads_an_output_of_the_compiled_functions_of_an_earlier_step(bo
     from torch.utils._python_dispatch import TorchDispatchMode
     from torch.utils._pytree import tree_leaves
 
-    module, make_batch = _stepping_module(body, monkeypatch)
+    module, make_batch = stepping_module(body, monkeypatch)
     static = {StorageWeakRef(t.untyped_storage()) for t in (*module.parameters(), *module.buffers())}
     batches = {s: make_batch() for s in range(1, 8)}
     static |= {StorageWeakRef(t.untyped_storage()) for b in batches.values() for t in b.values() if torch.is_tensor(t)}
@@ -335,7 +311,7 @@ def test_a_training_step_on_a_gpu_does_not_synchronise(body, monkeypatch):
 
     if not torch.cuda.is_available() or gsplat_status() != "ok":
         pytest.skip("needs CUDA and gsplat")
-    module, make_batch = _stepping_module(body, monkeypatch, "cuda", 5, "render.backend=gsplat")
+    module, make_batch = stepping_module(body, monkeypatch, "cuda", 5, "render.backend=gsplat")
     module._test_step = 1
     module.training_step(make_batch(), 0)  # warm-up: one-time set-up (caches, kernels) may read the device
     module._test_step = 2
@@ -366,7 +342,7 @@ def test_compiled_steps_on_a_gpu_replay_cuda_graphs(body, monkeypatch):
 
     if not torch.cuda.is_available() or gsplat_status() != "ok":
         pytest.skip("needs CUDA and gsplat")
-    module, make_batch = _stepping_module(body, monkeypatch, "cuda", 50, "render.backend=gsplat")
+    module, make_batch = stepping_module(body, monkeypatch, "cuda", 50, "render.backend=gsplat")
     torch._dynamo.reset()
     counters.clear()
     module.compile_path("reduce-overhead")
@@ -393,7 +369,7 @@ def test_a_compiled_run_traces_each_graph_once(body, monkeypatch):
     from torch._dynamo.utils import counters
 
     monkeypatch.setattr(torch, "compile", functools.partial(torch.compile, backend="eager"))
-    module, make_batch = _stepping_module(
+    module, make_batch = stepping_module(
         body, monkeypatch, "cpu", 5, "iterations=20", "density=default", "density.refine_start=4",
         "density.refine_every=4", "density.grad_threshold=1e-12",  # skinning switch at 2, window open from 10
         "skinning=mlp", "loss=learnt_skinning")  # a skinning term with its weight switch
