@@ -13,11 +13,11 @@ import numpy as np
 import torch
 
 from realityavatar.build import build_data, load_run, run_device, write_json
+from realityavatar.data.poses import PHASES
 
 # metrics.image_metrics's scores: the whole image, the mask's box ("masked"), the garment's pixels ("garment")
 METRIC_KEYS = ("psnr", "ssim", "iou", "flip", "lpips", "psnr_masked", "ssim_masked", "flip_masked", "lpips_masked",
                "detail_masked", "psnr_garment", "ssim_garment", "flip_garment", "detail_garment")
-PHASES = ("rest", "spin", "after", "settled")  # data.poses.PoseTable.motion_phases
 
 
 def summarise(records: list[dict]) -> dict:

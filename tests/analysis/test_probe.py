@@ -32,14 +32,15 @@ def test_probe_cloth_tracking_measures_sliding(tmp_path):
 
 def test_probe_novel_pose_phases_follow_the_root(tmp_path):
     """probe's held-out-sequence phases: rest until the root turns, spin while it turns by more than
-    0.5 degrees a frame, after from the first still frame; PSNR per phase from per_frame.csv's novel-pose rows."""
+    0.5 degrees a frame (0.3 is still), after from the first still frame on (PoseTable.motion_phases' after and
+    settled); PSNR per phase from per_frame.csv's novel-pose rows."""
     import pickle
 
     import numpy as np
 
     from realityavatar.analysis.probe import heading_stops, novel_pose_phases
 
-    turn = [0, 0, 0, 5, 10, 10, 10, 3, 0, 0]  # degrees per frame about y
+    turn = [0, 0.3, 0, 5, 10, 10, 10, 3, 0, 0, 0]  # degrees per frame about y
     angle, infos = 0.0, {}
     for i, t in enumerate(turn):
         angle += np.radians(t)
@@ -51,14 +52,14 @@ def test_probe_novel_pose_phases_follow_the_root(tmp_path):
     mesh.mkdir()
     with open(mesh / "mesh_infos.pkl", "wb") as f:
         pickle.dump(infos, f)
-    phases = heading_stops(mesh)
-    assert [phases[100 + i] for i in range(10)] == ["np_rest"] * 3 + ["np_spin"] * 5 + ["np_after"] * 2
+    phases = heading_stops(mesh, fps=2.0)  # frame 110 is a second after the stop: motion_phases says "settled"
+    assert [phases[100 + i] for i in range(11)] == ["np_rest"] * 3 + ["np_spin"] * 5 + ["np_after"] * 3
     run = tmp_path / "run"
     run.mkdir()
     lines = ["split,frame,view,psnr,iou"] + [f"novel_pose,{100 + i},0,{20 + i},0.9" for i in range(10)]
     lines += ["novel_view,109,1,99,1.0"]
     (run / "per_frame.csv").write_text("\n".join(lines) + "\n")
-    out = novel_pose_phases(run, mesh)
+    out = novel_pose_phases(run, mesh, 2.0)
     assert out["novel_pose/np_after/psnr"] == 28.5 and out["novel_pose/np_rest/psnr"] == 21.0
     assert out["novel_pose/np_spin/images"] == 5
 

@@ -82,3 +82,22 @@ def test_union_keeps_dense_sampling_and_refuses_two_samplings():
         PoseTable.union([a, _ramp([0, 3], dense_every=3, source="c.pkl")])
     with pytest.raises(ValueError, match="dense_every must be None or a whole number >= 1"):
         _ramp([0], dense_every=0)
+
+
+def test_every_motion_phase_is_reported_by_evaluate_and_collect():
+    """PHASES (data/poses.py) lists every phase PoseTable.motion_phases gives a turning sequence, in time order, and
+    evaluate's summary and collect's table read that one list: a phase left out of it loses its scores."""
+    from realityavatar.analysis.collect import EXTRA
+    from realityavatar.data.poses import PHASES
+    from realityavatar.evaluate import summarise
+    from realityavatar.geometry import axis_angle_to_matrix, matrix_to_axis_angle
+
+    yaw = np.radians(np.concatenate([np.zeros(5), 20.0 * np.arange(1, 6), np.full(40, 100.0)]))  # still, turn, still
+    frames = np.arange(len(yaw))
+    poses = torch.zeros(len(frames), 24, 3)
+    poses[:, 0] = matrix_to_axis_angle(axis_angle_to_matrix(torch.tensor(yaw)[:, None] * torch.tensor([0.0, 1.0, 0.0])))
+    phases = PoseTable(frames, poses, torch.zeros(len(frames), 3)).motion_phases(frames, 10.0)
+    assert tuple(dict.fromkeys(phases[f] for f in frames)) == PHASES
+    out = summarise([{"split": "novel_view", "phase": p, "psnr": 20.0} for p in phases.values()])
+    assert all(f"test/novel_view/{p}/psnr" in out for p in PHASES)
+    assert all(any(f"/{p}/" in k for k in EXTRA) for p in PHASES)

@@ -88,7 +88,7 @@ def test_evaluate_and_probe_a_run_below_its_resolution_supersampled(trained_run,
     monkeypatch.setattr(Avatar, "render_batch",
                         lambda self, *a, **k: supersampled.append(k.get("supersample", 1)) or render(self, *a, **k))
     phases = probe.novel_pose_phases
-    monkeypatch.setattr(probe, "novel_pose_phases", lambda folder, mesh: folders.append(folder) or phases(folder, mesh))
+    monkeypatch.setattr(probe, "novel_pose_phases", lambda folder, *a: folders.append(folder) or phases(folder, *a))
     rows, _ = probe.probe_run(out, kinds=("heldout",), overrides=settings)
     assert rows and set(supersampled) == {2} and folders == [out / "eval"]
 

@@ -22,11 +22,12 @@ import numpy as np
 import pandas as pd
 import yaml
 
+from realityavatar.data.poses import PHASES
+
 SPLITS = ("novel_view", "novel_pose")
 METRICS = ("psnr", "ssim", "lpips", "psnr_masked", "ssim_masked", "lpips_masked")
-# The garment's scores (synthetic scenes' labels; evaluate.METRIC_KEYS) and the motion phases they are reported in.
+# The garment's scores (synthetic scenes' labels; evaluate.METRIC_KEYS), reported per motion phase (PHASES).
 GARMENT = ("psnr_garment", "ssim_garment", "flip_garment", "detail_garment")
-PHASES = ("rest", "spin", "after", "settled")
 # Keys every run file must carry; the rest (render_fps, metric keys) may be absent or null.
 REQUIRED = ("config", "overrides", "seed", "commit", "train_seconds", "num_gaussians", "num_parameters")
 RUN_NUMBERS = ("train_seconds", "iterations", "num_gaussians", "num_parameters", "render_fps")

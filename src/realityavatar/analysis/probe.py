@@ -32,10 +32,10 @@ from torch.utils.data import default_collate
 
 from realityavatar.build import build_data, load_run, run_device
 from realityavatar.data.i3d import read_mesh_infos, split_folder
+from realityavatar.data.poses import PHASES
 from realityavatar.evaluate import undersampled
 from realityavatar.metrics import psnr, silhouette_iou
 
-PHASES = ("rest", "spin", "after", "settled")
 CLOTH_NEAR = 0.02  # a garment Gaussian: within 2 cm of the cloth in every rest frame
 CLOTH_SAMPLES = 40000  # material points sampled on the cloth (about 5 mm apart on the demo skirt)
 STOP_SECONDS = 0.3  # the "stop" summary: the first 0.3 s after the abrupt stop
@@ -195,37 +195,28 @@ def probe_run(run_dir: Path, threads: int = 1, kinds: tuple[str, ...] = ("train"
                     if all(m in r for r in sel):
                         summary[f"{kind}/{ph}/{m}"] = float(np.mean([r[m] for r in sel]))
     novel_pose = split_folder(Path(str(cfg.data.root)), cfg.data.sequence, "novel_pose")
-    summary.update(novel_pose_phases(run_dir / "eval" if overrides else run_dir, novel_pose))
+    summary.update(novel_pose_phases(run_dir / "eval" if overrides else run_dir, novel_pose, fps))
     return rows, summary
 
 
-def heading_stops(split_dir: Path, still_deg: float = 0.5) -> dict[int, str]:
+def heading_stops(split_dir: Path, fps: float, still_deg: float = 0.5) -> dict[int, str]:
     """Phases of a held-out (novel-pose) sequence from its global orientations (the split's mesh_infos.pkl, read by
-    the I3D reader): "np_rest" before the body first turns, "np_spin" while it turns by more than `still_deg` per
-    frame, "np_after" from the first still frame after the turning on."""
-    from realityavatar.geometry import axis_angle_to_matrix, matrix_to_axis_angle
-
-    # The pelvis only moves the translation, which the turning does not read.
-    table = read_mesh_infos(split_dir, torch.zeros(3))
-    R = axis_angle_to_matrix(table.poses[:, 0].double())  # [F,3,3] global orientation, frames sorted
-    turn = torch.rad2deg(matrix_to_axis_angle(R[1:] @ R[:-1].transpose(-1, -2)).norm(dim=-1))
-    phases, state = {}, "np_rest"
-    for f, t in zip(table.frames.tolist(), [0.0, *turn.tolist()]):
-        if t > still_deg:
-            state = "np_spin"
-        elif state == "np_spin":
-            state = "np_after"
-        phases[int(f)] = state
-    return phases
+    the I3D reader), PoseTable.motion_phases at `still_deg` degrees a frame: "np_rest" before the body first turns
+    (every frame when it never does), "np_spin" while it turns faster, "np_after" from the first still frame after
+    the turning on (motion_phases' after and settled)."""
+    table = read_mesh_infos(split_dir, torch.zeros(3))  # the pelvis only moves the translation: the turning is the same
+    phases = table.motion_phases(table.frames, fps, still_deg_s=still_deg * fps)
+    return {f: "np_" + {"settled": "after", "all": "rest"}.get(p, p) for f, p in phases.items()}
 
 
-def novel_pose_phases(folder: Path, mesh_dir: Path) -> dict:
-    """Novel-pose PSNR / IoU per phase of the held-out sequence (its own spin and abrupt stop), from the per_frame.csv
-    in `folder` (a run's or its eval/: every camera of the novel-pose split); {} when either file is missing."""
+def novel_pose_phases(folder: Path, mesh_dir: Path, fps: float) -> dict:
+    """Novel-pose PSNR / IoU per phase of the held-out sequence (its own spin and abrupt stop; `fps` its frame rate),
+    from the per_frame.csv in `folder` (a run's or its eval/: every camera of the novel-pose split); {} when either
+    file is missing."""
     table, infos = folder / "per_frame.csv", mesh_dir / "mesh_infos.pkl"
     if not table.is_file() or not infos.is_file():
         return {}
-    phases = heading_stops(mesh_dir)
+    phases = heading_stops(mesh_dir, fps)
     with open(table) as f:
         rows = [r for r in csv.DictReader(f) if r["split"] == "novel_pose" and int(r["frame"]) in phases]
     out = {}

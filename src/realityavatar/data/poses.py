@@ -12,6 +12,8 @@ from realityavatar.body.base import NUM_JOINTS
 
 # Turning faster than this (degrees per second about the body's axis) is a spin; ~0.6 degrees a frame at 25 fps.
 TURNING_DEG_S = 15.0
+# The motion phases in time order (PoseTable.motion_phases; "all": a sequence that never turns).
+PHASES = ("rest", "spin", "after", "settled")
 
 
 class PoseTable:
