@@ -65,3 +65,35 @@ def test_perceptual_loss_finds_vgg19_in_torch_hub_cache(tmp_path, monkeypatch):
     (tmp_path / "torch_home" / "hub" / "checkpoints" / "vgg19-dcbb9e9d.pth").write_bytes(b"\0" * 64)  # truncated
     with pytest.raises(InstantiationException, match=f"'{found['vgg19']}': not a torch state dict file"):
         build_losses(compose(["loss=vgg19"]))
+
+
+def test_a_run_folder_from_before_the_reader_components_still_serves_its_data(trained_run, tmp_path):
+    """evaluate / animate / posed export / the probes rebuild the data of a run trained before data.reader was a
+    component (its config.yaml and config_unresolved.yaml: `reader: i3d`, `frame_interval`, the samplers named in
+    data/datamodule.py), with overrides or without, and resume=true finds its settings unchanged."""
+    import shutil
+
+    from realityavatar.build import build_data, load_avatar
+    from realityavatar.data.i3d import I3DReader
+
+    out, _ = trained_run
+    old = tmp_path / "old_run"
+    shutil.copytree(out, old)
+    for name in ("config.yaml", "config_unresolved.yaml"):
+        text = (old / name).read_text()
+        assert "    _target_: realityavatar.data.i3d.I3DReader\n    frame_interval: 1\n" in text
+        text = text.replace("  reader:\n    _target_: realityavatar.data.i3d.I3DReader\n    frame_interval: 1\n",
+                            "  reader: i3d\n  frame_interval: 1\n")
+        (old / name).write_text(text.replace("data.samplers.", "data.datamodule."))
+    for overrides in ([], ["data.val_items=1"]):
+        cfg, avatar, _ = load_avatar(old, overrides)
+        dm = build_data(cfg, avatar.body)
+        assert isinstance(dm.reader, I3DReader) and dm.reader.frame_interval == 1 and dm.num_train_frames > 0
+    # resume=true compares today's settings with the folder's: the same run, not a changed one
+    from omegaconf import OmegaConf
+
+    from realityavatar.runs import claim_run_dir
+
+    today = OmegaConf.load(out / "config.yaml")
+    today.resume = True
+    assert claim_run_dir(old, today) == old / "last.ckpt"

@@ -12,7 +12,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 # importing config also registers the resolvers
-from realityavatar.config import RAW_CONFIG_NAME, check_settings, compose
+from realityavatar.config import RAW_CONFIG_NAME, check_settings, compose, upgrade_run_config
 from realityavatar.metrics import build_lpips
 from realityavatar.model.avatar import Avatar, Schedule
 from realityavatar.runs import CKPT_NAME, read_checkpoint
@@ -108,12 +108,12 @@ def _read_run(run_dir: str | Path, overrides: list[str] | None, ckpt: str | Path
     raw_path = run_dir / RAW_CONFIG_NAME
     if overrides and raw_path.is_file():
         # Overrides go into the run's unresolved config, so keys interpolated from them follow (as in train).
-        cfg = OmegaConf.load(raw_path)
+        cfg = upgrade_run_config(OmegaConf.load(raw_path))
         overrides = _dotlist(overrides, cfg)
         cfg.merge_with_dotlist(overrides)
         OmegaConf.resolve(cfg)
     else:
-        cfg = OmegaConf.load(cfg_path)
+        cfg = upgrade_run_config(OmegaConf.load(cfg_path))
         overrides = _dotlist(overrides, cfg)
         if overrides:  # a run folder from before config_unresolved.yaml existed
             cfg.merge_with_dotlist(overrides)

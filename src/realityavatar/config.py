@@ -72,6 +72,36 @@ def unresolved_copy(cfg: DictConfig) -> DictConfig:
     return raw
 
 
+# Run folders written before the readers became components (data.reader._target_) and the samplers and the device
+# cache left data/datamodule.py: what their config.yaml named, and where it is now.
+MOVED_TARGETS = {f"realityavatar.data.datamodule.{name}": f"realityavatar.data.samplers.{name}"
+                 for name in ("EpochShuffle", "HardFrameSampler", "SamplerFeedback")}
+MOVED_TARGETS["realityavatar.data.i3d.I3DDataModule"] = "realityavatar.data.datamodule.AvatarDataModule"
+
+
+def upgrade_run_config(cfg: DictConfig) -> DictConfig:
+    """A saved run's config (config.yaml) in today's form, in place: `data.reader: i3d | zju` with the layout's keys
+    beside it (frame_interval, zju_*_frames) becomes the reader component, and moved classes are named where they
+    are. A config already in today's form is returned unchanged."""
+    from omegaconf import open_dict
+
+    data = cfg.get("data")
+    with open_dict(cfg):
+        if isinstance(data, DictConfig) and isinstance(data.get("reader"), str):
+            if data.pop("reader") == "zju":
+                data.reader = {"_target_": "realityavatar.data.zju.ZJUReader",
+                               "train_frames": data.pop("zju_train_frames", [0, 0, 1]),
+                               **{k: data.pop(f"zju_{k}", None) for k in ("novel_view_frames", "novel_pose_frames")}}
+            else:
+                data.reader = {"_target_": "realityavatar.data.i3d.I3DReader",
+                               "frame_interval": data.pop("frame_interval", 1)}
+        for key in ("data", "data.sampler", "callbacks.sampler_feedback"):
+            node = OmegaConf.select(cfg, key, default=None)
+            if isinstance(node, DictConfig) and node.get("_target_") in MOVED_TARGETS:
+                node._target_ = MOVED_TARGETS[node._target_]
+    return cfg
+
+
 def compose(overrides: list[str] | None = None, config_name: str = "train") -> DictConfig:
     """Compose the primary config exactly as `realityavatar-train <overrides>` would, hydra node included."""
     from hydra import compose as hydra_compose

@@ -18,6 +18,8 @@ import pytorch_lightning as pl
 import torch
 from omegaconf import DictConfig, OmegaConf
 
+from realityavatar.config import upgrade_run_config
+
 CKPT_NAME = "last.ckpt"
 # What a finished or checkpointed run leaves; a folder holding any of the first two belongs to that run.
 RUN_MARKERS = (CKPT_NAME, "metrics.json")
@@ -108,7 +110,7 @@ def claim_run_dir(out_dir: Path, cfg: DictConfig) -> Path | None:
                                     "(a run writes last.ckpt every quarter of its iterations)")
         saved = out_dir / "config.yaml"
         if saved.is_file():
-            changes = config_changes(OmegaConf.load(saved), cfg)
+            changes = config_changes(upgrade_run_config(OmegaConf.load(saved)), cfg)
             if changes:
                 restore_hydra_record(out_dir)
                 raise ValueError(f"resume=true: the settings differ from the run in {out_dir} ({'; '.join(changes)}); "
