@@ -1,20 +1,16 @@
 """A run folder belongs to one run: claiming it (refuse / resume / overwrite), reading checkpoints with clear errors,
-carrying the training log across a resume, and the callback that keeps run state (RNG, seconds, SIGINT) exact."""
+carrying the training log across a resume. Without Lightning: export, view and animate read run folders through it
+(the callback that keeps run state exact across a resume, RunState, is train.py's)."""
 
 from __future__ import annotations
 
 import csv
 import os
 import pickle
-import random
 import shutil
-import signal
-import time
 from contextlib import contextmanager
 from pathlib import Path
 
-import numpy as np
-import pytorch_lightning as pl
 import torch
 from omegaconf import DictConfig, OmegaConf
 
@@ -224,79 +220,3 @@ def seed_csv_log(logger, rows: list[dict]) -> None:
         w.writeheader()
         w.writerows(rows)
     exp.metrics_keys = keys
-
-
-class RunState(pl.Callback):
-    """Run state that Lightning does not checkpoint, so that a resumed run continues exactly where it stopped:
-    the global RNG states (torch, numpy, python) at the checkpoint, the training seconds of every earlier part of
-    the run, and a first Ctrl-C that stops at the end of the current step (a second one interrupts at once)."""
-
-    def __init__(self) -> None:
-        self.seconds_before = 0.0  # training seconds of the run's earlier parts (from the checkpoint)
-        self._t0: float | None = None
-        self._rng: dict | None = None
-        self.interrupted = False
-        self._old_handler = None
-
-    def train_seconds(self) -> float:
-        return self.seconds_before + (time.perf_counter() - self._t0 if self._t0 is not None else 0.0)
-
-    # -- checkpoint
-    def state_dict(self) -> dict:
-        return {
-            "train_seconds": self.train_seconds(),
-            # plain types only, so Lightning's weights_only checkpoint loading accepts them
-            "rng": {"torch": torch.get_rng_state(), "numpy": _np_state(), "python": random.getstate()},
-        }
-
-    def load_state_dict(self, state: dict) -> None:
-        self.seconds_before = float(state.get("train_seconds", 0.0))
-        self._rng = state.get("rng")
-
-    # -- hooks
-    def on_fit_start(self, trainer, pl_module) -> None:
-        self._t0 = time.perf_counter()
-
-    def on_train_start(self, trainer, pl_module) -> None:
-        # Restored here, after set-up, so nothing between this point and the next step draws from the global RNG.
-        if self._rng is not None:
-            torch.set_rng_state(self._rng["torch"])
-            name, keys, pos, has_gauss, cached = self._rng["numpy"]
-            np.random.set_state((name, np.asarray(keys, dtype=np.uint32), pos, has_gauss, cached))
-            random.setstate(self._rng["python"])
-            self._rng = None
-        if _main_thread():
-            self._old_handler = signal.signal(signal.SIGINT, self._on_sigint)
-
-    def _on_sigint(self, signum, frame) -> None:
-        if self.interrupted:  # a second Ctrl-C: stop now
-            raise KeyboardInterrupt
-        self.interrupted = True
-        print("\ninterrupt: stopping after this step and saving the checkpoint (Ctrl-C again to stop at once)",
-              flush=True)
-
-    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
-        if self.interrupted:
-            trainer.should_stop = True
-
-    def on_fit_end(self, trainer, pl_module) -> None:
-        self._restore_handler()
-
-    def on_exception(self, trainer, pl_module, exception) -> None:
-        self._restore_handler()
-
-    def _restore_handler(self) -> None:
-        if self._old_handler is not None and _main_thread():
-            signal.signal(signal.SIGINT, self._old_handler)
-        self._old_handler = None
-
-
-def _np_state() -> tuple:
-    name, keys, pos, has_gauss, cached = np.random.get_state()
-    return (str(name), [int(k) for k in keys], int(pos), int(has_gauss), float(cached))
-
-
-def _main_thread() -> bool:
-    import threading
-
-    return threading.current_thread() is threading.main_thread()

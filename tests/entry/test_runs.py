@@ -429,3 +429,16 @@ def test_a_run_with_its_training_set_on_the_device_trains_as_one_without(scenes_
     assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
     assert metrics["test/novel_view/psnr"] == ref["test/novel_view/psnr"]
     assert ref["training_set"] == "host" and metrics["training_set"]["device"] == "cpu"  # metrics.json says where
+
+
+def test_reading_a_run_folder_imports_no_lightning(trained_run):
+    """runs.py and build.load_avatar (canonical export, and the loading of the viewer and animate) import no Lightning:
+    the training callback that keeps run state across a resume (RunState) is train.py's."""
+    out, _ = trained_run
+    script = ("import sys; from realityavatar.build import load_avatar; import realityavatar.runs\n"
+              f"load_avatar({str(out)!r})\n"
+              "print([m for m in sys.modules if m.split('.')[0] in ('pytorch_lightning', 'lightning', 'lightning_fabric')])")
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=False,
+                          env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert done.stdout.strip().splitlines()[-1] == "[]"
