@@ -325,3 +325,21 @@ def test_a_run_folder_from_before_the_reader_components_reads_as_today(data):
         old.callbacks.sampler_feedback._target_ = "realityavatar.data.datamodule.SamplerFeedback"
     assert OmegaConf.to_container(upgrade_run_config(old)) == OmegaConf.to_container(today)
     assert OmegaConf.to_container(upgrade_run_config(today.copy())) == OmegaConf.to_container(today)
+
+
+@pytest.mark.parametrize("cell", ["lstm", "gru"])
+def test_a_run_folder_from_before_the_temporal_classes_reads_as_today(cell):
+    """temporal `_target_: ...RecurrentTemporal` with `kind: lstm | gru` (run folders before LSTMTemporal and
+    GRUTemporal) is read as today's class, whose weights keep their names (rnn.*): old checkpoints load."""
+    from omegaconf import OmegaConf, open_dict
+
+    from realityavatar.config import upgrade_run_config
+
+    today = compose([f"temporal={cell}"])
+    old = OmegaConf.create(OmegaConf.to_container(today))
+    with open_dict(old):
+        old.temporal._target_, old.temporal.kind = "realityavatar.model.temporal.RecurrentTemporal", cell
+    assert OmegaConf.to_container(upgrade_run_config(old)) == OmegaConf.to_container(today)
+    module = instantiate(today.temporal)
+    assert sorted(module.state_dict()) == ["rnn.bias_hh_l0", "rnn.bias_ih_l0", "rnn.weight_hh_l0", "rnn.weight_ih_l0"]
+    assert type(module.rnn).__name__ == cell.upper()

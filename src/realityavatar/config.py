@@ -72,8 +72,9 @@ def unresolved_copy(cfg: DictConfig) -> DictConfig:
     return raw
 
 
-# Run folders written before the readers became components (data.reader._target_) and the samplers and the device
-# cache left data/datamodule.py: what their config.yaml named, and where it is now.
+# Run folders written before the readers became components (data.reader._target_), the samplers and the device
+# cache left data/datamodule.py and the temporal module's cell became a class (temporal.kind): what their config.yaml
+# named, and where it is now.
 MOVED_TARGETS = {f"realityavatar.data.datamodule.{name}": f"realityavatar.data.samplers.{name}"
                  for name in ("EpochShuffle", "HardFrameSampler", "SamplerFeedback")}
 MOVED_TARGETS["realityavatar.data.i3d.I3DDataModule"] = "realityavatar.data.datamodule.AvatarDataModule"
@@ -81,8 +82,8 @@ MOVED_TARGETS["realityavatar.data.i3d.I3DDataModule"] = "realityavatar.data.data
 
 def upgrade_run_config(cfg: DictConfig) -> DictConfig:
     """A saved run's config (config.yaml) in today's form, in place: `data.reader: i3d | zju` with the layout's keys
-    beside it (frame_interval, zju_*_frames) becomes the reader component, and moved classes are named where they
-    are. A config already in today's form is returned unchanged."""
+    beside it (frame_interval, zju_*_frames) becomes the reader component, `temporal.kind: lstm | gru` the class of
+    that cell, and moved classes are named where they are. A config already in today's form is returned unchanged."""
     from omegaconf import open_dict
 
     data = cfg.get("data")
@@ -95,6 +96,9 @@ def upgrade_run_config(cfg: DictConfig) -> DictConfig:
             else:
                 data.reader = {"_target_": "realityavatar.data.i3d.I3DReader",
                                "frame_interval": data.pop("frame_interval", 1)}
+        temporal = cfg.get("temporal")
+        if isinstance(temporal, DictConfig) and "kind" in temporal and temporal.get("_target_", "").endswith(".RecurrentTemporal"):
+            temporal._target_ = f"realityavatar.model.temporal.{temporal.pop('kind').upper()}Temporal"
         for key in ("data", "data.sampler", "callbacks.sampler_feedback"):
             node = OmegaConf.select(cfg, key, default=None)
             if isinstance(node, DictConfig) and node.get("_target_") in MOVED_TARGETS:

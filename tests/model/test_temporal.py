@@ -2,11 +2,10 @@
 
 from __future__ import annotations
 
-import pytest
 import torch
 
 from realityavatar.config import compose
-from realityavatar.model.temporal import NoTemporal, RecurrentTemporal
+from realityavatar.model.temporal import GRUTemporal, LSTMTemporal, NoTemporal, RecurrentTemporal
 from tests.helpers import assert_all_grads
 
 
@@ -14,7 +13,7 @@ def test_temporal_none_ignores_history_lstm_does_not():
     torch.manual_seed(0)
     f = torch.randn(3, 6, 32)
     perm = torch.cat([torch.tensor([3, 0, 4, 1, 2]), torch.tensor([5])])
-    none, lstm, gru = NoTemporal(32, 16), RecurrentTemporal("lstm", 32, 16, 1), RecurrentTemporal("gru", 32, 16, 1)
+    none, lstm, gru = NoTemporal(32, 16), LSTMTemporal(32, 16, 1), GRUTemporal(32, 16, 1)
     assert torch.equal(none(f), none(f[:, perm]))
     assert not torch.allclose(lstm(f), lstm(f[:, perm]))
     assert not torch.allclose(gru(f), gru(f[:, perm]))
@@ -23,8 +22,7 @@ def test_temporal_none_ignores_history_lstm_does_not():
         assert h.shape == (3, 16) and m.out_dim == 16
         h.square().sum().backward()
         assert_all_grads(m)
-    with pytest.raises(ValueError, match="temporal.kind"):
-        RecurrentTemporal("transformer", 32, 16, 1)
+    assert isinstance(lstm.rnn, torch.nn.LSTM) and isinstance(gru.rnn, torch.nn.GRU)
 
 
 def _still_and_spin(T: int):

@@ -2,22 +2,19 @@
 
 from __future__ import annotations
 
-from typing import Literal
-
 import torch
 from torch import nn
 
 
 class RecurrentTemporal(nn.Module):
-    """LSTM or GRU over f_p [B,T,D] (oldest first); h_t is the output at the last (current) time step."""
+    """A recurrent network (the subclass's `cell`) over f_p [B,T,D] (oldest first); h_t is the output at the last
+    (current) time step. Its weights are `rnn.*` for either cell."""
 
-    def __init__(self, kind: Literal["lstm", "gru"], in_dim: int, hidden_dim: int, num_layers: int):
+    cell: type[nn.RNNBase]
+
+    def __init__(self, in_dim: int, hidden_dim: int, num_layers: int):
         super().__init__()
-        if kind not in ("lstm", "gru"):
-            raise ValueError(f"temporal.kind: expected 'lstm' or 'gru', got {kind!r}")
-        rnn = nn.LSTM if kind == "lstm" else nn.GRU
-        self.kind = kind
-        self.rnn = rnn(in_dim, hidden_dim, num_layers=num_layers, batch_first=True)
+        self.rnn = self.cell(in_dim, hidden_dim, num_layers=num_layers, batch_first=True)
         self.out_dim = hidden_dim
 
     def forward(self, f_p: torch.Tensor) -> torch.Tensor:
@@ -27,6 +24,18 @@ class RecurrentTemporal(nn.Module):
 
     def param_groups(self) -> dict[str, list[nn.Parameter]]:
         return {"temporal": list(self.parameters())}
+
+
+class LSTMTemporal(RecurrentTemporal):
+    """The paper's temporal module, an LSTM (temporal=lstm)."""
+
+    cell = nn.LSTM
+
+
+class GRUTemporal(RecurrentTemporal):
+    """A GRU in the LSTM's place (temporal=gru)."""
+
+    cell = nn.GRU
 
 
 class NoTemporal(nn.Module):
