@@ -85,3 +85,25 @@ def test_oracle_slide_and_light():
     assert shade.min() < 0.45 and shade.max() > 0.6
     assert torch.allclose(rgb, torch.sigmoid(glued.albedo) * shade[:, None])
     assert torch.allclose(unlit.at(2, eye)[4], torch.sigmoid(glued.albedo))
+
+
+def test_oracle_pose_drape_maps_equal_windows_to_the_earliest_frame():
+    """--drape pose: a training frame whose pose window equals an earlier frame's shows that frame's cloth (the rest
+    and the settled frames of a spin at one pose); a frame whose window still holds the spin, or any frame the
+    training split lacks (the novel-pose sequence), keeps its own."""
+    from types import SimpleNamespace
+
+    from realityavatar.analysis.oracle import pose_driven_rows
+    from realityavatar.data.poses import PoseTable
+
+    F = 14
+    poses = torch.zeros(F, 24, 3)
+    poses[4:7, 0, 1] = torch.tensor([1.0, 2.0, 3.0])  # the root turns in frames 4-6, then stands as at rest
+    table = PoseTable(list(range(F)), poses, torch.zeros(F, 3))
+    train = [SimpleNamespace(frame=f) for f in range(12) for _ in range(2)]  # frames 12, 13: another split's
+    dm = SimpleNamespace(scene=SimpleNamespace(poses=table), window_len=3, window_step=2,
+                         datasets={"train": SimpleNamespace(records=train)})
+    frames = list(range(F))
+    rows = pose_driven_rows(dm, frames)
+    # windows (t-4, t-2, t): frames 0-3 read rest only; 4-10 hold the turn; 11 reads 7, 9, 11: rest again
+    assert rows == [0, 0, 0, 0, 4, 5, 6, 7, 8, 9, 10, 0, 12, 13]

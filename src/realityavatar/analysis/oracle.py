@@ -2,7 +2,7 @@
 scored on the held-out images as a training run is (the ceiling a model that tracks the cloth perfectly reaches).
 
 Usage: python -m realityavatar.analysis.oracle [--data synthetic_demo] [--steps 3000] [--views train|all]
-       [--slide-cm S] [--light exact|none] [--body 16000] [--garment 24000] [--out DIR] [config overrides ...]
+       [--slide-cm S] [--drape true|pose] [--light exact|none] [--body 16000] [--garment 24000] [--out DIR] [config overrides ...]
 
 Every Gaussian sits at a fixed triangle and barycentric point of the scene's posed body (the package's body model on
 the scene's poses, as the scene builder poses it) or of its simulated garment (<root>/<scene>-garment.npz), so in
@@ -13,7 +13,11 @@ max(0, n.l)), the normal turned to the camera as the scene's two-sided cloth is)
 opacity, scales, angle and shift per Gaussian, with L1 + 0.2 D-SSIM + 0.1 mask MSE on the training cameras of every
 training frame (`--views all`: the held-out cameras' images too, a bound set by the representation alone).
 `--slide-cm S` slides the garment's Gaussians S cm towards the waist at peak flare (in proportion to the flare in
-other frames): a controlled version of the drift learnt models show. `--light none`: one unlit colour per Gaussian.
+other frames): a controlled version of the drift learnt models show. `--drape pose`: a training frame whose pose
+window (what a pose-driven model reads: data.window_len poses data.window_step apart) equals an earlier frame's shows
+that frame's cloth, so a drape the poses cannot tell apart (the demo's skirt settles after its stop into another
+drape than it started in, at the same pose) is the ceiling of a model driven by the pose window that tracks the cloth
+perfectly otherwise (docs/research/2026-11-28-garment-settled-drape.md). `--light none`: one unlit colour per Gaussian.
 The simulator's meshes serve this oracle and diagnostics only, never training.
 Writes <out>/metrics.json (test/<split>/<phase>/<metric>, as a training run), per_frame.csv, phases.png and prints
 the table (docs/research/2026-11-28-garment-oracle-256.md).
@@ -57,6 +61,28 @@ def scene_meshes(dm, body) -> tuple[list[int], torch.Tensor, torch.Tensor, torch
     body_v = torch.as_tensor(body_sequence(body, motion)[0])
     return (frames, body_v, body.faces.long(), torch.as_tensor(g["vertices"], dtype=torch.float64),
             torch.as_tensor(g["faces"]).long(), g["uv"])
+
+
+def pose_driven_rows(dm, frames: list[int]) -> list[int]:
+    """Per garment frame, the row of the earliest training frame whose pose window (the dataset's: data.window_len
+    poses data.window_step apart) equals its own, else its own row. Only the training frames are matched; the
+    novel-pose sequence keeps its own cloth."""
+    train = {int(r.frame) for r in dm.datasets["train"].records}
+
+    def window(f: int) -> torch.Tensor:
+        poses, transl = dm.scene.poses.window(f, dm.window_len, dm.window_step)
+        return torch.cat([poses.flatten(), transl.flatten()]).double()
+
+    row = {f: i for i, f in enumerate(frames)}
+    out, seen = list(range(len(frames))), []
+    for f in (f for f in frames if f in train):
+        w = window(f)
+        match = next((g for g, wg in seen if torch.allclose(w, wg, rtol=0, atol=1e-6)), None)
+        if match is None:
+            seen.append((f, w))
+        else:
+            out[row[f]] = row[match]
+    return out
 
 
 def grid_locate(uv: torch.Tensor, cols: int, rows: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -172,6 +198,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--views", choices=("train", "all"), default="train",
                     help="fit the training cameras, or the held-out cameras' images too")
     ap.add_argument("--slide-cm", type=float, default=0.0, help="garment Gaussians slide this far at peak flare")
+    ap.add_argument("--drape", choices=("true", "pose"), default="true",
+                    help="the garment's cloth per frame: the true one, or the one of the earliest frame with the same pose window")
     ap.add_argument("--light", choices=("exact", "none"), default="exact")
     # defaults: ~0.9 cm apart on both meshes, about a pixel of the 256 px demo scene
     ap.add_argument("--body", type=int, default=16000, help="Gaussians on the body mesh")
@@ -183,7 +211,8 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     torch.set_num_threads(a.threads)
     commit = git_commit()  # the code that runs: read before other sessions commit
-    tag = a.views + (f"_slide{a.slide_cm:g}cm" if a.slide_cm else "") + ("_unlit" if a.light == "none" else "")
+    tag = (a.views + (f"_slide{a.slide_cm:g}cm" if a.slide_cm else "") + ("_unlit" if a.light == "none" else "")
+           + ("_posedrape" if a.drape == "pose" else ""))
     out = Path(a.out or f"outputs/oracle/{a.data}_{tag}")
     cfg = compose([f"data={a.data}", *a.overrides])
     body = instantiate(cfg.body)
@@ -191,6 +220,10 @@ def main(argv: list[str] | None = None) -> int:
     frames, body_v, body_f, garm_v, garm_f, uv = scene_meshes(dm, body)
     row = {f: i for i, f in enumerate(frames)}
     cols, rows = len(np.unique(uv[:, 0])), len(np.unique(uv[:, 1]))
+    if a.drape == "pose":
+        rep = pose_driven_rows(dm, frames)
+        print(f"oracle: --drape pose: {sum(r != i for i, r in enumerate(rep))} frames show an earlier frame's cloth")
+        garm_v = garm_v[rep]
     slide = None
     if a.slide_cm:
         length = (garm_v[0, -cols:] - garm_v[0, :cols]).norm(dim=-1).mean()  # waist to hem at rest, metres
@@ -244,7 +277,7 @@ def main(argv: list[str] | None = None) -> int:
                 if split == "novel_view" and view == int(batches[0]["view"][0]) and rec_phase not in tiles:
                     tiles[rec_phase] = torch.cat([pred, b["image"][0]], 1)  # the first image of each phase
     metrics = {**summarise(records), "oracle": {
-        "data": a.data, "overrides": a.overrides, "views": a.views, "slide_cm": a.slide_cm, "light": a.light,
+        "data": a.data, "overrides": a.overrides, "views": a.views, "slide_cm": a.slide_cm, "drape": a.drape, "light": a.light,
         "body": a.body, "garment": a.garment, "seed": a.seed, "ambient": model.ambient, "diffuse": model.diffuse},
         "commit": commit, "iterations": a.steps, "num_gaussians": int(model.pos.shape[1]),
         "train_seconds": round(fit_s, 1), "render_fps": len(records) / max(render_s, 1e-9),
