@@ -6,7 +6,7 @@ python benchmarks/loader.py "+experiment=paper_scale" --workers 0 4 [--device-ca
 For each loader-worker count, one epoch is drawn first (images and distance fields cached, as after the first epoch
 of a training), then `--batches` batches are timed in the main process with `--pause` seconds between them (a
 training step's place: caches cool and workers get ahead): the loader's next batch and the trainer's move of it to
-`--device` (the datamodule's transfer hook; pinned batches on a GPU). Prints median and 90th percentile per row, and
+`--device` (data/lightning.py TrainingData's transfer hook; pinned batches on a GPU). Prints median and 90th percentile per row, and
 the median time of `composite` (the image over its background, where the batch is), and writes JSON (default
 benchmarks/results/loader_cpu.json). `--device-cache` adds a row with the training set kept on the device
 (data.device_cache, DeviceSamples): on a CPU it is kept in the process's memory, as a GPU run keeps it on the GPU.
@@ -36,13 +36,15 @@ def fetch_times(overrides: list[str], workers: int, batches: int, pause: float, 
     from realityavatar.build import build_data
     from realityavatar.config import compose
     from realityavatar.data.datamodule import composite
+    from realityavatar.data.lightning import TrainingData
 
     cfg = compose([*overrides, f"data.num_workers={workers}", f"data.device_cache={device_cache}"])
-    dm = build_data(cfg, instantiate(cfg.body))
+    dm = TrainingData(build_data(cfg, instantiate(cfg.body)))
     target = torch.device(device)
     dm.trainer = SimpleNamespace(strategy=SimpleNamespace(root_device=target), training=True)  # as in fit
+    dm.setup("fit")
     if device_cache and target.type == "cpu":
-        dm._store_device = lambda: target  # kept in the process, as a GPU run keeps it on the GPU
+        dm.data._store_device = lambda: target  # kept in the process, as a GPU run keeps it on the GPU
     loader = dm.train_dataloader()
     it = iter(loader)
     for _ in range(len(loader)):  # one epoch: every sample's image and distance field cached

@@ -300,11 +300,13 @@ def test_an_unknown_eval_protocol_stops_the_run_before_training():
         check_settings(compose(["eval.protocol=dycoo"]))
 
 
-@pytest.mark.parametrize("data", ["synthetic_ci", "i3d_ID2_1", "zju_377_mono"])
-def test_a_run_folder_from_before_the_reader_components_reads_as_today(data):
+@pytest.mark.parametrize("data, feedback", [("synthetic_ci", "datamodule"), ("i3d_ID2_1", "datamodule"),
+                                            ("zju_377_mono", "samplers")])
+def test_a_run_folder_from_before_the_reader_components_reads_as_today(data, feedback):
     """config.yaml of a run trained before data.reader was a component (`reader: i3d | zju` with frame_interval or
-    zju_*_frames beside it, the samplers in data/datamodule.py, I3DDataModule) is read as today's config of the same
-    settings (build._read_run, and resume's comparison)."""
+    zju_*_frames beside it, the samplers in data/datamodule.py, I3DDataModule), or before SamplerFeedback moved from
+    data/samplers.py to train.py, is read as today's config of the same settings (build._read_run, and resume's
+    comparison)."""
     from omegaconf import OmegaConf, open_dict
 
     from realityavatar.config import upgrade_run_config
@@ -322,7 +324,7 @@ def test_a_run_folder_from_before_the_reader_components_reads_as_today(data):
             if data.startswith("i3d"):
                 old.data._target_ = "realityavatar.data.i3d.I3DDataModule"
         old.data.sampler._target_ = "realityavatar.data.datamodule.HardFrameSampler"
-        old.callbacks.sampler_feedback._target_ = "realityavatar.data.datamodule.SamplerFeedback"
+        old.callbacks.sampler_feedback._target_ = f"realityavatar.data.{feedback}.SamplerFeedback"
     assert OmegaConf.to_container(upgrade_run_config(old)) == OmegaConf.to_container(today)
     assert OmegaConf.to_container(upgrade_run_config(today.copy())) == OmegaConf.to_container(today)
 

@@ -69,6 +69,7 @@ def _run(cfg: DictConfig, choices: dict | None, out_dir: Path, resume_from: Path
     from hydra.utils import instantiate
 
     from realityavatar.build import CKPT_NAME, build_data, build_module, git_commit, write_json
+    from realityavatar.data.lightning import TrainingData
     from realityavatar.evaluate import evaluate_module, format_table
     from realityavatar.model.module import check_single_process
     from realityavatar.runs import (
@@ -112,7 +113,8 @@ def _run(cfg: DictConfig, choices: dict | None, out_dir: Path, resume_from: Path
     check_single_process(trainer)  # before fit: a DDP launch would start the other ranks
     try:
         # data only, as read_checkpoint read it above
-        trainer.fit(module, datamodule=dm, ckpt_path=str(resume_from) if resume_from else None, weights_only=True)
+        trainer.fit(module, datamodule=TrainingData(dm), ckpt_path=str(resume_from) if resume_from else None,
+                    weights_only=True)
     except SystemExit:
         if trainer.interrupted:  # Lightning turns a KeyboardInterrupt inside a step into exit(1)
             _interrupted(out_dir, trainer, saved=False)

@@ -83,6 +83,8 @@ def test_views_per_step_batches_cameras_of_one_frame(scene_root, body):
     hook marks it for the model (training only), the order resumes, and too few cameras per frame is an error."""
     from types import SimpleNamespace
 
+    from realityavatar.data.lightning import TrainingData
+
     dm = make(scene_root, body, views_per_step=3, batch_size=2)
     loader = dm.train_dataloader()
     batches = list(loader)
@@ -91,14 +93,15 @@ def test_views_per_step_batches_cameras_of_one_frame(scene_root, body):
         f, v = b["frame"].reshape(2, 3), b["view"].reshape(2, 3)
         assert (f == f[:, :1]).all() and all(len(set(row)) == 3 for row in v.tolist())
     assert {int(i) for b in batches for i in b["index"][::3]} == set(range(24))
-    dm.trainer = SimpleNamespace(training=True)
-    assert dm.on_before_batch_transfer(batches[0], 0)["views_per_frame"] == 3
-    dm.trainer = SimpleNamespace(training=False)  # evaluation batches: one sample each
-    assert "views_per_frame" not in dm.on_before_batch_transfer(batches[0], 0)
+    hooks = TrainingData(dm)
+    hooks.trainer = SimpleNamespace(training=True)
+    assert hooks.on_before_batch_transfer(batches[0], 0)["views_per_frame"] == 3
+    hooks.trainer = SimpleNamespace(training=False)  # evaluation batches: one sample each
+    assert "views_per_frame" not in hooks.on_before_batch_transfer(batches[0], 0)
     mixed = {**batches[0], "frame": torch.arange(6)}
-    dm.trainer = SimpleNamespace(training=True)
+    hooks.trainer = SimpleNamespace(training=True)
     with pytest.raises(RuntimeError, match="views_per_step=3: a training batch mixes frames"):
-        dm.on_before_batch_transfer(mixed, 0)
+        hooks.on_before_batch_transfer(mixed, 0)
     # resume: the state after 4 batches continues with the uninterrupted order's batches 5..
     dm2 = make(scene_root, body, views_per_step=3, batch_size=2, shuffle_seed=dm.shuffle_seed)
     it = iter(dm2.train_dataloader())
@@ -415,7 +418,8 @@ def test_sampler_feedback_passes_per_image_losses_to_the_sampler():
     """SamplerFeedback hands the training step's per-image losses to the sampler by dataset index."""
     from types import SimpleNamespace
 
-    from realityavatar.data.samplers import HardFrameSampler, SamplerFeedback
+    from realityavatar.data.lightning import SamplerFeedback
+    from realityavatar.data.samplers import HardFrameSampler
 
     s = HardFrameSampler([0, 0, 1, 1], seed=0)
     trainer = SimpleNamespace(datamodule=SimpleNamespace(train_sampler=s))
@@ -429,7 +433,8 @@ def test_sampler_feedback_on_a_gpu_reads_once_per_log_step():
     """Losses on a GPU wait on the device until a log step, then reach the sampler in step order, in one copy."""
     from types import SimpleNamespace
 
-    from realityavatar.data.samplers import HardFrameSampler, SamplerFeedback
+    from realityavatar.data.lightning import SamplerFeedback
+    from realityavatar.data.samplers import HardFrameSampler
 
     class OnGpu(torch.Tensor):  # reports a GPU device: the callback keeps it until a log step
         @property
@@ -500,13 +505,11 @@ def test_missing_scene_folder_is_named(tmp_path, body):
 
 def test_batches_are_pinned_when_the_trainer_runs_on_a_gpu(scene_root, body):
     """Every loader pins its batches when the trainer's device is a GPU (their copies then wait for no kernel), not
-    on a CPU or without a trainer."""
-    from types import SimpleNamespace
-
+    on a CPU or without a trainer (TrainingData.setup gives the data the trainer's device)."""
     dm = make(scene_root, body, device_cache=False)  # a GPU's training set would move there (needs CUDA)
     assert not dm.train_dataloader().pin_memory
     for device, pinned in (("cpu", False), ("cuda", True)):
-        dm.trainer = SimpleNamespace(strategy=SimpleNamespace(root_device=torch.device(device)), training=True)
+        dm.device = torch.device(device)
         loaders = [dm.train_dataloader(), dm.val_dataloader(), *dm.test_dataloader()]
         assert [loader.pin_memory for loader in loaders] == [pinned] * len(loaders)
 
@@ -518,20 +521,23 @@ def test_device_cache_serves_the_host_batches_from_the_device(scene_root, body, 
     GPU; here it is kept on the CPU to compare."""
     from types import SimpleNamespace
 
+    from realityavatar.data.lightning import TrainingData
+
     trainer = SimpleNamespace(strategy=SimpleNamespace(root_device=torch.device("cpu")), training=True)
     cpu = torch.device("cpu")
     for kw in ({}, {"views_per_step": 3, "batch_size": 2}):
         host = make(scene_root, body, device_cache=False, **kw)
         dev = make(scene_root, body, shuffle_seed=host.shuffle_seed, **kw)
         monkeypatch.setattr(dev, "_store_device", lambda: cpu)
-        host.trainer = dev.trainer = trainer
+        th, td = TrainingData(host), TrainingData(dev)
+        th.trainer = td.trainer = trainer
         a_batches, b_batches = list(host.train_dataloader()), list(dev.train_dataloader())
         assert host.device_samples is None and len(dev.device_samples) == len(dev.datasets["train"])
         assert len(a_batches) == len(b_batches)
         for a, b in zip(a_batches, b_batches):
             assert "pixels" not in b and not any(torch.is_tensor(v) and v.ndim > 1 for v in b.values())
-            a = host.transfer_batch_to_device(host.on_before_batch_transfer(a, 0), cpu, 0)
-            b = dev.transfer_batch_to_device(dev.on_before_batch_transfer(b, 0), cpu, 0)
+            a = th.transfer_batch_to_device(th.on_before_batch_transfer(a, 0), cpu, 0)
+            b = td.transfer_batch_to_device(td.on_before_batch_transfer(b, 0), cpu, 0)
             assert a.keys() == b.keys()
             for k, v in a.items():
                 if torch.is_tensor(v):
@@ -539,10 +545,9 @@ def test_device_cache_serves_the_host_batches_from_the_device(scene_root, body, 
                 else:
                     assert v == b[k], k
     test_batch = next(iter(dev.test_dataloader()[0]))
-    moved = dev.transfer_batch_to_device(test_batch, cpu, 0)
+    moved = td.transfer_batch_to_device(test_batch, cpu, 0)
     assert torch.equal(moved["pixels"], test_batch["pixels"]) and torch.equal(moved["index"], test_batch["index"])
     full = make(scene_root, body)
-    full.trainer = trainer
     monkeypatch.setattr(full, "_store_device", lambda: torch.device("cuda"))
     monkeypatch.setattr(torch.cuda, "mem_get_info", lambda device=None: (1 << 20, 1 << 30))  # 1 MiB free
     full.train_dataloader()
@@ -555,18 +560,22 @@ def test_device_cache_on_a_gpu_keeps_the_set_there_and_serves_the_host_batches(s
     the pinned host batch moved there, and its entries are the host path's."""
     from types import SimpleNamespace
 
+    from realityavatar.data.lightning import TrainingData
+
     if not torch.cuda.is_available():
         pytest.skip("needs CUDA")
     gpu = torch.device("cuda")
     trainer = SimpleNamespace(strategy=SimpleNamespace(root_device=gpu), training=True)
     host = make(scene_root, body, device_cache=False)
     dev = make(scene_root, body, shuffle_seed=host.shuffle_seed)
-    host.trainer = dev.trainer = trainer
+    host.device = dev.device = gpu
+    th, td = TrainingData(host), TrainingData(dev)
+    th.trainer = td.trainer = trainer
     a_loader, b_loader = host.train_dataloader(), dev.train_dataloader()
     assert dev.training_set["device"].startswith("cuda") and host.device_samples is None
     for a, b in zip(a_loader, b_loader):
-        a = host.transfer_batch_to_device(host.on_before_batch_transfer(a, 0), gpu, 0)
-        b = dev.transfer_batch_to_device(dev.on_before_batch_transfer(b, 0), gpu, 0)
+        a = th.transfer_batch_to_device(th.on_before_batch_transfer(a, 0), gpu, 0)
+        b = td.transfer_batch_to_device(td.on_before_batch_transfer(b, 0), gpu, 0)
         assert a.keys() == b.keys()
         for k, v in a.items():
             if torch.is_tensor(v):

@@ -404,7 +404,7 @@ def test_compile_trains_through_the_compiled_path(scenes_root, tmp_path, monkeyp
 
 def test_a_run_with_its_training_set_on_the_device_trains_as_one_without(scenes_root, tmp_path, monkeypatch):
     """data.device_cache (a GPU's training set kept there, data/device_cache.py DeviceSamples) is invisible to training:
-    the trainer takes every batch's tensors from the kept set (the datamodule's transfer hook), the steps leave the
+    the trainer takes every batch's tensors from the kept set (TrainingData's transfer hook), the steps leave the
     kept tensors as they were (a batch of one sample is a view of them), and the run ends bit-equal to one whose
     batches are collated and copied. Kept on the CPU here, where a run would not keep it."""
     from realityavatar.data.datamodule import AvatarDataModule
@@ -431,14 +431,29 @@ def test_a_run_with_its_training_set_on_the_device_trains_as_one_without(scenes_
     assert ref["training_set"] == "host" and metrics["training_set"]["device"] == "cpu"  # metrics.json says where
 
 
-def test_reading_a_run_folder_imports_no_lightning(trained_run):
-    """runs.py and build.load_avatar (canonical export, and the loading of the viewer and animate) import no Lightning:
-    the training callback that keeps run state across a resume (RunState) is train.py's."""
+def test_reading_a_run_folder_imports_no_lightning(trained_run, tmp_path):
+    """runs.py, build.load_avatar (canonical export) and the data a run's poses and cameras come from (build_data:
+    data/datamodule.py AvatarDataModule, a plain object) import no Lightning: posed export (frame=, frames=), animate
+    and the viewer's loading run in a process that never imports it. Training's Lightning pieces are train.py's
+    (RunState) and data/lightning.py's (TrainingData, SamplerFeedback), which only training imports."""
+    from tests.entry.test_view import free_port
+
     out, _ = trained_run
-    script = ("import sys; from realityavatar.build import load_avatar; import realityavatar.runs\n"
-              f"load_avatar({str(out)!r})\n"
-              "print([m for m in sys.modules if m.split('.')[0] in ('pytorch_lightning', 'lightning', 'lightning_fabric')])")
+    script = (
+        "import sys; from realityavatar.build import load_avatar; import realityavatar.runs\n"
+        "from realityavatar import animate, export\n"
+        "from realityavatar.view import compose_view, load_viewer\n"
+        f"run, tmp = {str(out)!r}, {str(tmp_path)!r}\n"
+        "load_avatar(run)\n"
+        "assert export.main([f'run_dir={run}', 'frame=3', f'out={tmp}/posed.ply']) == 0\n"
+        "assert export.main([f'run_dir={run}', 'frames=2:4', f'out={tmp}/frames']) == 0\n"
+        "assert animate.main([f'run_dir={run}', 'views=0', f'out={tmp}/a.gif']) == 0\n"
+        f"viewer = load_viewer(*compose_view([f'run_dir={{run}}', 'port={free_port()}']))\n"
+        "assert viewer.sequences and viewer.dm.scene is not None\n"
+        "viewer.close()\n"
+        "print([m for m in sys.modules if m.split('.')[0] in ('pytorch_lightning', 'lightning', 'lightning_fabric')])")
     done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=False,
                           env={**os.environ, "OMP_NUM_THREADS": "1"})
     assert done.returncode == 0, done.stderr[-3000:]
     assert done.stdout.strip().splitlines()[-1] == "[]"
+    assert (tmp_path / "posed.ply").is_file() and len(list((tmp_path / "frames").glob("*.ply"))) == 2

@@ -31,6 +31,7 @@ def test_training_step_and_evaluation_in_float64(scenes_root, tmp_path):
     from hydra.utils import instantiate
 
     from realityavatar.build import build_data, build_module
+    from realityavatar.data.lightning import TrainingData
     from realityavatar.evaluate import evaluate_module
 
     cfg, _ = _prepare(compose([*TINY, "iterations=4", "schedule.deform_start=2", "density.refine_every=2",
@@ -41,7 +42,7 @@ def test_training_step_and_evaluation_in_float64(scenes_root, tmp_path):
     module = build_module(cfg, body, dm.num_train_frames, dm.scene_extent).double()
     trainer = instantiate(cfg.trainer, logger=False, enable_checkpointing=False)
     assert torch.get_default_dtype() == torch.float32
-    trainer.fit(module, datamodule=dm)
+    trainer.fit(module, datamodule=TrainingData(dm))
     assert trainer.global_step == 4
     assert all(p.dtype == torch.float64 for p in module.parameters())
     assert module.run_info["render"]["dtype"] == "torch.float64"
@@ -182,7 +183,7 @@ def test_training_on_a_gpu_synchronises_only_on_log_steps(scenes_root, tmp_path,
     from hydra.utils import instantiate
 
     from realityavatar.build import build_data, build_module
-    from realityavatar.data.samplers import SamplerFeedback
+    from realityavatar.data.lightning import SamplerFeedback, TrainingData
     from realityavatar.render.splat import gsplat_status
 
     if not torch.cuda.is_available() or gsplat_status() != "ok":
@@ -213,7 +214,7 @@ def test_training_on_a_gpu_synchronises_only_on_log_steps(scenes_root, tmp_path,
             warnings.simplefilter("always")
             warnings.showwarning = lambda message, category, filename, lineno, *args: events.append(
                 ("sync", f"{filename}:{lineno}: {message}"))
-            trainer.fit(module, datamodule=dm)
+            trainer.fit(module, datamodule=TrainingData(dm))
     finally:
         torch.cuda.set_sync_debug_mode("default")
     assert trainer.global_step == steps and module.run_info["render"]["backend"] == "gsplat"

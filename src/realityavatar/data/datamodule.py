@@ -1,4 +1,6 @@
-"""The LightningDataModule over a scene reader (`data.reader`: i3d.I3DReader, zju.ZJUReader) and its sample Dataset.
+"""The data of one sequence, without Lightning: a scene reader (`data.reader`: i3d.I3DReader, zju.ZJUReader), its
+selection and its sample Dataset. Training wraps it for Lightning (data/lightning.py TrainingData); export, animate,
+the viewer and evaluation read it as it is.
 
 Samples follow docs/CONTRACTS.md ("Samples"): pixels, inside, background (`composite` makes image and mask of them),
 mask_dist, K, viewmat, width, height, poses [T,24,3], transl [T,3], pose_features [T,D], bone_transforms [24,4,4],
@@ -12,7 +14,6 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
-import pytorch_lightning as pl
 import torch
 from torch.utils.data import DataLoader, Dataset
 
@@ -149,8 +150,9 @@ def composite(batch: dict, dtype: torch.dtype = torch.float32) -> dict:
     return out
 
 
-class AvatarDataModule(pl.LightningDataModule):
-    """Train / val (a few novel-view images) / test ([novel_view, novel_pose]) loaders over one sequence.
+class AvatarDataModule:
+    """Train / val (a few novel-view images) / test ([novel_view, novel_pose]) loaders over one sequence; a plain
+    object (data/lightning.py TrainingData is its Lightning face for trainer.fit).
 
     reader: the layout's reader (conf/data: `reader._target_`), which reads <root>/<sequence> and keeps the cameras
     train_views / test_views: i3d.I3DReader (I3D-Human, synthetic scenes, converted captures), zju.ZJUReader (ZJU-MoCap,
@@ -196,7 +198,6 @@ class AvatarDataModule(pl.LightningDataModule):
         shuffle_seed: int | None = None,
         sampler: Callable[..., EpochShuffle] = EpochShuffle,
     ) -> None:
-        super().__init__()
         if not callable(getattr(reader, "read", None)):
             raise TypeError(f"data.reader: expected a scene reader (conf/data: reader._target_, e.g. "
                              f"realityavatar.data.i3d.I3DReader or realityavatar.data.zju.ZJUReader), got {reader!r}")
@@ -229,6 +230,9 @@ class AvatarDataModule(pl.LightningDataModule):
         if not isinstance(device_cache, bool):
             raise TypeError(f"data.device_cache: expected true or false, got {device_cache!r}")
         self.undistort, self.cache_images, self.device_cache = undistort, cache_images, device_cache
+        # where training moves the batches (TrainingData sets it at fit): on a GPU the loaders pin their batches and
+        # the training set is kept there (device_cache)
+        self.device: torch.device | None = None
         self.device_samples: DeviceSamples | None = None  # the training set on the device (device_cache)
         self.training_set: str | dict = "host"  # where it is kept, for metrics.json (device_cache.keep_on_device)
         self.body = body
@@ -422,24 +426,15 @@ class AvatarDataModule(pl.LightningDataModule):
 
     def _store_device(self) -> torch.device | None:
         """Where the training set may be kept (device_cache): the trainer's GPU; None on a CPU, where it already is."""
-        if not self.device_cache or self.trainer is None:
+        if not self.device_cache or self.device is None:
             return None
-        device = self.trainer.strategy.root_device
-        return device if device.type == "cuda" else None
-
-    def transfer_batch_to_device(self, batch: dict, device: torch.device, dataloader_idx: int) -> dict:
-        """The trainer's move of a batch; a batch of the training set kept on the device (device_cache) brings only
-        its host entries and takes its tensors from there."""
-        moved = super().transfer_batch_to_device(batch, device, dataloader_idx)
-        if self.device_samples is None or "pixels" in batch:  # a batch of the host's samples
-            return moved
-        return {**moved, **self.device_samples.gather(batch["index"].tolist())}
+        return self.device if self.device.type == "cuda" else None
 
     def _pinned(self) -> bool:
         """Batches in pinned host memory when the trainer moves them to a GPU: a copy from pageable memory first
         waits for every kernel queued before it (CUDA's stream sync, once per tensor of the batch); a copy from pinned
         memory is queued like a kernel."""
-        return self.trainer is not None and self.trainer.strategy.root_device.type == "cuda"
+        return self.device is not None and self.device.type == "cuda"
 
     def _require(self, split: str) -> AvatarDataset:
         if not self.datasets:
@@ -447,20 +442,6 @@ class AvatarDataModule(pl.LightningDataModule):
         if split not in self.datasets:
             raise KeyError(f"{self.scene.source}: split {split!r} has no images (have {sorted(self.datasets)})")
         return self.datasets[split]
-
-    def on_before_batch_transfer(self, batch: dict, dataloader_idx: int) -> dict:
-        """Before a batch moves to the device, image sizes become host ints (read from a GPU tensor, each would make
-        the training step wait for the device). Poses need no check here: every window comes from a PoseTable, which
-        refused non-finite poses when it was built. A training batch of views_per_step cameras per frame says so
-        (`views_per_frame`, checked on the host frames): Avatar.render_batch poses each frame once."""
-        out = {**batch, "width": batch["width"].tolist(), "height": batch["height"].tolist()}
-        V = self.views_per_step
-        if V > 1 and self.trainer is not None and self.trainer.training:
-            f = batch["frame"].reshape(-1, V)
-            if not bool((f == f[:, :1]).all()):
-                raise RuntimeError(f"data.views_per_step={V}: a training batch mixes frames {f.tolist()}")
-            out["views_per_frame"] = V
-        return out
 
     def train_dataloader(self) -> DataLoader:
         return self._loader(self._require("train"), shuffle=True)
@@ -475,9 +456,6 @@ class AvatarDataModule(pl.LightningDataModule):
     def test_dataloader(self) -> list[DataLoader]:
         """[novel_view, novel_pose] loaders; dataloader_idx i is test_split_names[i]."""
         return [self._loader(self._require(s), shuffle=False) for s in self.test_split_names]
-
-    def predict_dataloader(self) -> list[DataLoader]:
-        return self.test_dataloader()
 
     # ------------------------------------------------------------------ poses for rollouts and animation
 

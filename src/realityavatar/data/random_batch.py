@@ -79,7 +79,7 @@ def make_batch_fn(body, size: int, window: int, views: int = 1, device: str = "c
         }
         if device != "cpu":  # the host entry (the frame index) pinned, copied without waiting for a kernel
             batch["frame_idx"] = batch["frame_idx"].pin_memory().to(device, non_blocking=True)
-        # host ints and the views of one frame (AvatarDataModule.on_before_batch_transfer, data.views_per_step=V)
+        # host ints and the views of one frame (data/lightning.py TrainingData, views_per_step=V)
         return {**batch, "width": [size] * V, "height": [size] * V, **({"views_per_frame": V} if V > 1 else {})}
 
     return make

@@ -1,5 +1,6 @@
-"""The training order: samplers that draw the training images (conf/sampler), the views of one frame per step, the
-loss feedback that the hard-frames order draws by, and the loader that saves their position in the checkpoint."""
+"""The training order: samplers that draw the training images (conf/sampler), the views of one frame per step, and
+the loader that saves their position in the checkpoint. The loss feedback that the hard-frames order draws by is a
+training callback (data/lightning.py SamplerFeedback)."""
 
 from __future__ import annotations
 
@@ -7,7 +8,6 @@ import logging
 from collections.abc import Sequence
 
 import numpy as np
-import pytorch_lightning as pl
 import torch
 from torch.utils.data import DataLoader
 
@@ -65,9 +65,9 @@ class HardFrameSampler(EpochShuffle):
     From then on each draw is, with probability `mix`, a uniform image; otherwise a frame chosen with probability
     proportional to score_f ** power, then one of that frame's images (camera) uniformly. score_f is an exponential
     moving average (weight `ema` on the newest value) of the per-image training losses that `observe` receives for
-    the frame's images (SamplerFeedback, conf/callbacks/default.yaml, passes them after every step), so one camera's
-    loss updates the whole frame. Frames the garment flares in (the spin) and the swing after an abrupt stop have the
-    highest photometric error: uniform sampling spends most steps on the easy rest frames.
+    the frame's images (data/lightning.py SamplerFeedback, conf/callbacks/default.yaml, passes them after every
+    step), so one camera's loss updates the whole frame. Frames the garment flares in (the spin) and the swing after
+    an abrupt stop have the highest photometric error: uniform sampling spends most steps on the easy rest frames.
     Resumable like EpochShuffle: scores, epoch and position are in the checkpoint, and draw k of epoch e comes from a
     generator seeded by (seed, e, k), so a resumed run draws what the uninterrupted run would have.
     """
@@ -177,27 +177,6 @@ class SameFrameViews(torch.utils.data.Sampler):
 
     def load_state_dict(self, state: dict) -> None:
         self.base.load_state_dict(state)
-
-
-class SamplerFeedback(pl.Callback):
-    """Passes each training step's per-image losses to the training sampler (`observe`). Losses on a GPU are kept
-    there and passed every `log_every_n_steps` steps (with the logging): each read of the device waits for it."""
-
-    def __init__(self) -> None:
-        self._pending: list[tuple[torch.Tensor, torch.Tensor]] = []
-
-    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
-        sampler = getattr(trainer.datamodule, "train_sampler", None) if trainer.datamodule is not None else None
-        if sampler is None:
-            return
-        if not isinstance(outputs, dict) or "image_loss" not in outputs or "index" not in batch:
-            return
-        loss = outputs["image_loss"].detach()
-        self._pending.append((batch["index"].detach(), loss))
-        if loss.device.type == "cpu" or trainer.global_step % max(int(trainer.log_every_n_steps), 1) == 0:
-            index, value = (torch.cat(t).cpu() for t in zip(*self._pending))  # in step order: one copy each
-            sampler.observe(index, value)
-            self._pending.clear()
 
 
 class ResumableLoader(DataLoader):
