@@ -74,7 +74,7 @@ def unresolved_copy(cfg: DictConfig) -> DictConfig:
 
 # Run folders written before the readers became components (data.reader._target_), the samplers and the device
 # cache left data/datamodule.py, the temporal module's cell became a class (temporal.kind) and the sampler feedback
-# (a Lightning callback) moved to train.py: what their config.yaml named, and where it is now.
+# (a Lightning callback) moved to data/lightning.py: what their config.yaml named, and where it is now.
 MOVED_TARGETS = {f"realityavatar.data.datamodule.{name}": f"realityavatar.data.samplers.{name}"
                  for name in ("EpochShuffle", "HardFrameSampler")}
 MOVED_TARGETS.update({f"realityavatar.data.{where}.SamplerFeedback": "realityavatar.data.lightning.SamplerFeedback"
