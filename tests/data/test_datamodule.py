@@ -287,6 +287,10 @@ def test_zju_datamodule(tmp_path, body):
     assert s["frame"] == 4 and s["frame_idx"] == -1 and s["view"] == 2
     c = composite(default_collate([s]))
     assert torch.allclose(c["image"][0][c["mask"][0, ..., 0] == 0], torch.ones(3))  # the jpg's background is replaced
+    # a frame range that selects no training frame: the data module says so, naming the reader
+    empty = ZJUReader(train_frames=[3, 3, 1], novel_view_frames=None, novel_pose_frames=[4, 0, 1])
+    with pytest.raises(ValueError, match=r"CoreView_377: the reader selected no training images .*ZJUReader"):
+        AvatarDataModule(str(tmp_path), "CoreView_377", empty, body=body, train_views=[1], test_views=[2]).setup()
 
 
 def _datasets(pattern: str) -> list[Path]:

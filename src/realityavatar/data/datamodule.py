@@ -298,11 +298,9 @@ class AvatarDataModule:
                 frames = frames[:: self.frame_subsample]
             keep = set(frames.tolist())
             out[split] = [r for r in records if r.frame in keep]
-        if not out.get("train"):
-            raise ValueError(
-                f"{scene.source}: no training images left after selecting views {self.train_views} "
-                f"(available {scene.views('train')})"
-            )
+        if not out.get("train"):  # the reader's selection left none (I3DReader names the cameras it had)
+            raise ValueError(f"{scene.source}: the reader selected no training images (data.train_views "
+                             f"{self.train_views}, data.reader {type(self.reader).__name__})")
         return out
 
     def setup(self, stage: str | None = None) -> None:
