@@ -37,6 +37,8 @@ def build_avatar(cfg: DictConfig, body, num_train_frames: int, data=None, traini
         training.update(density=instantiate(cfg.density), losses=build_losses(cfg))
     shading = instantiate(cfg.shading)
     sheet = instantiate(cfg.sheet, body=body, data=data)
+    if training is not None:
+        training["losses"].update(sheet.loss_terms())  # a component's own terms (SlidingSheet's smoothness)
     return Avatar(body, gaussians, encoder, temporal, deformer, skinning, color, shading, sheet,
                   render=OmegaConf.to_container(cfg.render, resolve=True))
 

@@ -234,6 +234,25 @@ class SheetStrain(LossTerm):
         return self.weight * v, {"sheet_strain": v.detach()}
 
 
+class SheetSlideSmooth(LossTerm):
+    """The sliding sheet's smoothness (SlidingSheet brings it): weight x the mean squared second difference of its
+    slide angles over consecutive training frames and over neighbouring rings (frames held still count as zero)."""
+
+    def __init__(self, weight: float) -> None:
+        super().__init__()
+        self.weight = float(weight)
+
+    def forward(self, out: TrainingRender) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        sheet = out.avatar.sheet
+        t = sheet.slide * sheet.live[:, None]  # [F,rows+1]
+        v = t.new_zeros(())
+        if t.shape[0] > 2:
+            v = v + ((t[2:] - 2 * t[1:-1] + t[:-2]) ** 2).mean()
+        if t.shape[1] > 2:
+            v = v + ((t[:, 2:] - 2 * t[:, 1:-1] + t[:, :-2]) ** 2).mean()
+        return self.weight * v, {"sheet_slide": v.detach()}
+
+
 def project_points(points: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """points [N,3] world, viewmat [4,4] world-to-camera (OpenCV), K [3,3] -> pixel coords [N,2], depth [N]."""
     cam = points @ viewmat[:3, :3].T + viewmat[:3, 3]  # [N,3]

@@ -55,3 +55,15 @@ def test_sh_color_matches_eval_sh():
     assert feats.grad.abs().sum() > 0
     with pytest.raises(ValueError, match="feature_dim"):
         SHColor(sh_degree=3, feature_dim=32)
+
+
+def test_colour_of_per_sample_features_equals_each_samples_own():
+    """Features [B,N,F] (a sliding sheet's, per sample) give each sample the colour its own [N,F] would."""
+    torch.manual_seed(0)
+    N, B = 7, 2
+    dirs, f_mt, idx = torch.randn(B, N, 3), torch.randn(B, N, 4), torch.tensor([0, 1])
+    for color, F_ in ((MLPColor(5, 4, 3, 2, 3, 16), 5), (SHColor(3, 48), 48)):
+        feats = torch.randn(B, N, F_)
+        both = color(feats, dirs, f_mt, idx)
+        for b in range(B):
+            assert torch.allclose(both[b], color(feats[b], dirs[b : b + 1], f_mt[b : b + 1], idx[b : b + 1])[0])

@@ -222,3 +222,90 @@ def test_motion_basis_is_a_linear_map_of_the_temporal_state():
     assert torch.allclose(o, expect) and not torch.allclose(o[0], o[1])
     with pytest.raises(ValueError, match="basis"):
         component("sheet", "skirt", body=body, rows=3, cols=8, per_cell=1, profile="canonical", basis=-1)
+
+
+def _sliding(rows: int = 2, cols: int = 8, frames: int = 3):
+    """A canonical SlidingSheet (no data: its per-frame tables are set here) with distinct features per Gaussian."""
+    sh = component("sheet", "skirt_slide", body=build_body("mannequin"), rows=rows, cols=cols, profile="canonical")
+    sh.live = torch.tensor([0.0] + [1.0] * (frames - 1))
+    sh.slide = torch.nn.Parameter(torch.zeros(frames, rows + 1))
+    with torch.no_grad():
+        sh.features.copy_(torch.arange(rows * cols * sh.feature_dim, dtype=torch.float32).reshape(rows * cols, -1))
+    return sh
+
+
+def test_sliding_sheet_reads_each_rows_colours_further_back_around_the_ring():
+    """A slide of one column's angle reads the previous column's features (the texture turns with +angle); half a
+    column reads the mean of two neighbours; a frame held still (live 0), not trained on (-1) or unslid reads its own."""
+    sh = _sliding()
+    G = sh.features.detach().reshape(2, 8, -1)
+    with torch.no_grad():
+        sh.slide[1] = 2 * math.pi / 8
+        sh.slide[2] = 0.5 * 2 * math.pi / 8
+        sh.slide[0] = 2 * math.pi / 8  # frame 0 is held still: no effect
+    out = sh.colour_features(torch.tensor([1, 2, 0, -1])).detach().reshape(4, 2, 8, -1)
+    assert torch.equal(out[0], torch.roll(G, 1, dims=1))
+    assert torch.allclose(out[1], 0.5 * (G + torch.roll(G, 1, dims=1)))
+    assert torch.equal(out[2], G) and torch.equal(out[3], G)
+    plain = component("sheet", "skirt", body=build_body("mannequin"), rows=2, cols=8, profile="canonical")
+    assert plain.colour_features(torch.tensor([1])) is plain.features  # the plain sheet: one texture for all frames
+    with pytest.raises(ValueError, match="per_cell"):
+        component("sheet", "skirt_slide", body=build_body("mannequin"), rows=2, cols=8, per_cell=2,
+                  profile="canonical")
+
+
+def test_slide_smoothness_is_zero_for_a_steady_turn_and_not_for_a_kink():
+    from types import SimpleNamespace
+
+    from realityavatar.losses import SheetSlideSmooth
+
+    sh = _sliding(rows=3, frames=6)
+    term = SheetSlideSmooth(0.1)
+    out = SimpleNamespace(avatar=SimpleNamespace(sheet=sh))
+    with torch.no_grad():  # linear in the frame (from the still frame 0's zero) and in the ring: no second difference
+        sh.slide.copy_(torch.arange(6.0)[:, None] * 0.01 * (1 + torch.arange(4.0))[None])
+    assert float(term(out)[0].detach()) < 1e-12
+    with torch.no_grad():
+        sh.slide[3, 2] += 0.05
+    value, logged = term(out)
+    assert float(value.detach()) > 0 and math.isclose(float(value.detach()), 0.1 * float(logged["sheet_slide"]), rel_tol=1e-6)
+
+
+def test_frames_whose_root_did_not_turn_in_the_window_are_held_still(scenes_root):
+    """On the CI scene's spin: the rest frames before it and the frames long after its stop are held still, the spin's
+    are not; a frame is live exactly when its pose window's root turned between two entries."""
+    from realityavatar.build import build_data
+    from realityavatar.geometry import axis_angle_to_matrix
+    from realityavatar.model.sheet import moving_frames
+
+    cfg = compose(["data=synthetic_ci", "trainer=ci", "sheet=skirt_slide"])
+    dm = build_data(cfg, instantiate(cfg.body))
+    live = moving_frames(dm, 0.5)
+    ds = dm.datasets["train"]
+    assert len(live) == len(ds.train_frame_index) and live[0] == 0 and 0 < int(live.sum()) < len(live)
+    for frame, k in ds.train_frame_index.items():
+        poses, _ = ds.poses.window(frame, ds.window_len, ds.window_step)
+        R = axis_angle_to_matrix(poses[:, 0].double())
+        turned = float((R[0].T @ R[-1] - torch.eye(3, dtype=R.dtype)).abs().max()) > 1e-3
+        assert bool(live[k]) == turned, frame
+
+
+def test_sliding_sheet_trains_its_slide_on_the_turning_frames_and_reloads(scenes_root, tmp_path):
+    from realityavatar.build import load_run
+    from realityavatar.config import prepare_run
+    from realityavatar.train import run
+
+    cfg, choices = prepare_run(compose(["data=synthetic_ci", "trainer=ci", "iterations=12", "sheet=skirt_slide",
+                                        "sheet.rows=4", "sheet.cols=12", "gaussians.num_points=300",
+                                        "eval.max_frames_per_split=1", "eval.save_video=false",
+                                        "eval.save_images=0"]), tmp_path / "run")
+    run(cfg, choices)
+    _, module, _ = load_run(tmp_path / "run")
+    sh = module.avatar.sheet
+    assert type(sh).__name__ == "SlidingSheet" and "sheet_slide" in module.losses  # the sheet brings its term
+    assert sh.slide.shape == (len(sh.live), 5) and 0 < int(sh.live.sum()) < len(sh.live)
+    still = sh.live == 0
+    assert float(sh.slide[~still].abs().max()) > 0  # learnt where the body turned
+    assert float(sh.slide[still].abs().max()) == 0  # frames held still get no gradient
+    groups = {g["name"]: g["lr"] for g in module.param_groups()}
+    assert groups["sheet_slide"] == 1e-2

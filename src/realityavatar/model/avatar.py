@@ -12,6 +12,8 @@ garment surface's vertices and its Gaussians follow their cells; NoSheet: no poi
     splats(posed)        its posed points (means, quats, scales, rot, f_mt, weights, x_e: [B,P,...]) -> its Gaussians
     opacities()          [M] opacities of its Gaussians
     features             [M,F] colour features of its Gaussians
+    colour_features(i)   the features a training frame's samples (indices i [B], -1: not a training frame) render
+                         with: `features`, or [B,M,F] for a sheet whose texture slides per frame (SlidingSheet)
     canonical()          its Gaussians in canonical space: means, quats, scales [M,...], opacities [M]
 """
 
@@ -172,6 +174,14 @@ class Avatar(nn.Module):
         first = self.gaussians.features
         return join([first] + [s.features.to(first) for s in self.sources[1:]])
 
+    def frame_features(self, frame_idx: torch.Tensor) -> torch.Tensor:
+        """`all_features` as the samples of training frames `frame_idx` [B] render them: [N(+M),F], or [B,N+M,F] when
+        the sheet's features depend on the frame (SlidingSheet)."""
+        free, sheet = self.gaussians.features, self.sheet.colour_features(frame_idx)
+        if sheet.ndim == 2:
+            return join([free, sheet.to(free)])
+        return torch.cat([free[None].expand(sheet.shape[0], -1, -1), sheet.to(free)], 1)
+
     def canonical_gaussians(self) -> dict:
         """Every rendered Gaussian in canonical space (the free ones, then the sheet's placed on its canonical
         vertices): means [N,3], quats [N,4], scales [N,3], opacities [N]."""
@@ -184,7 +194,7 @@ class Avatar(nn.Module):
         # The camera-to-Gaussian vector, canonicalised (each Gaussian's blended skinning rotation undone); the colour
         # model's SH basis normalises it (normalising before a rotation as well would only add operations).
         d_c = (posed["rot"].transpose(-1, -2) @ (posed["means"] - cam_centre[:, None, :])[..., None]).squeeze(-1)
-        rgb = self.color(self.all_features(), d_c, posed["f_mt"], frame_idx)
+        rgb = self.color(self.frame_features(frame_idx), d_c, posed["f_mt"], frame_idx)
         return self.shading.apply(rgb, posed["x_e"], posed["rot"])  # x world-fixed light (shading=none: as it is)
 
     def splat(self, posed: dict, b: int, rgb: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor, W: int, H: int,

@@ -55,8 +55,10 @@ class MLPColor(nn.Module):
     def forward(
         self, features: torch.Tensor, view_dirs: torch.Tensor, f_mt: torch.Tensor, frame_idx: torch.Tensor
     ) -> torch.Tensor:
-        """features [N,F], view_dirs [B,N,3] (canonical, any length), f_mt [B,N,Fm], frame_idx [B] -> rgb [B,N,3]."""
-        h = self.in_feat(features)[None]  # [1,N,H]
+        """features [N,F] (or per sample [B,N,F]), view_dirs [B,N,3] (canonical, any length), f_mt [B,N,Fm],
+        frame_idx [B] -> rgb [B,N,3]."""
+        h = self.in_feat(features)
+        h = h[None] if h.ndim == 2 else h  # [1,N,H] or [B,N,H]
         h = h + self.in_dir(sh_basis(self.sh_degree, view_dirs)[..., 1:])
         h = h + self.in_fmt(f_mt)
         h = h + self.in_latent(self.latent(frame_idx.long().to(features.device)))[:, None]
@@ -82,9 +84,10 @@ class SHColor(nn.Module):
     def forward(
         self, features: torch.Tensor, view_dirs: torch.Tensor, f_mt: torch.Tensor, frame_idx: torch.Tensor
     ) -> torch.Tensor:
-        """features [N,K*3], view_dirs [B,N,3] -> rgb [B,N,3] (f_mt and frame_idx unused)."""
-        coeffs = self.sh_coefficients(features)  # [N,K,3]
-        return torch.clamp_min(eval_sh(self.sh_degree, coeffs[None], view_dirs) + 0.5, 0.0)
+        """features [N,K*3] (or per sample [B,N,K*3]), view_dirs [B,N,3] -> rgb [B,N,3] (f_mt and frame_idx unused)."""
+        coeffs = features.reshape(*features.shape[:-1], self.num_coeffs, 3)  # [(B,)N,K,3]
+        coeffs = coeffs[None] if coeffs.ndim == 3 else coeffs
+        return torch.clamp_min(eval_sh(self.sh_degree, coeffs, view_dirs) + 0.5, 0.0)
 
     def sh_coefficients(self, features: torch.Tensor) -> torch.Tensor:
         """features [N,K*3] -> SH coefficients [N,K,3], the layout of 3DGS PLY files (colour = SH + 0.5)."""
