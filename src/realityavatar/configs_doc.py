@@ -47,8 +47,8 @@ EFFECTS = {
     "train:schedule.deform_anneal": f"0 (off): −0.39 / −0.17 † dB ({_DYN})",
     "sheet/skirt": f"**kept, measured gain**: +0.28 / +0.36 dB over `sheet=none` ({_DYN})",
     "sheet/skirt:basis": f"64: +0.45 / +0.33 dB over `sheet=none` ({_DYN})",
-    "sheet/skirt_slide": "**kept in `make demo`, measured gain**: +0.67 dB garment PSNR in the held-out spin over "
-                         "`sheet=skirt`, other phases and novel pose within the seed spread (demo, 256², 3 seeds, "
+    "sheet/skirt_slide": "**kept in `make demo`, measured gain**: +0.62 dB garment PSNR in the held-out spin over "
+                         "`sheet=skirt` (box +0.36), other phases and novel pose within the seed spread (demo, 256², 3 seeds, "
                          f"[note]({RESEARCH}2026-11-29-garment-motion-and-flow.md))",
     "density/default": f"2,000 initial Gaussians: NV / NP 29.63 / 28.87 against 29.43 / 28.59 off, 178 s against 94 s "
                        f"of training ({_BUDGET})",

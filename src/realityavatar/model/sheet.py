@@ -407,8 +407,9 @@ class SlidingSheet(GarmentSheet):
     to training), and held at zero in the frames where the body's root did not turn within the pose window (`live`,
     from the training poses: the cloth at rest, where a free slide would fit the four cameras one by one; and the
     gauge, without which a slide common to all frames is a turn of the texture). Frames that are not training frames
-    (novel poses, animation) render unslid. Measured on the demo, 3 seeds: +0.67 dB garment PSNR in the held-out
-    spin, the other phases and novel poses unchanged (docs/research/2026-11-29-garment-motion-and-flow.md).
+    (novel poses, animation) render unslid. Measured on the demo, 3 seeds: +0.62 dB garment PSNR in the held-out
+    spin (box +0.36), the other phases and novel poses within the seed spread
+    (docs/research/2026-11-29-garment-motion-and-flow.md).
     Sliding the geometry instead (turning the rings) gained less in the spin and cost 0.2 dB at rest. per_cell = 1.
     """
 
