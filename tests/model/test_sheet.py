@@ -249,6 +249,9 @@ def test_sliding_sheet_reads_each_rows_colours_further_back_around_the_ring():
     assert torch.equal(out[2], G) and torch.equal(out[3], G)
     plain = component("sheet", "skirt", body=build_body("mannequin"), rows=2, cols=8, profile="canonical")
     assert plain.colour_features(torch.tensor([1])) is plain.features  # the plain sheet: one texture for all frames
+    bare = component("sheet", "skirt_slide", body=build_body("mannequin"), rows=2, cols=8, profile="canonical")
+    with pytest.raises(ValueError, match="no training frames"):  # neither data nor a checkpoint
+        bare.colour_features(torch.tensor([0]))
     with pytest.raises(ValueError, match="per_cell"):
         component("sheet", "skirt_slide", body=build_body("mannequin"), rows=2, cols=8, per_cell=2,
                   profile="canonical")

@@ -446,6 +446,9 @@ class SlidingSheet(GarmentSheet):
 
     def angles(self, frame_idx: torch.Tensor) -> torch.Tensor:
         """Each sample's slide per ring [B,rows+1]: zero for a frame not trained on (-1) or not `live`."""
+        if len(self.live) == 0:
+            raise ValueError("sheet=skirt_slide: no training frames to slide (built without the training data and no "
+                             "checkpoint loaded)")
         k = frame_idx.long().to(self.slide.device).clamp(0, max(len(self.live) - 1, 0))
         keep = (frame_idx.to(k.device) >= 0).to(self.slide.dtype) * self.live[k]
         return self.slide[k] * keep[:, None]
