@@ -85,13 +85,13 @@ class SHColor(nn.Module):
         self, features: torch.Tensor, view_dirs: torch.Tensor, f_mt: torch.Tensor, frame_idx: torch.Tensor
     ) -> torch.Tensor:
         """features [N,K*3] (or per sample [B,N,K*3]), view_dirs [B,N,3] -> rgb [B,N,3] (f_mt and frame_idx unused)."""
-        coeffs = features.reshape(*features.shape[:-1], self.num_coeffs, 3)  # [(B,)N,K,3]
+        coeffs = self.sh_coefficients(features)  # [(B,)N,K,3]
         coeffs = coeffs[None] if coeffs.ndim == 3 else coeffs
         return torch.clamp_min(eval_sh(self.sh_degree, coeffs, view_dirs) + 0.5, 0.0)
 
     def sh_coefficients(self, features: torch.Tensor) -> torch.Tensor:
-        """features [N,K*3] -> SH coefficients [N,K,3], the layout of 3DGS PLY files (colour = SH + 0.5)."""
-        return features.reshape(features.shape[0], self.num_coeffs, 3)
+        """features [...,N,K*3] -> SH coefficients [...,N,K,3], the layout of 3DGS PLY files (colour = SH + 0.5)."""
+        return features.reshape(*features.shape[:-1], self.num_coeffs, 3)
 
     def param_groups(self) -> dict[str, list[nn.Parameter]]:
         return {}

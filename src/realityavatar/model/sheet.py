@@ -108,12 +108,17 @@ class GarmentSheet(nn.Module):
             self.coeff = nn.Linear(int(cond_dim), self.num_basis)
         self.register_load_state_dict_pre_hook(self._take_layout_buffers)
 
+    # tensors sized by the training data at build time: a module rebuilt from its checkpoint takes their shapes there
+    SIZED_BY_DATA: tuple[str, ...] = ("posed_rest", "rest_pose")
+
     def _take_layout_buffers(self, module, state_dict, prefix, *args) -> None:
-        """A module rebuilt without the rest frame's views loads a profile=rest checkpoint's layout buffers."""
-        for name in ("posed_rest", "rest_pose"):
+        """A module rebuilt without the training data (the rest frame's views; SlidingSheet: its frames) loads a
+        checkpoint's data-sized buffers and parameters: each is replaced by zeros of the checkpoint's shape."""
+        for name in self.SIZED_BY_DATA:
             key = prefix + name
             if key in state_dict and state_dict[key].shape != getattr(self, name).shape:
-                setattr(self, name, torch.zeros_like(state_dict[key]))
+                value = torch.zeros_like(state_dict[key])
+                setattr(self, name, nn.Parameter(value) if isinstance(getattr(self, name), nn.Parameter) else value)
 
     @staticmethod
     def _frame(origin: torch.Tensor, axis: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -423,18 +428,8 @@ class SlidingSheet(GarmentSheet):
         live = moving_frames(data, float(still_deg)) if data is not None else torch.zeros(0)
         self.register_buffer("live", live)  # [F] 1: the root turned within the frame's window
         self.slide = nn.Parameter(torch.zeros(len(live), self.rows + 1))
-        self.register_load_state_dict_pre_hook(self._take_slide_shape)
 
-    def _take_slide_shape(self, module, state_dict, prefix, *args) -> None:
-        """A module rebuilt without the training data takes the checkpoint's frame count."""
-        for name in ("live", "slide"):
-            key = prefix + name
-            if key in state_dict and state_dict[key].shape != getattr(self, name).shape:
-                value = torch.zeros_like(state_dict[key])
-                if name == "slide":
-                    self.slide = nn.Parameter(value)
-                else:
-                    self.live = value
+    SIZED_BY_DATA = (*GarmentSheet.SIZED_BY_DATA, "live", "slide")  # the frame count, from a checkpoint
 
     def param_groups(self) -> dict[str, list[nn.Parameter]]:
         return {**super().param_groups(), "sheet_slide": [self.slide]}
@@ -449,7 +444,7 @@ class SlidingSheet(GarmentSheet):
         if len(self.live) == 0:
             raise ValueError("sheet=skirt_slide: no training frames to slide (built without the training data and no "
                              "checkpoint loaded)")
-        k = frame_idx.long().to(self.slide.device).clamp(0, max(len(self.live) - 1, 0))
+        k = frame_idx.long().to(self.slide.device).clamp(0, len(self.live) - 1)
         keep = (frame_idx.to(k.device) >= 0).to(self.slide.dtype) * self.live[k]
         return self.slide[k] * keep[:, None]
 
