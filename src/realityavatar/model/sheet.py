@@ -282,7 +282,7 @@ class GarmentSheet(nn.Module):
         return self.features
 
     def loss_terms(self) -> dict:
-        """Loss terms the sheet brings to training (build_module adds them to the configured ones): none."""
+        """Loss terms the sheet brings to training (build_avatar adds them to the configured ones): none."""
         return {}
 
     def interpolate(self, values: torch.Tensor) -> torch.Tensor:
@@ -468,18 +468,17 @@ class SlidingSheet(GarmentSheet):
 def moving_frames(data, still_deg: float) -> torch.Tensor:
     """Per training frame (in the order of the frame indices): 1 where the root turned by more than `still_deg`
     between two consecutive entries of the frame's pose window, else 0 [F]."""
-    from realityavatar.geometry import axis_angle_to_matrix
+    from realityavatar.geometry import axis_angle_to_matrix, matrix_to_axis_angle
 
     ds = data.datasets.get("train")
     if ds is None:
         raise ValueError("sheet=skirt_slide: the DataModule has no training split to read the poses of")
     order = sorted(ds.train_frame_index.items(), key=lambda kv: kv[1])
     live = torch.zeros(len(order))
-    cos_still = math.cos(math.radians(still_deg))
+    still = math.radians(still_deg)
     for frame, k in order:
         poses, _ = ds.poses.window(frame, ds.window_len, ds.window_step)  # [T,24,3]
         R = axis_angle_to_matrix(poses[:, 0].double())  # the root's orientation per window entry
-        rel = R[:-1].transpose(-1, -2) @ R[1:]
-        cos = ((rel.diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2).clamp(-1, 1)
-        live[k] = float(bool((cos < cos_still).any()))
+        turn = matrix_to_axis_angle(R[:-1].transpose(-1, -2) @ R[1:]).norm(dim=-1)  # [T-1] radians
+        live[k] = float(bool((turn > still).any()))
     return live
