@@ -2,6 +2,8 @@
 
 python benchmarks/step.py [--n 10000 35000] [--size 128 256 512] [--backends torch numba] [--threads 1] [--clock cpu]
                           [--views 1 4] [--device cuda]
+`--n 2000 --size 256 --override +experiment=demo` times `make demo`'s model (its garment sheet's texture slid in every
+step, as on a turning training frame).
 Every time is printed beside its ratio to the GEMM unit (8 float32 matmuls of 1024^3) timed in the same process,
 because the project's CPU is shared and absolute seconds drift with the load. Writes benchmarks/results/step_cpu.json.
 
@@ -73,12 +75,19 @@ def build(n: int, backend: str, overrides: list[str]):
 
     from realityavatar.build import build_module
     from realityavatar.config import config_dir
+    from realityavatar.model.sheet import SlidingSheet
 
     with initialize_config_dir(config_dir=config_dir(), version_base="1.3"):
         cfg = compose("train", overrides=[f"gaussians.num_points={n}", f"render.backend={backend}", "iterations=2000",
                                           "out_dir=/tmp/realityavatar_step_bench", *overrides])
     body = instantiate(cfg.body)
     module = build_module(cfg, body, num_train_frames=100, scene_extent=1.0)
+    sheet = module.avatar.sheet
+    if isinstance(sheet, SlidingSheet):  # sheet=skirt_slide (make demo's) is sized by the training frames, which the
+        # synthetic batches have none of: 100 frames that all slide, so every step reads the slid texture as a
+        # training step on a turning frame does
+        sheet.live = torch.ones(100)
+        sheet.slide = torch.nn.Parameter(torch.zeros(100, sheet.rows + 1))
     opt_cfg = module.configure_optimizers()
     # the body grids (skinning weights, shading normals) at their real resolution, as training builds them once
     # before step 0 (AvatarModule.on_fit_start): a grid lookup's cost depends on the grid's size

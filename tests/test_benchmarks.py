@@ -175,6 +175,24 @@ def test_step_benchmark_times_one_model_state():
     assert "deform" not in vars(module.avatar) and "loss" not in vars(module) and "step" not in vars(module.density)
 
 
+def test_step_benchmark_times_the_demo_models_sliding_sheet():
+    """`make demo`'s sheet (sheet=skirt_slide) is sized by the training frames, which the benchmark's synthetic batches
+    have none of: the benchmark gives it frames that all slide, and a timed step reads the slid texture."""
+    from realityavatar.data.random_batch import make_batch_fn
+
+    step = benchmark("step")
+    cfg, module, opt, sched = step.build(500, "numba", ["sheet=skirt_slide", "sheet.rows=4", "sheet.cols=12",
+                                                        "skinning.voxel_size=0.1", "shading.voxel_size=0.1"])
+    sheet = module.avatar.sheet
+    assert sheet.live.shape == (100,) and bool(sheet.live.all()) and sheet.slide.shape == (100, 5)
+    assert any(p is sheet.slide for g in opt.param_groups for p in g["params"])  # trained as in a run (rate 0 here)
+    make = make_batch_fn(module.avatar.body, 32, int(cfg.data.window_len))
+    s = step.timed_step(cfg)
+    step._stub_trainer_hooks(module, opt, sched, s)
+    step.step_whole(module, opt, sched, make, s)
+    assert sheet.slide.grad is not None and bool(sheet.slide.grad.abs().sum() > 0)  # the slid texture was read
+
+
 def test_step_benchmark_profiles_the_compiled_networks(tmp_path, monkeypatch):
     """--compile: the profiled steps run the compiled networks (a TorchDispatchMode count before them made dynamo run
     them eagerly from then on), and no eager count is reported as theirs. Dynamo with the aot_eager backend (no C++
