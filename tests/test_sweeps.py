@@ -28,8 +28,7 @@ EXPECTED = {
     "paper": (12, {"+variant": {"full", "no_zc", "no_lstm", "no_split"}, "seed": SEEDS, "data": {"synthetic_sweep"}}),
     "temporal": (9, {"temporal": {"lstm", "gru", "none"}, "seed": SEEDS}),
     "color": (6, {"color": {"mlp", "sh"}, "seed": SEEDS}),
-    "budget": (24, {"gaussians.num_points": {"2000", "5000", "10000", "35000"}, "density": {"default", "off"},
-                    "seed": SEEDS}),
+    "budget": (9, {"gaussians.num_points": {"2000", "5000", "10000"}, "seed": SEEDS}),  # on `make demo`'s recipe
     "speed": (18, {"iterations": {"500", "1000", "2000"}, "data.image_scale": {"0.5", "1.0"}, "render.backend": {"numba"},
                    "seed": SEEDS}),
     "tiny": (2, {"+variant": {"full", "no_lstm"}, "seed": {"0"}, "data": {"synthetic_ci"}, "trainer": {"ci"}}),
@@ -60,7 +59,7 @@ GROUPS = {
              "synthetic_sweep_skirt_flap", "synthetic_sweep_dress_walk"], "sampler": ["uniform", "hard_frames"], "body": ["mannequin", "smpl"],
     "gaussians": ["default"], "encoder": ["latentbone", "no_split", "no_zc"], "temporal": ["lstm", "gru", "none"],
     "deformer": ["motion_trend"], "silhouette": ["chamfer", "none"], "skinning": ["mlp", "grid"], "color": ["mlp", "sh"],
-    "shading": ["irradiance", "none"], "density": ["default", "off"], "sheet": ["none", "skirt"],
+    "shading": ["irradiance", "none"], "density": ["default", "off"], "sheet": ["none", "skirt", "skirt_slide"],
     "loss": ["default"], "render": ["default"], "optim": ["default"], "trainer": ["cpu", "gpu", "ci"],
 }
 
@@ -74,7 +73,7 @@ def _clear_hydra():
 
 @pytest.fixture(scope="module")
 def standin_conf(tmp_path_factory) -> Path:
-    """conf/ with this project's ablation, variant, preset and launcher files and one-line stand-ins for every other option."""
+    """conf/ with this project's ablation, variant, preset, experiment and launcher files and one-line stand-ins for every other option."""
     conf = tmp_path_factory.mktemp("conf")
     for group, options in GROUPS.items():
         (conf / group).mkdir()
@@ -87,7 +86,7 @@ def standin_conf(tmp_path_factory) -> Path:
             if group == "render":
                 body["backend"] = "auto"
             (conf / group / f"{opt}.yaml").write_text(yaml.safe_dump(body))
-    for sub in ("ablation", "variant", "preset", "hydra/launcher"):
+    for sub in ("ablation", "variant", "preset", "experiment", "hydra/launcher"):
         (conf / sub).mkdir(parents=True)
         for f in (CONF / sub).glob("*.yaml"):
             (conf / sub / f.name).write_text(f.read_text())
