@@ -81,13 +81,14 @@ def build(n: int, backend: str, overrides: list[str]):
         cfg = compose("train", overrides=[f"gaussians.num_points={n}", f"render.backend={backend}", "iterations=2000",
                                           "out_dir=/tmp/realityavatar_step_bench", *overrides])
     body = instantiate(cfg.body)
-    module = build_module(cfg, body, num_train_frames=100, scene_extent=1.0)
+    frames = 100  # training frames the module is sized for (the colour's per-frame latents, the sliding sheet's angles)
+    module = build_module(cfg, body, num_train_frames=frames, scene_extent=1.0)
     sheet = module.avatar.sheet
-    if isinstance(sheet, SlidingSheet):  # sheet=skirt_slide (make demo's) is sized by the training frames, which the
-        # synthetic batches have none of: 100 frames that all slide, so every step reads the slid texture as a
-        # training step on a turning frame does
-        sheet.live = torch.ones(100)
-        sheet.slide = torch.nn.Parameter(torch.zeros(100, sheet.rows + 1))
+    if isinstance(sheet, SlidingSheet):  # sheet=skirt_slide (make demo's) is sized by the training data, which the
+        # synthetic batches have none of: frames that all slide, so every step reads the slid texture as a training
+        # step on a turning frame does
+        sheet.live = torch.ones(frames)
+        sheet.slide = torch.nn.Parameter(torch.zeros(frames, sheet.rows + 1))
     opt_cfg = module.configure_optimizers()
     # the body grids (skinning weights, shading normals) at their real resolution, as training builds them once
     # before step 0 (AvatarModule.on_fit_start): a grid lookup's cost depends on the grid's size
