@@ -35,3 +35,23 @@ def test_stability_report_measures_extreme_poses_against_the_training_frames(sce
     assert e["scale_growth_vs_training"] == pytest.approx(e["max_scale_m"] / e["max_training_scale_m"], rel=1e-6)
     r = e["_renders"]  # the joint-limit poses (every second one of n), drawn for the report's extreme_poses.png
     assert r.shape[0] == 2 and r.dtype == np.uint8 and r.shape[-1] == 3 and r.max() > 0
+
+
+def test_stop_frames_of_a_capture_without_events_are_where_its_phases_stop(scenes_root):
+    """A real capture has no event list: the stability report's stops are where the evaluation's phases (read from
+    the poses) go from the spin to the second after it, within 2 frames of the simulator's own stop on the CI scene."""
+    from hydra.utils import instantiate
+
+    from realityavatar.analysis.stability import stop_frames
+    from realityavatar.build import build_data
+    from realityavatar.config import compose
+
+    cfg = compose(["data=synthetic_ci", "trainer=ci"])
+    dm = build_data(cfg, instantiate(cfg.body))
+    events = dm.scene.meta["motion"]["events"]
+    assert stop_frames(dm) == [events["spin_stop_frame"]]
+    dm.scene.meta["motion"]["events"] = {}  # as a capture reads
+    stops = stop_frames(dm)
+    assert len(stops) == 1 and abs(stops[0] - events["spin_stop_frame"]) <= 2
+    phases = dm.scene.poses.motion_phases(dm.scene.poses.frames, dm.fps)
+    assert phases[stops[0]] == "after" and phases[stops[0] - 1] == "spin"

@@ -38,19 +38,15 @@ def label_of(metrics: dict) -> str:
 
 
 def stop_frames(dm) -> list[int]:
-    """Frames where a fast global rotation ends: from the synthetic scene's metadata, else from the root's speed."""
+    """Frames where a fast global rotation ends: from the synthetic scene's metadata, else the first frame of each
+    "after" phase that the poses give (PoseTable.motion_phases, the evaluation's own phases)."""
     ev = (dm.scene.meta or {}).get("motion", {}).get("events", {})
     stops = [int(v) for k, v in ev.items() if k.endswith("stop_frame")]
-    if stops:
+    if stops or not dm.fps:
         return sorted(stops)
-    from realityavatar.geometry import axis_angle_to_matrix
-
-    frames, poses, _ = dm.pose_sequence("all")
-    R = axis_angle_to_matrix(poses[:, 0])
-    rel = R[1:] @ R[:-1].transpose(-1, -2)
-    ang = torch.arccos(((rel.diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2).clamp(-1, 1)).numpy()  # [F-1] rad/frame
-    fast = ang > 0.5 * ang.max() if ang.max() > 0.05 else np.zeros_like(ang, bool)
-    return [int(frames[i + 1]) for i in range(1, len(fast)) if fast[i - 1] and not fast[i]]
+    frames = [int(f) for f in dm.scene.poses.frames]
+    phases = dm.scene.poses.motion_phases(frames, dm.fps)
+    return [f for prev, f in zip(frames, frames[1:]) if phases[prev] == "spin" and phases[f] == "after"]
 
 
 @torch.no_grad()
