@@ -8,6 +8,7 @@ Every number comes from rendering the trained runs; the report is Markdown + PNG
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import math
 import sys
@@ -46,7 +47,7 @@ def stop_frames(dm) -> list[int]:
         return sorted(stops)
     frames = [int(f) for f in dm.scene.poses.frames]
     phases = dm.scene.poses.motion_phases(frames, dm.fps)
-    return [f for prev, f in zip(frames, frames[1:]) if phases[prev] == "spin" and phases[f] == "after"]
+    return [f for prev, f in itertools.pairwise(frames) if phases[prev] == "spin" and phases[f] == "after"]
 
 
 @torch.no_grad()
