@@ -10,11 +10,11 @@ import torch
 import realityavatar.config  # noqa: F401  registers the resolvers the real tree's configs use
 
 
-def _oracle(out, steps: int) -> dict:
+def _oracle(out, steps: int, *overrides: str) -> dict:
     from realityavatar.analysis.oracle import main
 
     assert main(["--data", "synthetic_ci", "--steps", str(steps), "--body", "2000", "--garment", "2000",
-                 "--out", str(out)]) == 0
+                 "--out", str(out), *overrides]) == 0
     return json.loads((out / "metrics.json").read_text())
 
 
@@ -32,6 +32,14 @@ def test_oracle_fit_writes_garment_metrics_per_phase_and_beats_unfitted(scenes_r
     for k in ("psnr", "psnr_garment", "ssim_garment"):
         assert fitted[f"test/novel_view/{k}"] > unfitted[f"test/novel_view/{k}"] + 0.5 * (k != "ssim_garment"), k
     assert fitted["test/novel_view/flip_garment"] < unfitted["test/novel_view/flip_garment"]
+
+
+def test_oracle_renders_with_the_runs_render_options(scenes_root, tmp_path):
+    """The glued Gaussians are rasterized with the config's `render` options, as a trained model is: a wider 2-D
+    filter (`+render.eps2d`) blurs the same unfitted Gaussians, so less of the ground truth's detail is kept."""
+    sharp = _oracle(tmp_path / "sharp", 0, "+render.eps2d=0.1")
+    wide = _oracle(tmp_path / "wide", 0, "+render.eps2d=3.0")
+    assert wide["test/novel_view/detail_masked"] < 0.8 * sharp["test/novel_view/detail_masked"]
 
 
 def _tube(T: int = 3, around: int = 8, rings: int = 5):

@@ -170,14 +170,15 @@ class GluedGaussians(torch.nn.Module):
         return x, matrix_to_quat(R), scales, torch.sigmoid(self.opacity), rgb
 
 
-def render(model: GluedGaussians, t: int, b: dict, background) -> tuple[torch.Tensor, torch.Tensor]:
-    """One collated sample b -> image [1,H,W,3], alpha [1,H,W,1] of frame row t over `background` [3]."""
+def render(model: GluedGaussians, t: int, b: dict, background, options: dict) -> tuple[torch.Tensor, torch.Tensor]:
+    """One collated sample b -> image [1,H,W,3], alpha [1,H,W,1] of frame row t over `background` [3], rasterized
+    with the run's `render` options (backend, rasterize_mode, eps2d, ...) as a trained model is."""
     from realityavatar.geometry import camera_centres
     from realityavatar.render.splat import rasterize
 
     means, quats, scales, opac, rgb = model.at(t, camera_centres(b["viewmat"])[0])
     img, alpha, _ = rasterize(means, quats, scales, opac, rgb, b["viewmat"], b["K"], int(b["width"][0]),
-                              int(b["height"][0]), background=background)
+                              int(b["height"][0]), background=background, **options)
     return img, alpha
 
 
@@ -207,7 +208,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--out", default=None, help="output folder (default outputs/oracle/<data>_<views>...)")
-    ap.add_argument("overrides", nargs="*", help="more config overrides (data.image_scale=0.5, ...)")
+    ap.add_argument("overrides", nargs="*", help="more config overrides (data.image_scale=0.5, +render.eps2d=0.1, ...)")
     a = ap.parse_args(argv)
     torch.set_num_threads(a.threads)
     commit = git_commit()  # the code that runs: read before other sessions commit
@@ -217,6 +218,7 @@ def main(argv: list[str] | None = None) -> int:
     cfg = compose([f"data={a.data}", *a.overrides])
     body = instantiate(cfg.body)
     dm = build_data(cfg, body)
+    options = {k: v for k, v in cfg.render.items() if k != "background"}  # the scene's background is dm's
     frames, body_v, body_f, garm_v, garm_f, uv = scene_meshes(dm, body)
     row = {f: i for i, f in enumerate(frames)}
     cols, rows = len(np.unique(uv[:, 0])), len(np.unique(uv[:, 1]))
@@ -249,7 +251,7 @@ def main(argv: list[str] | None = None) -> int:
     t0, recent = time.perf_counter(), []
     for step in range(a.steps):
         b = fit[int(torch.randint(len(fit), (1,), generator=gen))]
-        img, alpha = render(model, row[int(b["frame"][0])], b, dm.background)
+        img, alpha = render(model, row[int(b["frame"][0])], b, dm.background, options)
         loss = ((img - b["image"]).abs().mean() + 0.2 * dssim(img.permute(0, 3, 1, 2), b["image"].permute(0, 3, 1, 2))
                 + 0.1 * ((alpha - b["mask"]) ** 2).mean())  # conf/loss/default's image terms (D-SSIM as without VGG)
         opt.zero_grad(set_to_none=True)
@@ -268,7 +270,7 @@ def main(argv: list[str] | None = None) -> int:
             for b in batches:
                 f, view = int(b["frame"][0]), int(b["view"][0])
                 t1 = time.perf_counter()
-                img, alpha = render(model, row[f], b, dm.background)
+                img, alpha = render(model, row[f], b, dm.background, options)
                 render_s += time.perf_counter() - t1
                 pred = img[0].clamp(0, 1)
                 rec = image_metrics(pred, b["image"][0], alpha[0], b["mask"][0], b.get("garment", [None])[0])
