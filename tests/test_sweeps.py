@@ -221,6 +221,13 @@ def test_launcher_configs_compose(standin_conf, real):
         assert la._target_.endswith("SlurmLauncher")
         assert (la.partition, la.gpus_per_node, la.timeout_min) == ("a100", 1, 240)
         assert la.submitit_folder.startswith("outputs/sweeps/paper/")
+        cfg = compose("train", overrides=["+ablation=paper", "hydra/launcher=slurm_cpu",
+                                          "hydra.launcher.cpus_per_task=2"], return_hydra_config=True)
+        la = cfg.hydra.launcher
+        assert la._target_.endswith("SlurmLauncher")
+        # no GPU request, the cluster's default partition, and the job's threads follow the CPUs it asked for
+        assert (la.partition, la.gpus_per_node, la.tasks_per_node) == (None, None, 1)
+        assert la.setup == ["export OMP_NUM_THREADS=2 NUMBA_NUM_THREADS=2"]
         cfg = compose("train", overrides=["+ablation=tiny"], return_hydra_config=True)
         assert cfg.hydra.launcher._target_.endswith("BasicLauncher")
 
