@@ -309,6 +309,11 @@ class AvatarDataModule:
         if self.build_preset and self._scene_missing():
             self.prepare_data()
         scene = self.read_scene()
+        if self.fps is None and scene.meta.get("fps"):  # a converted capture's or a built scene's -meta.json
+            self.fps = float(scene.meta["fps"])
+        elif self.fps is None:
+            log.warning("%s: no frame rate (data.fps, or fps in its -meta.json): motion phases are off and animations "
+                        "need data.fps=<frames per second>", scene.source)
         selected = self._select(scene)
         self.scene = scene
         self.records = selected
