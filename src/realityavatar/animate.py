@@ -3,7 +3,7 @@ time, from dataset cameras and/or a camera orbiting the moving avatar.
 
 Command: `realityavatar-animate run_dir=<run> [poses=<file.npz> [fps=<the file's frame rate>] [up=auto|z|y]
 [place=subject|keep] | split=novel_pose] [cameras=dataset|orbit|orbit,dataset] [views=0,2] [orbit.turns=1]
-[orbit.height=<m>] [orbit.radius=<m>] [out=<file.mp4|.gif>] [device=cuda|cpu] [data.<key>=<value>]`
+[orbit.height=<m>] [orbit.radius=<m>] [out=<file.mp4|.gif>] [device=cuda|cpu] [threads=N] [data.<key>=<value>]`
 Pose files (AMASS/SMPL-H, SMPL-X, SMPL) are read by data/motion.py: resampled to the frame rate the run was trained
 at (data.fps), turned upright and placed in the dataset's world; the video plays at that rate. See docs/animate.md.
 """
@@ -102,7 +102,7 @@ def check_video_writer(path: str | Path) -> None:
 
 
 ARGS = {"run_dir", "poses", "fps", "up", "place", "split", "cameras", "views", "orbit.turns", "orbit.height",
-        "orbit.radius", "out", "device"}
+        "orbit.radius", "out", "device", "threads"}
 
 
 def parse_args(argv: list[str], keys: set[str]) -> dict[str, str]:
@@ -136,9 +136,11 @@ def main(argv: list[str] | None = None) -> int:
     import imageio.v2 as imageio
 
     from realityavatar.build import build_data, load_avatar, run_device
+    from realityavatar.runtime import set_threads
 
     try:
         args = parse_args(sys.argv[1:] if argv is None else argv, ARGS)
+        set_threads(args.get("threads"))
     except ValueError as e:
         print(f"realityavatar-animate: {e}\n{__doc__}", file=sys.stderr)
         return 2

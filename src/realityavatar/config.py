@@ -216,6 +216,10 @@ def _keys(cfg: DictConfig, key: str) -> list[str]:
     return [f"{head}.{k}{tail}" for k in node] if isinstance(node, DictConfig) else []
 
 
+class ConfigError(ValueError):
+    """A setting of the composed config is not what its key takes (the key named as typed on the command line)."""
+
+
 def check_settings(cfg: DictConfig, prefix: str = "") -> None:
     """Raise ValueError naming the key as typed on the command line (`iterations=...`) for every bad setting in
     SETTINGS (all problems at once); `prefix` limits the check to one section, e.g. "eval."."""
@@ -236,4 +240,4 @@ def check_settings(cfg: DictConfig, prefix: str = "") -> None:
         if not ok(value):
             problems.append(f"{key}={value!r}: expected {expected}")
     if problems:
-        raise ValueError("; ".join(problems))
+        raise ConfigError("; ".join(problems))

@@ -1,6 +1,6 @@
 """Evaluation: novel-view and novel-pose metrics, per-frame CSV, image grids, videos, FPS -> metrics.json.
 
-Command: `realityavatar-evaluate run_dir=<run folder> [overrides]` re-evaluates a trained run's checkpoint.
+Command: `realityavatar-evaluate run_dir=<run folder> [threads=N] [overrides]` re-evaluates a trained run's checkpoint.
 """
 
 from __future__ import annotations
@@ -250,12 +250,19 @@ def format_table(metrics: dict) -> str:
 def main(argv: list[str] | None = None) -> int:
     import pytorch_lightning as pl
 
+    from realityavatar.runtime import set_threads
+
     args = list(sys.argv[1:] if argv is None else argv)
     run_dir = next((a.split("=", 1)[1] for a in args if a.startswith("run_dir=")), None)
     if run_dir is None:
-        print("usage: realityavatar-evaluate run_dir=<run folder> [key=value overrides]", file=sys.stderr)
+        print("usage: realityavatar-evaluate run_dir=<run folder> [threads=N] [key=value overrides]", file=sys.stderr)
         return 2
     overrides = [a for a in args if not a.startswith("run_dir=")]
+    try:
+        set_threads(next((a.split("=", 1)[1] for a in overrides if a.split("=", 1)[0].lstrip("+") == "threads"), None))
+    except ValueError as e:
+        print(f"realityavatar-evaluate: {e}", file=sys.stderr)
+        return 2
     cfg, module, info = load_run(run_dir, overrides)  # checks the settings it is given
     dm = build_data(cfg, module.avatar.body)
     # The run's device: its GPU when it trained on one and CUDA is here, else the CPU (a GPU run evaluates anywhere).

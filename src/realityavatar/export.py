@@ -99,9 +99,9 @@ def export_gaussians(avatar, out: Path, poses: torch.Tensor | None = None, trans
     return write_ply(out, **gaussians_for_export(avatar, poses, transl))
 
 
-ARGS = {"run_dir", "frame", "frames", "poses", "fps", "up", "place", "out"}
+ARGS = {"run_dir", "frame", "frames", "poses", "fps", "up", "place", "out", "threads"}
 USAGE = ("usage: realityavatar-export run_dir=<run> [frame=<global frame id> | frames=a:b[:step] [poses=<file.npz> "
-         "[fps=<its frame rate>] [up=auto|z|y] [place=subject|keep]]] [out=<file.ply or folder>]")
+         "[fps=<its frame rate>] [up=auto|z|y] [place=subject|keep]]] [out=<file.ply or folder>] [threads=N]")
 
 
 def parse_frames(text: str) -> slice:
@@ -143,9 +143,11 @@ def main(argv: list[str] | None = None) -> int:
     from realityavatar.animate import number, parse_args
     from realityavatar.build import build_data, load_avatar
     from realityavatar.data.motion import Stage, load_motion
+    from realityavatar.runtime import set_threads
 
     try:
         args = parse_args(sys.argv[1:] if argv is None else argv, ARGS)
+        set_threads(args.get("threads"))
     except ValueError as e:
         print(f"realityavatar-export: {e}\n{USAGE}", file=sys.stderr)
         return 2

@@ -45,6 +45,29 @@ def tune_malloc(mmap_threshold: int = 32 << 20, trim_threshold: int = 1 << 30, t
     return result
 
 
+def set_threads(threads, where: str = "threads") -> int:
+    """The one rule for threads of every entry point (train, evaluate, export, animate, view, the analysis tools):
+    `threads=N` sets torch's intra-op threads to N before anything is loaded, and the numba renderer and the image
+    decoders follow torch's count; null or absent keeps torch's default (one per core). Where other jobs share the
+    cores give threads=1: OpenMP threads that wait for one another stall when a core is taken. Returns the count."""
+    if threads is None or str(threads).strip().lower() in ("", "null", "none"):
+        return torch.get_num_threads()
+    try:
+        n = int(str(threads).strip())
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise ValueError(f"{where}={threads}: expected a whole number >= 1 (or null: torch's default, one per core)")
+    torch.set_num_threads(n)
+    return n
+
+
+def add_threads_option(parser, default: int | None = 1) -> None:
+    """`--threads N` of the analysis tools' command lines, applied with `set_threads`."""
+    parser.add_argument("--threads", type=int, default=default,
+                        help="torch CPU threads (1: safe on a shared CPU; runtime.set_threads)")
+
+
 # Ops whose output size depends on the data: on a GPU each waits for the device, like a scalar read.
 DATA_DEPENDENT = ("nonzero", "masked_select", "unique", "_unique2", "unique_consecutive", "argwhere",
                   "boolean_mask_index")

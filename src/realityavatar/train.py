@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import os
 import random
 import signal
 import sys
@@ -78,11 +79,10 @@ def _run(cfg: DictConfig, choices: dict | None, out_dir: Path, resume_from: Path
         previous_log_rows,
         seed_csv_log,
     )
+    from realityavatar.runtime import set_threads, tune_malloc
 
     pl.seed_everything(int(cfg.seed), workers=True)
-    if cfg.get("threads"):
-        torch.set_num_threads(int(cfg.threads))
-    from realityavatar.runtime import tune_malloc
+    set_threads(cfg.get("threads"))
 
     log.info("allocator: %s", tune_malloc())  # ~10% of a CPU step went to page faults of freshly mapped tensors
     body = instantiate(cfg.body)
@@ -120,7 +120,7 @@ def _run(cfg: DictConfig, choices: dict | None, out_dir: Path, resume_from: Path
             _interrupted(out_dir, trainer, saved=False)
         raise
     if state.interrupted:  # Ctrl-C: stopped cleanly after a step
-        trainer.save_checkpoint(out_dir / CKPT_NAME)
+        trainer.save_checkpoint(out_dir / CKPT_NAME, weights_only=False)
         _interrupted(out_dir, trainer, saved=True)
     choices = choices if choices is not None else choices_of(cfg)
     header = {
@@ -150,7 +150,7 @@ def _run(cfg: DictConfig, choices: dict | None, out_dir: Path, resume_from: Path
     if prior is not None:
         header["resumed_from"] = {"checkpoint": str(resume_from), "step": int(prior["global_step"])}
     module.run_info["metrics_header"] = header
-    trainer.save_checkpoint(out_dir / CKPT_NAME)
+    trainer.save_checkpoint(out_dir / CKPT_NAME, weights_only=False)  # the whole state, to resume from
     # Training results first: whatever happens during evaluation, the run's facts are on disk.
     metrics = dict(header)
     metrics["evaluation"] = "pending" if cfg.get("test_after_fit", True) else "skipped (test_after_fit=false)"
@@ -275,8 +275,25 @@ def _hydra_main(cfg: DictConfig) -> float | None:
     hc = HydraConfig.get()
     OmegaConf.set_struct(cfg, False)
     cfg._overrides = list(hc.overrides.task)
-    metrics = run(cfg, choices_of(cfg))
+    try:
+        metrics = run(cfg, choices_of(cfg))
+    except people_errors() as e:
+        if os.environ.get("HYDRA_FULL_ERROR") == "1":
+            raise
+        print(f"realityavatar-train: {e}  (HYDRA_FULL_ERROR=1 shows the trace)", file=sys.stderr)
+        raise SystemExit(1) from None
     return metrics.get("test/novel_view/psnr")
+
+
+def people_errors() -> tuple[type[BaseException], ...]:
+    """The project's own errors about a user's data and config, each naming the file or key and the field: training
+    ends on them with their message alone, as hydra ends on a config it cannot compose."""
+    from hydra.errors import InstantiationException
+
+    from realityavatar.config import ConfigError
+    from realityavatar.data.records import SceneFormatError
+
+    return ConfigError, SceneFormatError, FileNotFoundError, InstantiationException
 
 
 def main() -> None:

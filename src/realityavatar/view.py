@@ -423,13 +423,18 @@ def compose_view(args: list[str]) -> tuple[object, list[str]]:
 def main(argv: list[str] | None = None, block: bool = True) -> int:
     from omegaconf import OmegaConf
 
+    from realityavatar.runtime import set_threads
+
     args = list(sys.argv[1:] if argv is None else argv)
     vcfg, overrides = compose_view(args)
     if OmegaConf.is_missing(vcfg, "run_dir"):
         print(__doc__, file=sys.stderr)
         return 2
-    if vcfg.get("threads"):
-        torch.set_num_threads(int(vcfg.threads))
+    try:
+        set_threads(vcfg.get("threads"))
+    except ValueError as e:
+        print(f"realityavatar-view: {e}", file=sys.stderr)
+        return 2
     t0 = time.perf_counter()
     try:
         viewer = load_viewer(vcfg, overrides)

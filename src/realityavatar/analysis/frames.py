@@ -15,6 +15,7 @@ import torch
 from torch.utils.data import default_collate
 
 from realityavatar.build import build_data, load_run, run_device
+from realityavatar.runtime import add_threads_option, set_threads
 
 
 @torch.no_grad()
@@ -26,8 +27,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--split", default="novel_view", choices=("train", "novel_view", "novel_pose"))
     ap.add_argument("--view", type=int, default=None, help="camera id (default: the split's first)")
     ap.add_argument("--out", required=True)
+    add_threads_option(ap)
     a = ap.parse_args(argv)
-    torch.set_num_threads(1)
+    set_threads(a.threads, "--threads")
     cfg, module, _ = load_run(Path(a.run))
     ds = build_data(cfg, module.avatar.body).datasets[a.split]
     module.to(run_device(cfg))  # a GPU run renders with its own backend (gsplat needs CUDA tensors)

@@ -192,6 +192,7 @@ def main(argv: list[str] | None = None) -> int:
     from realityavatar.evaluate import format_table, motion_phases, summarise, write_outputs
     from realityavatar.kernels import dssim
     from realityavatar.metrics import image_metrics
+    from realityavatar.runtime import add_threads_option, set_threads
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", default="synthetic_demo", help="data config (a synthetic scene)")
@@ -206,11 +207,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--body", type=int, default=16000, help="Gaussians on the body mesh")
     ap.add_argument("--garment", type=int, default=24000, help="Gaussians on the garment mesh")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--threads", type=int, default=1)
+    add_threads_option(ap)
     ap.add_argument("--out", default=None, help="output folder (default outputs/oracle/<data>_<views>...)")
     ap.add_argument("overrides", nargs="*", help="more config overrides (data.image_scale=0.5, +render.eps2d=0.1, ...)")
     a = ap.parse_args(argv)
-    torch.set_num_threads(a.threads)
+    set_threads(a.threads, "--threads")
     commit = git_commit()  # the code that runs: read before other sessions commit
     tag = (a.views + (f"_slide{a.slide_cm:g}cm" if a.slide_cm else "") + ("_unlit" if a.light == "none" else "")
            + ("_posedrape" if a.drape == "pose" else ""))

@@ -35,6 +35,7 @@ from realityavatar.data.i3d import read_mesh_infos, split_folder
 from realityavatar.data.poses import PHASES
 from realityavatar.evaluate import undersampled
 from realityavatar.metrics import psnr, silhouette_iou
+from realityavatar.runtime import add_threads_option, set_threads
 
 CLOTH_NEAR = 0.02  # a garment Gaussian: within 2 cm of the cloth in every rest frame
 CLOTH_SAMPLES = 40000  # material points sampled on the cloth (about 5 mm apart on the demo skirt)
@@ -134,7 +135,7 @@ def probe_run(run_dir: Path, threads: int = 1, kinds: tuple[str, ...] = ("train"
     """overrides: key=value settings for the run (as realityavatar-evaluate takes them), e.g. another scene of the same
     sequence at another resolution with eval.supersample; its novel-pose phases then come from the per_frame.csv of
     `realityavatar-evaluate run_dir=<run> <the same overrides>` (<run>/eval/)."""
-    torch.set_num_threads(threads)
+    set_threads(threads, "--threads")
     cfg, module, info = load_run(run_dir, overrides)
     dm = build_data(cfg, module.avatar.body)
     module.to(run_device(cfg))  # a GPU run renders with its own backend (gsplat needs CUDA tensors)
@@ -301,7 +302,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="no runs: print how long a synthetic scene's garment keeps the spin's history (its shape "
                          "change from the settled cloth around the abrupt stop)")
     ap.add_argument("--labels", default=None, help="comma-separated labels, one per run (default: folder names)")
-    ap.add_argument("--threads", type=int, default=1)
+    add_threads_option(ap)
     ap.add_argument("--heldout-only", action="store_true", help="skip the training cameras (3x faster)")
     ap.add_argument("--override", nargs="+", default=[], metavar="KEY=VALUE",
                     help="settings for every run, as realityavatar-evaluate takes them: e.g. a 512 px run probed on "

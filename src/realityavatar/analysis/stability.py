@@ -20,6 +20,7 @@ import torch
 from torch.utils.data import default_collate
 
 from realityavatar.metrics import psnr, temporal_flicker
+from realityavatar.runtime import add_threads_option, set_threads
 
 NOISE_SIGMAS = (0.0, 0.02, 0.05, 0.1)  # radians added to every joint rotation (pose-fit noise)
 
@@ -309,7 +310,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", default="ablations/results/stability")
     ap.add_argument("--view", type=int, default=None, help="held-out camera id (default: the first)")
     ap.add_argument("--window", type=int, default=5, help="frames either side of a stop")
+    add_threads_option(ap)
     args = ap.parse_args(argv)
+    set_threads(args.threads, "--threads")
     torch.set_grad_enabled(False)
     results = [analyse_run(r, args.view, args.window) for r in find_runs(args.paths)]
     cmd = "python -m realityavatar.analysis.stability " + " ".join(sys.argv[1:] if argv is None else argv)
