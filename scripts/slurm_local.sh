@@ -101,6 +101,11 @@ up() {
 }
 
 down() {
+  if running slurmctld && running slurmd; then  # jobs first: with proctrack/linuxproc a job outlives slurmd
+    export SLURM_CONF="$DIR/slurm.conf"
+    scancel -u "$(id -un)" 2>/dev/null || true
+    for _ in $(seq 50); do [ -z "$(squeue -h -o %i 2>/dev/null)" ] && break; sleep 0.2; done
+  fi
   for d in "${DAEMONS[@]}"; do
     running "$d" || continue
     local pid

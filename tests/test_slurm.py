@@ -82,10 +82,10 @@ def _states(sweep, env) -> dict[str, str]:
 def test_tiny_sweep_on_slurm_cpu_launcher(slurm, tmp_path):
     sweep = tmp_path / "sweep"
     cmd = [sys.executable, "-m", "realityavatar.train", "-m", "+ablation=tiny", "hydra/launcher=slurm_cpu",
-           "hydra.launcher.cpus_per_task=1", "hydra.launcher.mem_gb=2", "hydra.launcher.timeout_min=10", *SHORT,
+           "hydra.launcher.cpus_per_task=1", "hydra.launcher.mem_gb=2", "hydra.launcher.timeout_min=5", *SHORT,
            f"hydra.sweep.dir={sweep}"]
     t0 = time.perf_counter()
-    res = subprocess.run(cmd, cwd=ROOT, env=slurm, capture_output=True, text=True, timeout=600, check=False)
+    res = subprocess.run(cmd, cwd=ROOT, env=slurm, capture_output=True, text=True, timeout=300, check=False)
     wall = time.perf_counter() - t0
     states = job_states(sweep, slurm) if (sweep / ".submitit").is_dir() else {}
     print(f"submitted {len(states)} jobs: {', '.join(f'{j} {s}' for j, s in states.items())}; sweep {wall:.0f} s")
