@@ -12,7 +12,7 @@ import torch
 from PIL import Image
 
 from realityavatar.body.base import rh_th_to_smpl
-from realityavatar.data.capture import CaptureError, convert, scan
+from realityavatar.data.capture import CaptureError, convert, scan, train_command
 from realityavatar.data.capture import main as capture_main
 from realityavatar.data.i3d import read_i3d
 from realityavatar.data.records import load_record
@@ -128,11 +128,12 @@ def test_capture_cli_converts(tmp_path, body, capsys):
 def scene_as_capture(prefix: Path, folder: Path, easymocap: bool = False) -> dict:
     """Write a built scene (<prefix>-train|-novelview|-novelpose) as docs/data.md's capture folder: capture.json (its
     meta's fps), cameras.json, images/<cam>/<frame>.png, masks/<cam>/<frame>.png, smpl/<frame>.json (EasyMocap's
-    placement; `easymocap`: EasyMocap's own list-of-people form with nested arrays). Returns the scene's meta."""
+    placement; `easymocap`: EasyMocap's own list-of-people form with nested arrays). The cameras that film every
+    frame (a scene's evaluation-only cameras do not). Returns the scene's meta."""
     import shutil
 
     meta = json.loads(prefix.with_name(prefix.name + "-meta.json").read_text())
-    cams, poses = {}, {}
+    cams, poses, shots = {}, {}, {}
     for suffix in ("train", "novelview", "novelpose"):
         split = prefix.with_name(f"{prefix.name}-{suffix}")
         cameras = pickle.loads((split / "cameras.pkl").read_bytes())
@@ -142,10 +143,14 @@ def scene_as_capture(prefix: Path, folder: Path, easymocap: bool = False) -> dic
             E = np.asarray(cam["extrinsics"], float)
             cams[str(view)] = {"K": np.asarray(cam["intrinsics"], float).tolist(), "R": E[:3, :3].tolist(),
                                "T": E[:3, 3].tolist()}
-            for kind in ("images", "masks"):
-                (folder / kind / str(view)).mkdir(parents=True, exist_ok=True)
-                shutil.copy(split / kind / f"{name}.png", folder / kind / str(view) / f"{frame:06d}.png")
+            shots.setdefault(str(view), {})[frame] = (split, name)
             poses[frame] = {k: np.asarray(infos[name][k], float).reshape(-1).tolist() for k in ("poses", "Rh", "Th")}
+    cams = {v: c for v, c in cams.items() if len(shots[v]) == len(poses)}
+    for view in cams:
+        for frame, (split, name) in shots[view].items():
+            for kind in ("images", "masks"):
+                (folder / kind / view).mkdir(parents=True, exist_ok=True)
+                shutil.copy(split / kind / f"{name}.png", folder / kind / view / f"{frame:06d}.png")
     (folder / "smpl").mkdir()
     for frame, d in poses.items():
         body = [{"id": 0, **{k: [v] for k, v in d.items()}, "shapes": [[0.0] * 10]}] if easymocap else d
@@ -256,6 +261,10 @@ def test_easymocap_list_of_people_is_read(scenes_root, tmp_path):
     infos = pickle.loads((scenes_root / "skirt_spin_ci-train" / "mesh_infos.pkl").read_bytes())
     np.testing.assert_allclose(cap.smpl[0]["Th"], np.asarray(infos["frame_000000_view_00"]["Th"]).reshape(3), atol=1e-6)
     assert cap.smpl[0]["betas"].shape == (10,)
+    # its `shapes` kept for body=smpl: <name>-betas.npz, and the printed command reads it
+    convert(tmp_path / "em", tmp_path / "out", "em", body=RandomBody())
+    assert np.load(tmp_path / "out" / "em-betas.npz")["betas"].shape == (10,)
+    assert f"body.betas={tmp_path / 'out' / 'em-betas.npz'}" in train_command(tmp_path / "out", "em", "smpl", "/smpl")
     # two people: the one chosen by --person, else the file is named with its ids
     p = tmp_path / "em" / "smpl" / "000000.json"
     people = json.loads(p.read_text())
