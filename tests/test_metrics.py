@@ -418,3 +418,17 @@ def test_unknown_protocol_and_missing_pixels_are_named():
     pred, gt, _ = _scene_pair()
     with pytest.raises(ValueError, match="eval.protocol=dyco: needs the smpl_box pixels"):
         eval_protocol("dyco").scores(pred, gt, None)
+
+
+def test_summarise_reports_the_spread_over_cameras():
+    """Per split and phase, the std over held-out cameras of their mean scores (a verdict needs it beside the mean)."""
+    from realityavatar.evaluate import summarise
+
+    rows = [{"split": "novel_view", "phase": "rest", "view": v, "frame": f, "psnr_garment": base + f}
+            for v, base in ((1, 20.0), (4, 24.0), (6, 22.0)) for f in (0, 1)]
+    out = summarise(rows)
+    assert np.isclose(out["test/novel_view/rest/psnr_garment"], 22.5)
+    assert np.isclose(out["test/novel_view/rest/psnr_garment_camera_std"], np.std([20.5, 24.5, 22.5]))
+    assert "test/novel_view/psnr_camera_std" not in out  # only scores the rows have
+    one = summarise([r for r in rows if r["view"] == 1])
+    assert "test/novel_view/psnr_garment_camera_std" not in one  # one camera: no spread

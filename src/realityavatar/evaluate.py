@@ -18,6 +18,7 @@ from realityavatar.data.poses import PHASES
 # metrics.image_metrics's scores: the whole image, the mask's box ("masked"), the garment's pixels ("garment")
 METRIC_KEYS = ("psnr", "ssim", "iou", "flip", "lpips", "psnr_masked", "ssim_masked", "flip_masked", "lpips_masked",
                "detail_masked", "psnr_garment", "ssim_garment", "flip_garment", "detail_garment")
+CAMERA_SPREAD_KEYS = ("psnr", "psnr_garment", "ssim_garment", "detail_garment")
 
 
 def summarise(records: list[dict]) -> dict:
@@ -36,6 +37,19 @@ def summarise(records: list[dict]) -> dict:
                 vals = [r[k] for r in sel if k in r and np.isfinite(r[k])]
                 if vals:
                     out[f"{prefix}/{k}"] = float(np.mean(vals))
+            for k in CAMERA_SPREAD_KEYS:  # how much the held-out cameras disagree: std of their means
+                per_view = [np.mean(v) for v in _by_view(sel, k).values()]
+                if len(per_view) > 1:
+                    out[f"{prefix}/{k}_camera_std"] = float(np.std(per_view))
+    return out
+
+
+def _by_view(rows: list[dict], key: str) -> dict:
+    """{view: [finite values of `key`]} of `rows`."""
+    out: dict = {}
+    for r in rows:
+        if key in r and np.isfinite(r[key]):
+            out.setdefault(r.get("view"), []).append(r[key])
     return out
 
 

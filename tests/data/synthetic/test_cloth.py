@@ -111,13 +111,13 @@ def test_spin_flares_and_keeps_moving_after_stop(spin_run):
     radius = np.linalg.norm((h - axis[:, None])[..., [0, 2]], axis=-1).mean(1)  # [F]
     rest_r = radius[:FPS].mean()
     spin_r = radius[stop - FPS // 2 : stop].mean()  # the last 0.5 s at full speed
-    # Measured (defaults, seed 0): rest 0.20 m, spinning 0.565 m (+0.37 m). Require at least +0.15 m of flare.
+    # Measured (defaults, seed 0): rest 0.20 m, spinning 0.49 m (+0.28 m). Require at least +0.15 m of flare.
     assert spin_r > rest_r + 0.15, (rest_r, spin_r)
     speed = np.linalg.norm(np.diff(h, axis=0), axis=-1).mean(1) * FPS  # [F-1], speed over frame i -> i+1
     after = speed[stop : stop + 5].mean()  # first 0.2 s after the stop (the body is already still)
     later = speed[stop + 50 : stop + 55].mean()  # 2 s later
-    # Measured: 1.28 m/s right after the stop, 0.07 m/s 2 s later; the body itself is motionless in both windows.
-    assert after > 0.5, after
+    # Measured: 0.54 m/s right after the stop, 0.05 m/s 2 s later; the body itself is motionless in both windows.
+    assert after > 0.3, after
     assert later < 0.3 * after, (after, later)
     assert np.allclose(joints[stop:], joints[0])
 
@@ -131,10 +131,10 @@ def test_same_pose_different_history_differs(spin_run):
     assert np.array_equal(joints[rest_frame], joints[after_frame])
     h = hem(seq)
     diff = np.linalg.norm(h[after_frame] - h[rest_frame], axis=-1).mean()
-    # Measured: mean hem displacement 0.32 m between the two frames (0.055 m still 2 s after the stop: the folds
+    # Measured: mean hem displacement 0.29 m between the two frames (0.094 m still 2 s after the stop: the folds
     # settle differently). Threshold 2 cm.
     assert diff > 0.02, diff
-    # Control: two rest frames 0.4 s apart (same pose, same history) stay within 1 cm (measured 0.12 cm).
+    # Control: two rest frames 0.4 s apart (same pose, same history) stay within 1 cm (measured 0.67 cm).
     still = np.linalg.norm(h[FPS - 1] - h[FPS - 11], axis=-1).mean()
     assert still < 0.01, still
     assert diff > 5 * still

@@ -14,7 +14,7 @@ import torch
 
 from realityavatar.body import MannequinBody, rh_th_to_smpl
 from realityavatar.data.synthetic import build_scene, resolve_params, scene_paths
-from realityavatar.data.synthetic.cameras import look_at, novel_view_ids, ring_cameras
+from realityavatar.data.synthetic.cameras import eval_cameras, look_at, novel_view_ids, ring_cameras
 from realityavatar.data.synthetic.motions import MOTIONS, make_motion
 from realityavatar.geometry import axis_angle_to_matrix
 
@@ -44,9 +44,10 @@ def test_layout(ci_scene):
     paths = scene_paths(ci_scene)
     meta = json.loads(paths["meta"].read_text())
     p = meta["params"]
-    assert meta["cameras"]["train"] == [0, 1, 3] and meta["cameras"]["novel_view"] == [2]
+    assert meta["cameras"]["train"] == [0, 1, 3] and meta["cameras"]["novel_view"] == [2, 4, 5]
+    assert meta["cameras"]["eval_only"] == [4, 5] and meta["cameras"]["novel_pose"] == [0, 1, 2, 3]
     n_tr, n_np = p["train_frames"], p["novel_frames"]
-    expect = {"train": n_tr * 3, "novel_view": n_tr * 1, "novel_pose": n_np * 4}
+    expect = {"train": n_tr * 3, "novel_view": n_tr * 3, "novel_pose": n_np * 4}
     for split, count in expect.items():
         d = paths[split]
         images = sorted(x.name for x in (d / "images").iterdir())
@@ -331,6 +332,31 @@ def test_failure_mid_write_leaves_no_scene(tmp_path, monkeypatch):
     with pytest.raises(RuntimeError, match="disk full"):
         build_scene("ci", tmp_path, seed=0, progress=False)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_eval_cameras_two_elevations_apart_from_training():
+    """The demo's 8 evaluation-only cameras: 4 on the ring's height, 4 at 40 degrees, each >= 30 degrees from every
+    training camera and apart from the ring's held-out ones; each looks at the target (it projects to the centre)."""
+    Ks, E = ring_cameras(6, 2.8, 1.2, 0.9, 256, 256)
+    train, held = [0, 2, 3, 5], [1, 4]
+    K8, E8 = eval_cameras(E[train], E[held], 8, 2.8, 1.2, 0.9, Ks[0])
+    target = np.array([0.0, 0.9, 0.0])
+
+    def direction(V):
+        d = -V[:3, :3].T @ V[:3, 3] - target
+        return d / np.linalg.norm(d)
+
+    dirs = np.stack([direction(V) for V in E8])
+    elev = np.degrees(np.arcsin(dirs[:, 1]))
+    assert np.allclose(np.sort(elev), [6.1] * 4 + [40] * 4, atol=0.2)
+    sep = np.degrees(np.arccos(np.clip(dirs @ np.stack([direction(E[c]) for c in train + held]).T, -1, 1)))
+    assert sep[:, :4].min() >= 30 - 1e-6 and sep[:, 4:].min() > 10  # apart from training and the ring's held-out
+    assert len({tuple(np.round(d, 6)) for d in dirs}) == 8
+    for K, V in zip(K8, E8):
+        x = V[:3, :3] @ target + V[:3, 3]
+        assert np.allclose((K @ x)[:2] / x[2], 128)
+    with pytest.raises(ValueError, match="eval_cameras: expected an even count"):
+        eval_cameras(E[train], E[held], 3, 2.8, 1.2, 0.9, Ks[0])
 
 
 def test_cameras_opencv_convention():

@@ -46,3 +46,39 @@ def ring_cameras(num_cameras: int, radius: float, height: float, target_height: 
         views.append(look_at(eye, np.array([0.0, target_height, 0.0])))
         Ks.append(K.copy())
     return np.stack(Ks), np.stack(views)
+
+
+def eval_cameras(train_viewmats: np.ndarray, heldout_viewmats: np.ndarray, count: int, radius: float, height: float,
+                 target_height: float, K: np.ndarray, elevation_deg: float = 40.0, min_sep_deg: float = 30.0):
+    """Ks [count,3,3], viewmats [count,4,4] of held-out cameras for evaluation only: half on the ring's height, half
+    `elevation_deg` above the look-at point, each picked (every 5 degrees around) as far as possible from the
+    training cameras and the ones already picked, and none within `min_sep_deg` of a training camera (the angle between
+    the directions from the look-at point)."""
+    if count < 0 or count % 2:
+        raise ValueError(f"eval_cameras: expected an even count >= 0 (half at each elevation), got {count}")
+    target = np.array([0.0, target_height, 0.0])
+
+    def direction(E):  # [...,4,4] world-to-camera -> unit directions from the target to the camera centres [...,3]
+        eye = -np.einsum("...ji,...j->...i", E[..., :3, :3], E[..., :3, 3])
+        d = eye - target
+        return d / np.linalg.norm(d, axis=-1, keepdims=True)
+
+    az = np.radians(np.arange(0, 360, 5))
+    high = target_height + radius * np.tan(np.radians(elevation_deg))
+    rings = [np.stack([radius * np.sin(az), np.full_like(az, y), radius * np.cos(az)], 1) for y in (height, high)]
+    taken = list(direction(np.asarray(train_viewmats)))
+    n_train = len(taken)
+    taken += list(direction(np.asarray(heldout_viewmats)))
+    views = []
+    for ring in rings:
+        cand = ring - target
+        cand /= np.linalg.norm(cand, axis=1, keepdims=True)
+        for _ in range(count // 2):
+            sep = np.degrees(np.arccos(np.clip(cand @ np.stack(taken).T, -1, 1)))  # [A,taken]
+            ok = sep[:, :n_train].min(1) >= min_sep_deg
+            if not ok.any():
+                raise ValueError(f"eval_cameras: no place on the ring {min_sep_deg} deg from every training camera")
+            i = int(np.argmax(np.where(ok, sep.min(1), -1)))
+            taken.append(cand[i])
+            views.append(look_at(target + cand[i] * np.linalg.norm(ring[i] - target), target))
+    return np.repeat(np.asarray(K)[None], count, 0), np.stack(views) if views else np.zeros((0, 4, 4))

@@ -19,17 +19,28 @@ _PELVIS, _LHIP, _RHIP, _LKNEE, _RKNEE, _SPINE2, _LANKLE, _RANKLE, _NECK = 0, 1, 
 
 # Defaults shared by both garments; lengths in metres, masses in kg, times in seconds.
 _COMMON = {
-    "n_around": 20,  # vertices per ring (the simulated tube; output adds one seam column)
-    "n_rings": 10,  # rings from waist (pinned) to hem
+    # 40 x 20: the drape moves < 1 cm (median) from here to 80 x 40, at 1/8 of its cost; at 20 x 10 the folds were the
+    # mesh's buckling (docs/research/2026-12-07-converged-cloth.md)
+    "n_around": 40,  # vertices per ring (the simulated tube; output adds one seam column)
+    "n_rings": 20,  # rings from waist (pinned) to hem
     "waist_offset": 0.06,  # waist ring above the pelvis joint, along the body axis
     "waist_radius": None,  # None: max(hip_sep/2 + 0.08, torso_radius + 0.02)
     "length_scale": 1.0,  # cloth length (waist to hem along the surface) relative to the hem level below
-    "young": 3.0e4,  # Pa; with thickness 1 mm: 30 N/m membrane stiffness, soft and slightly stretchy fabric
+    # Stretch: every edge keeps its rest length (a soft equality constraint with this time constant, stable at dt_max
+    # at any resolution; an elastic membrane needs a step that shrinks with the edge). Bending: elastic, from young,
+    # poisson and thickness (D = E t^3 / 12(1 - nu^2) ~ 7e-5 N m, a cotton's), so the folds' width is the fabric's.
+    "edge_timeconst": 4.0e-3,
+    "young": 3.0e4,  # Pa
     "poisson": 0.2,
-    "thickness": 1.0e-3,
+    "thickness": 3.0e-3,
     "elastic_damping": 1.0e-3,  # flex elasticity damping (internal, relative motion)
     "drag_tau": 0.5,  # air drag: per-vertex force -m v / drag_tau (relative to the world, why motion decays)
-    "cloth_radius": 0.01,  # collision half-thickness of the cloth
+    # Collision half-thickness of the cloth: under half the finest edge that is simulated (1.5 cm at 80 x 40), else
+    # neighbouring triangles touch at rest (1 cm: 49k self-contacts at 80 x 40, MuJoCo's arena overflowed).
+    "cloth_radius": 0.005,
+    # The cloth collides with itself (MuJoCo's "auto" midphase): without it folds pass through each other and the
+    # body shows through them; about 2x the simulation's time at 40 x 20.
+    "self_collision": True,
     "friction": 0.3,
     "contact_timeconst": 0.005,  # contact solref time constant (s): stiffer than MuJoCo's 0.02 so legs push cloth firmly
     "thigh_radius": 0.075,
@@ -39,7 +50,8 @@ _COMMON = {
     "dt_max": 2.0e-3,  # largest physics step; substeps per frame = ceil(1 / (fps * dt_max))
     "preroll": 2.0,  # seconds of settling holding the first frame before recording
     "preroll_drag_tau": 0.1,  # stronger air drag during the pre-roll so the initial cone settles within it
-    "init_noise": 1.0e-3,  # seeded jitter of the initial free vertices (breaks the cone's symmetry so it can fold)
+    "init_noise": 1.0e-3,  # seeded radial ripple of the initial cone (m; breaks its symmetry so it can fold): smooth in
+    # (u, v), so it is the same cloth at every resolution
 }
 _GARMENT_DEFAULTS = {
     # hem_level: where the hem hangs, as a blend knee (0) -> ankle (1); flare: initial cone angle from the body axis.
@@ -84,6 +96,7 @@ def garment_params(garment: str = "skirt", params: dict | None = None) -> dict:
         "dt_max",
         "mass",
         "contact_timeconst",
+        "edge_timeconst",
     )
     for k in positive:
         if not (isinstance(p[k], (int, float)) and math.isfinite(p[k]) and p[k] > 0):
@@ -106,6 +119,8 @@ def garment_params(garment: str = "skirt", params: dict | None = None) -> dict:
         p[k] = float(p[k])
     if not 0.0 <= p["flare_deg"] < 80.0:
         raise ValueError(f"params['flare_deg']: expected 0 <= flare_deg < 80, got {p['flare_deg']}")
+    if not isinstance(p["self_collision"], bool):
+        raise ValueError(f"params['self_collision']: expected true or false, got {p['self_collision']!r}")  # noqa: TRY004 (contract: bad input -> ValueError)
     if p["waist_radius"] is not None:
         if not (
             isinstance(p["waist_radius"], (int, float))
@@ -218,8 +233,11 @@ def _rest_geometry(j0: np.ndarray, R0: np.ndarray, p: dict, rng: np.random.Gener
         + h[..., None] * up
     )
     pts = pts.reshape(-1, 3)  # [n_r*n_a,3]
-    if p["init_noise"] > 0:
-        pts[n_a:] += rng.normal(scale=p["init_noise"], size=pts[n_a:].shape)
+    if p["init_noise"] > 0:  # sum of the first 16 modes around, random amplitude and phase, growing from the waist
+        k = np.arange(1, 17)[:, None, None]
+        amp, phase = rng.normal(size=(16, 1, 1)) / 4, rng.uniform(0, 2 * np.pi, size=(16, 1, 1))
+        ripple = p["init_noise"] * s * (amp * np.cos(k * phi + phase)).sum(0)  # [n_r,n_a]
+        pts += (ripple[..., None] * (np.cos(phi)[..., None] * e1 + np.sin(phi)[..., None] * e2)).reshape(-1, 3)
     return pts, {"waist_radius": float(waist_r), "length": float(length), "hip_sep": hip_sep}
 
 
@@ -252,7 +270,7 @@ def _build_xml(
     )
     return f"""
 <mujoco model="garment">
-  <option timestep="{dt:.8f}" gravity="0 -9.81 0" integrator="Euler"/>
+  <option timestep="{dt:.8f}" gravity="0 -9.81 0" integrator="Euler" solver="CG" jacobian="sparse"/>
   <worldbody>
     {geoms}
     <body name="waist" gravcomp="1">
@@ -260,10 +278,11 @@ def _build_xml(
       <geom type="sphere" size="0.05" mass="20" contype="0" conaffinity="0"/>
       <flexcomp name="cloth" type="direct" dim="2" radius="{p["cloth_radius"]}" mass="{p["mass"]}"
                 point="{point}" element="{element}">
+        <edge equality="true" solref="{p["edge_timeconst"]} 1"/>
         <pin id="{pins}"/>
         <elasticity young="{p["young"]}" poisson="{p["poisson"]}" thickness="{p["thickness"]}"
-                    damping="{p["elastic_damping"]}" elastic2d="both"/>
-        <contact selfcollide="none" contype="0" conaffinity="1" friction="{p["friction"]} 0.005 0.0001"
+                    damping="{p["elastic_damping"]}" elastic2d="bend"/>
+        <contact selfcollide="{"auto" if p["self_collision"] else "none"}" contype="{int(p["self_collision"])}" conaffinity="1" friction="{p["friction"]} 0.005 0.0001"
                  solref="{p["contact_timeconst"]} 1"/>
       </flexcomp>
     </body>

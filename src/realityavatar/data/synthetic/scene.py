@@ -20,12 +20,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from realityavatar.data.synthetic.cameras import novel_view_ids, ring_cameras
+from realityavatar.data.synthetic.cameras import eval_cameras, novel_view_ids, ring_cameras
 from realityavatar.data.synthetic.motions import MOTIONS, Motion, make_motion
 from realityavatar.data.synthetic.presets import PRESETS, SEQUENCES
 from realityavatar.data.synthetic.render import BodyTexture, GarmentTexture, all_camera_rays, render_views
 
-GENERATOR_VERSION = 2  # bump when the output changes for the same parameters (invalidates caches)
+GENERATOR_VERSION = 3  # bump when the output changes for the same parameters (invalidates caches)
 SPLITS = {"train": "train", "novel_view": "novelview", "novel_pose": "novelpose"}
 PICKLE_PROTOCOL = 4
 PNG_COMPRESS = 6
@@ -81,7 +81,8 @@ def resolve_params(preset_or_params: str | dict, sequence: str | None = None, ov
         raise ValueError(f"garment: unknown garment {p['garment']!r}; expected one of {tuple(GARMENTS)}")
     if p["motion"] not in MOTIONS:
         raise ValueError(f"motion: unknown motion {p['motion']!r}; expected one of {MOTIONS}")
-    for k in ("train_frames", "novel_frames", "cameras", "novel_view_cameras", "width", "height", "supersample"):
+    for k in ("train_frames", "novel_frames", "cameras", "novel_view_cameras", "eval_cameras", "width", "height",
+              "supersample"):
         if isinstance(p[k], bool) or not isinstance(p[k], (int, np.integer)):
             raise ValueError(f"{k}: expected an integer, got {p[k]!r}")  # noqa: TRY004 -- one error type
         p[k] = int(p[k])
@@ -94,6 +95,8 @@ def resolve_params(preset_or_params: str | dict, sequence: str | None = None, ov
     if not 1 <= p["novel_view_cameras"] < p["cameras"]:
         raise ValueError(f"novel_view_cameras: expected 1 <= count < cameras ({p['cameras']}), "
                          f"got {p['novel_view_cameras']}")
+    if p["eval_cameras"] < 0 or p["eval_cameras"] % 2:
+        raise ValueError(f"eval_cameras: expected an even count >= 0 (half at each elevation), got {p['eval_cameras']}")
     if not 1 <= p["supersample"] <= 8:
         raise ValueError(f"supersample: expected 1..8 rays per pixel side (1: one ray through each pixel centre), "
                          f"got {p['supersample']}")
@@ -202,6 +205,11 @@ def build_scene(preset_or_params: str | dict = "demo", root: str | Path | None =
                                 p["width"], p["height"], p["subject_height"], p["fill"], p["camera_phase_deg"])
     nv_ids = novel_view_ids(p["cameras"], p["novel_view_cameras"])
     train_ids = [c for c in range(p["cameras"]) if c not in nv_ids]
+    # Held-out cameras off the ring (two elevations), for the novel-view evaluation only: ids after the ring's.
+    K_ev, view_ev = eval_cameras(viewmats[train_ids], viewmats[nv_ids], p["eval_cameras"], p["camera_radius"],
+                                 p["camera_height"], p["target_height"], Ks[0])
+    Ks, viewmats = np.concatenate([Ks, K_ev]), np.concatenate([viewmats, view_ev])
+    nv_ids = nv_ids + list(range(p["cameras"], p["cameras"] + p["eval_cameras"]))
 
     verts_w, joints_body, joints_w, rots_w = body_sequence(body, motion)
     garment = simulate_garment(joints_w, rots_w, p["fps"], p["garment"], p["cloth_params"], seed=seed)
@@ -271,9 +279,11 @@ def _render_frame(f: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     camera."""
     j = _FRAME_JOB
     verts_w, body_faces, body_tex, garment_verts, garment_faces, garm_tex = j["parts"]
-    return render_views([(verts_w[f], body_faces, body_tex), (garment_verts[f], garment_faces, garm_tex)], j["Ks"],
-                        j["viewmats"], j["width"], j["height"], j["rays"], ambient=j["ambient"],
-                        diffuse=j["diffuse"], supersample=j["supersample"])
+    C = len(j["Ks"]) if f < j["num_train"] else j["ring"]  # the evaluation-only cameras see the training frames
+    P = C * j["width"] * j["height"]
+    return render_views([(verts_w[f], body_faces, body_tex), (garment_verts[f], garment_faces, garm_tex)], j["Ks"][:C],
+                        j["viewmats"][:C], j["width"], j["height"], (j["rays"][0][:P], j["rays"][1][:P]),
+                        ambient=j["ambient"], diffuse=j["diffuse"], supersample=j["supersample"])
 
 
 def _one_blas_thread() -> None:
@@ -316,12 +326,13 @@ def _write(tmp: Path, p: dict, seed: int, phash: str, body, motion: Motion, Ks, 
     body_tex = BodyTexture(body.rest_vertices.numpy(), body.skin_weights.numpy(), seed)
     garm_tex = GarmentTexture(garment.uv, seed)
     body_faces = body.faces.numpy()
-    all_ids = list(range(p["cameras"]))
+    all_ids = list(range(p["cameras"]))  # the ring: the novel poses are not seen by the evaluation-only cameras
     F = motion.num_frames
     rays = all_camera_rays(Ks, viewmats, p["width"], p["height"])
     job = {"parts": (verts_w, body_faces, body_tex, garment.vertices, garment.faces, garm_tex), "Ks": Ks,
            "viewmats": viewmats, "width": p["width"], "height": p["height"], "rays": rays, "ambient": p["ambient"],
-           "diffuse": p["diffuse"], "supersample": p["supersample"]}
+           "diffuse": p["diffuse"], "supersample": p["supersample"], "num_train": motion.num_train,
+           "ring": p["cameras"]}
     for f, (rgb, mask, part) in enumerate(tqdm(_rendered_frames(job, F), total=F, desc=f"scene {name}",
                                          disable=not progress, unit="frame")):
         poses = motion.pose[f].reshape(72).astype(np.float32)
@@ -348,7 +359,8 @@ def _write(tmp: Path, p: dict, seed: int, phash: str, body, motion: Motion, Ks, 
         "motion": {"name": motion.name, "events": _jsonable(motion.events), "train_frames": motion.num_train,
                    "novel_frames": motion.num_novel},
         "frames": {"train": [0, motion.num_train], "novel_pose": [motion.num_train, F]},
-        "cameras": {"train": train_ids, "novel_view": nv_ids, "novel_pose": all_ids},
+        "cameras": {"train": train_ids, "novel_view": nv_ids, "novel_pose": all_ids,
+                    "eval_only": nv_ids[len(nv_ids) - p["eval_cameras"]:]},
         "splits": {k: f"{name}-{v}" for k, v in SPLITS.items()},
         "versions": _versions(),
     }
