@@ -29,17 +29,36 @@ from realityavatar.data.synthetic.scene import body_sequence, resolve_params
 
 
 def demo_motion(sequence: str):
-    """Skeleton [F,24,3], rotations [F,24,3,3], fps, garment, spin frames (start, stop) of the demo preset."""
+    """Skeleton [F,24,3], rotations [F,24,3,3], fps, garment, spin frames (start, stop), cloth parameters and the
+    posed body (vertices [F,V,3], faces) of the demo preset."""
     p = resolve_params("demo", sequence=sequence)
     body = build_body(p["body"])
     rest_v = body.rest_vertices.numpy().astype(np.float64)
     pelvis = body.rest_joints[0].numpy().astype(np.float64)
     motion = make_motion(p["motion"], p["fps"], p["train_frames"], p["novel_frames"], pelvis,
                          float(pelvis[1] - rest_v[:, 1].min()), seed=0, params=p["motion_params"])
-    _, _, joints, rots = body_sequence(body, motion)
+    verts, _, joints, rots = body_sequence(body, motion)
     ev = motion.events
     spin = (ev.get("spin_start_frame", 0), ev.get("spin_stop_frame", motion.num_train - 1))
-    return joints, rots, p["fps"], p["garment"], spin, p["cloth_params"]
+    return joints, rots, p["fps"], p["garment"], spin, p["cloth_params"], (verts, body.faces.numpy())
+
+
+def picture(path: Path, cloths: list[tuple[np.ndarray, np.ndarray]], body, frames: list[int], size: int = 256):
+    """Rows: each cloth (vertices [F,V,3], faces) untextured on the body, at `frames`, from the demo's cameras 0 and
+    2 (front, and 120 degrees round), framed on the skirt. Saved as a PNG."""
+    from PIL import Image
+
+    from realityavatar.data.synthetic.cameras import ring_cameras
+    from realityavatar.data.synthetic.render import render_views
+
+    Ks, views = ring_cameras(6, 2.8, 1.2, 0.7, size, size, 1.75, 1.6)  # closer in on the hips than the scene's
+    grey, blue = (lambda f, b: np.full((len(b), 3), 0.8)), (lambda f, b: np.full((len(b), 3), [0.35, 0.3, 0.6]))
+    rows = []
+    for vertices, faces in cloths:
+        tiles = [render_views([(body[0][f], body[1], blue), (vertices[f], faces, grey)], Ks[[0, 2]], views[[0, 2]],
+                              size, size, supersample=2)[0] for f in frames]
+        rows.append(np.concatenate([np.concatenate(list(t), 1) for t in tiles], 1))
+    Image.fromarray(np.concatenate(rows, 0)).save(path, optimize=True)
 
 
 def resample(vertices: np.ndarray, n_around: int, n_rings: int, u: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -79,10 +98,13 @@ def main() -> None:
                     "how far the cloth moves from its initial state alone (the floor of any convergence)")
     ap.add_argument("--sequence", default="skirt_spin")
     ap.add_argument("--save", default=None, help="folder for each resolution's simulated cloth (npz)")
+    ap.add_argument("--picture", default=None, help="PNG of each cloth untextured at rest and mid-spin, two cameras")
+    ap.add_argument("--before", nargs="*", default=[], help="-garment.npz files of earlier scenes: rows above the "
+                    "picture's (the same motion simulated by another generator)")
     ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "cloth.json"))
     args = ap.parse_args()
     torch.set_num_threads(1)
-    joints, rots, fps, garment, (s0, s1), cloth_params = demo_motion(args.sequence)
+    joints, rots, fps, garment, (s0, s1), cloth_params, body = demo_motion(args.sequence)
     sizes = [tuple(int(x) for x in r.split("x")) for r in args.res]
     na0, nr0 = sizes[0]
     uu, vv = np.meshgrid(np.arange(na0) / na0, np.linspace(0, 1, nr0))  # the coarsest grid's points (no seam copy)
@@ -97,9 +119,11 @@ def main() -> None:
         if args.save:
             Path(args.save).mkdir(parents=True, exist_ok=True)
             np.savez(Path(args.save) / f"cloth_{na}x{nr}_seed{seed}.npz", v=g.vertices, faces=g.faces, uv=g.uv)
+        if seed == 0:
+            meshes.append((g.vertices, g.faces))
         return resample(g.vertices, na, nr, u, v), sec
 
-    rows, prev, cloths = [], None, {}
+    rows, prev, cloths, meshes = [], None, {}, []
     for na, nr in sizes:
         x, sec = simulate(na, nr)
         cloths[f"{na}x{nr}"] = x
@@ -115,7 +139,7 @@ def main() -> None:
         x, sec = simulate(na, nr, seed=1)
         rows.append({"resolution": f"{na}x{nr} seed 1 vs 0", "vertices": na * nr, "sim_s": round(sec, 1),
                      "sim_gemm_units": round(sec / unit), "frames": len(joints),
-                     **changes(x, cloths.get(args.floor, simulate(na, nr)[0]), hem, spin, joints)})
+                     **changes(x, cloths[args.floor] if args.floor in cloths else simulate(na, nr)[0], hem, spin, joints)})
         print(json.dumps(rows[-1]), flush=True)
     print("\nchange from the previous row (cm): every point at rest (median, p90), the hem over the spin (median, p90), "
           "the spin's flare (median)")
@@ -123,6 +147,10 @@ def main() -> None:
     for r in rows:
         print(f"{r['resolution']:>20}" + "".join(f"{r.get(c, float('nan')):>16.2f}" for c in COLUMNS)
               + f"{r['sim_s']:>8.1f}{r['sim_gemm_units']:>8}")
+    if args.picture:
+        before = [(np.load(f)["vertices"], np.load(f)["faces"]) for f in args.before]
+        picture(Path(args.picture), before + meshes, body, [0, (s0 + s1) // 2])
+        print(f"wrote {args.picture}")
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps({"rows": rows, "sequence": args.sequence, "spin_frames": [int(s0), int(s1)],

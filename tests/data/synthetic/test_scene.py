@@ -335,7 +335,8 @@ def test_failure_mid_write_leaves_no_scene(tmp_path, monkeypatch):
 
 
 def test_eval_cameras_two_elevations_apart_from_training():
-    """The demo's 8 evaluation-only cameras: 4 on the ring's height, 4 at 40 degrees, each >= 30 degrees from every
+    """The demo's 8 evaluation-only cameras, as far from the subject as the ring's: 4 on the ring's height, 4 at 40
+    degrees, each >= 30 degrees from every
     training camera and apart from the ring's held-out ones; each looks at the target (it projects to the centre)."""
     Ks, E = ring_cameras(6, 2.8, 1.2, 0.9, 256, 256)
     train, held = [0, 2, 3, 5], [1, 4]
@@ -345,6 +346,9 @@ def test_eval_cameras_two_elevations_apart_from_training():
     def direction(V):
         d = -V[:3, :3].T @ V[:3, 3] - target
         return d / np.linalg.norm(d)
+
+    eyes = np.stack([-V[:3, :3].T @ V[:3, 3] for V in E8])
+    assert np.allclose(np.linalg.norm(eyes - target, axis=1), np.hypot(2.8, 0.3))  # the ring's distance: its scale
 
     dirs = np.stack([direction(V) for V in E8])
     elev = np.degrees(np.arcsin(dirs[:, 1]))

@@ -50,8 +50,8 @@ def ring_cameras(num_cameras: int, radius: float, height: float, target_height: 
 
 def eval_cameras(train_viewmats: np.ndarray, heldout_viewmats: np.ndarray, count: int, radius: float, height: float,
                  target_height: float, K: np.ndarray, elevation_deg: float = 40.0, min_sep_deg: float = 30.0):
-    """Ks [count,3,3], viewmats [count,4,4] of held-out cameras for evaluation only: half on the ring's height, half
-    `elevation_deg` above the look-at point, each picked (every 5 degrees around) as far as possible from the
+    """Ks [count,3,3], viewmats [count,4,4] of held-out cameras for evaluation only, as far from the look-at point as
+    the ring's: half on the ring's height, half `elevation_deg` above the look-at point, each picked (every 5 degrees around) as far as possible from the
     training cameras and the ones already picked, and none within `min_sep_deg` of a training camera (the angle between
     the directions from the look-at point)."""
     if count < 0 or count % 2:
@@ -64,8 +64,10 @@ def eval_cameras(train_viewmats: np.ndarray, heldout_viewmats: np.ndarray, count
         return d / np.linalg.norm(d, axis=-1, keepdims=True)
 
     az = np.radians(np.arange(0, 360, 5))
-    high = target_height + radius * np.tan(np.radians(elevation_deg))
-    rings = [np.stack([radius * np.sin(az), np.full_like(az, y), radius * np.cos(az)], 1) for y in (height, high)]
+    dist = float(np.hypot(radius, height - target_height))  # the ring cameras' distance: the subject at their scale
+    elev = [np.arctan2(height - target_height, radius), np.radians(elevation_deg)]
+    rings = [target + dist * np.stack([np.cos(e) * np.sin(az), np.full_like(az, np.sin(e)), np.cos(e) * np.cos(az)], 1)
+             for e in elev]
     taken = list(direction(np.asarray(train_viewmats)))
     n_train = len(taken)
     taken += list(direction(np.asarray(heldout_viewmats)))
@@ -80,5 +82,5 @@ def eval_cameras(train_viewmats: np.ndarray, heldout_viewmats: np.ndarray, count
                 raise ValueError(f"eval_cameras: no place on the ring {min_sep_deg} deg from every training camera")
             i = int(np.argmax(np.where(ok, sep.min(1), -1)))
             taken.append(cand[i])
-            views.append(look_at(target + cand[i] * np.linalg.norm(ring[i] - target), target))
+            views.append(look_at(ring[i], target))
     return np.repeat(np.asarray(K)[None], count, 0), np.stack(views) if views else np.zeros((0, 4, 4))
