@@ -38,6 +38,7 @@ def test_collect_table_numbers(tmp_path):
     assert t.loc["full", "train_seconds_mean"] == pytest.approx(110.0)
     assert t.loc["full", "train_seconds_std"] == pytest.approx(10.0)
     assert t.loc["full", "n_runs"] == 6 and t.loc["full", "novel_view_psnr_n_seeds"] == 3
+    assert t.loc["full", "novel_view_spin_psnr_garment_camera_std_mean"] == pytest.approx(2.1)  # the cameras' spread
 
     md = (out / "table.md").read_text()
     assert "| Full model | 30.00 ± 1.00 |" in md

@@ -402,11 +402,13 @@ def _columns() -> list[dict]:
     return cols
 
 
-# Also in the CSV (not in the printed table): box metrics, FLIP, the garment's scores per motion phase, render speed.
+# Also in the CSV (not in the printed table): box metrics, FLIP, the garment's scores per motion phase, the spread of
+# the garment's PSNR over the held-out cameras, render speed.
 EXTRA = ([metric_key(s, n) for s in SPLITS for n in ("psnr_masked", "ssim_masked", "lpips_masked", "flip",
                                                         "flip_masked", "detail_masked", *GARMENT)]
          + [metric_key(s, f"{ph}/{n}") for s in SPLITS for ph in PHASES
-            for n in ("psnr", "psnr_masked", "detail_masked", *GARMENT)] + ["render_fps"])
+            for n in ("psnr", "psnr_masked", "detail_masked", *GARMENT, "psnr_garment_camera_std")]
+         + ["render_fps"])
 
 
 def _num(x: float, dec: int) -> str:
