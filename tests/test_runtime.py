@@ -97,3 +97,21 @@ def test_constant_is_made_once_per_device_and_dtype():
     assert constant(t, like).tolist() == [0.0, 1.0, 2.0] and t.values == (0.0, 1.0, 2.0)
     with pytest.raises(TypeError, match="runtime.Table"):  # a bare tensor: a host input of a compiled graph
         constant(torch.arange(3.0), like)
+
+
+def test_a_constant_first_made_in_inference_mode_serves_training_later():
+    """An evaluation (inference mode) that makes a constant first must not leave an inference tensor in the cache:
+    a later training step in the same process saves it for backward (it refused to: 49 tests of one pytest worker)."""
+    import torch
+
+    from realityavatar.runtime import Table, constant
+
+    t = Table(torch.arange(3.0, dtype=torch.float64))
+    like = torch.zeros(3, dtype=torch.float32)
+    with torch.inference_mode():
+        constant(t, like)
+        constant((5.0, 7.0), like)
+    w = torch.ones(3, requires_grad=True)
+    (w * constant(t, like)).sum().backward()  # mul saves the constant for backward
+    assert w.grad.tolist() == [0.0, 1.0, 2.0]
+    assert not constant((5.0, 7.0), like).is_inference()

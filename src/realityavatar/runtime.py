@@ -142,6 +142,9 @@ def constant(t: Table | tuple[float, ...], like: torch.Tensor) -> torch.Tensor:
         return torch.tensor(values, dtype=like.dtype, device=like.device)
     key = (id(t) if isinstance(t, Table) else t, like.device, like.dtype)
     if key not in _CONSTANTS:
-        _CONSTANTS[key] = (t.tensor.to(like) if isinstance(t, Table) else
-                           torch.tensor(values, dtype=like.dtype, device=like.device))
+        # made outside inference mode even when first asked for inside it (an evaluation, the viewer): an inference
+        # tensor in the cache would refuse to be saved for backward by every later training step in the process
+        with torch.inference_mode(False):
+            _CONSTANTS[key] = (t.tensor.to(like) if isinstance(t, Table) else
+                               torch.tensor(values, dtype=like.dtype, device=like.device))
     return _CONSTANTS[key]

@@ -384,38 +384,46 @@ def simulate_garment(joints, joint_rots, fps, garment="skirt", params=None, seed
         out[f, :, :n_a], out[f, :, n_a] = x, x[:, 0]
 
     cap_f_pos, cap_f_quat = capsules(seg_a, seg_b)  # [F,C,3], [F,C,4] at the frames themselves
-    n_pre = round(p["preroll"] / dt)
-    for i in range(n_pre):
-        set_pose(pelvis[0], q_pel[0], zero, zero, cap_f_pos[0], cap_f_quat[0])
-        step()
-        if (i + 1) % n_sub == 0:
-            check(0, f" (pre-roll, {(i + 1) * dt:.2f} s)")
-
-    drag = vert_mass / p["drag_tau"]
-    out = np.empty((n_frames, n_r, n_a + 1, 3), np.float32)
-    v_prev, w_prev = zero, zero
-    record(0)
-    # Relative pelvis rotation per frame interval (must stay below pi: spins slower than fps/2 turns per second).
-    rel = (
-        Rotation.from_matrix(np.einsum("fji,fjk->fik", R_pel[:-1], R_pel[1:])).as_rotvec()
-        if n_frames > 1
-        else None
-    )
-    s_sub = np.arange(n_sub) / n_sub  # [S] substep fractions within a frame
-    for f in range(1, n_frames):
-        v_prev = (pelvis[f] - pelvis[f - 1]) * fps
-        w_prev = rel[f - 1] * fps  # constant body-frame angular velocity over the frame
-        R = R_pel[f - 1] @ Rotation.from_rotvec(s_sub[:, None] * rel[f - 1]).as_matrix()  # [S,3,3] geodesic
-        quats = _quat_wxyz(R)
-        pos = pelvis[f - 1] + s_sub[:, None] * (pelvis[f] - pelvis[f - 1])  # [S,3]
-        lerp = s_sub[:, None, None]
-        cap_pos, cap_quat = capsules(
-            seg_a[f - 1] + lerp * (seg_a[f] - seg_a[f - 1]), seg_b[f - 1] + lerp * (seg_b[f] - seg_b[f - 1])
-        )  # [S,C,3], [S,C,4]
-        for k in range(n_sub):
-            set_pose(pos[k], quats[k], v_prev, w_prev, cap_pos[k], cap_quat[k])
+    at = {"frame": 0}  # the frame being simulated, for the error of a blow-up that MuJoCo itself stops
+    try:
+        n_pre = round(p["preroll"] / dt)
+        for i in range(n_pre):
+            set_pose(pelvis[0], q_pel[0], zero, zero, cap_f_pos[0], cap_f_quat[0])
             step()
-        record(f)
+            if (i + 1) % n_sub == 0:
+                check(0, f" (pre-roll, {(i + 1) * dt:.2f} s)")
+
+        drag = vert_mass / p["drag_tau"]
+        out = np.empty((n_frames, n_r, n_a + 1, 3), np.float32)
+        v_prev, w_prev = zero, zero
+        record(0)
+        # Relative pelvis rotation per frame interval (must stay below pi: spins slower than fps/2 turns per second).
+        rel = (
+            Rotation.from_matrix(np.einsum("fji,fjk->fik", R_pel[:-1], R_pel[1:])).as_rotvec()
+            if n_frames > 1
+            else None
+        )
+        s_sub = np.arange(n_sub) / n_sub  # [S] substep fractions within a frame
+        for f in range(1, n_frames):
+            at["frame"] = f
+            v_prev = (pelvis[f] - pelvis[f - 1]) * fps
+            w_prev = rel[f - 1] * fps  # constant body-frame angular velocity over the frame
+            R = R_pel[f - 1] @ Rotation.from_rotvec(s_sub[:, None] * rel[f - 1]).as_matrix()  # [S,3,3] geodesic
+            quats = _quat_wxyz(R)
+            pos = pelvis[f - 1] + s_sub[:, None] * (pelvis[f] - pelvis[f - 1])  # [S,3]
+            lerp = s_sub[:, None, None]
+            cap_pos, cap_quat = capsules(
+                seg_a[f - 1] + lerp * (seg_a[f] - seg_a[f - 1]), seg_b[f - 1] + lerp * (seg_b[f] - seg_b[f - 1])
+            )  # [S,C,3], [S,C,4]
+            for k in range(n_sub):
+                set_pose(pos[k], quats[k], v_prev, w_prev, cap_pos[k], cap_quat[k])
+                step()
+            record(f)
+    except mujoco.FatalError as e:  # e.g. a cloth so far out of shape that its contacts overflow MuJoCo's arena
+        raise RuntimeError(
+            f"simulate_garment: cloth simulation unstable at frame {at['frame']} (MuJoCo stopped: "
+            f"{str(e).splitlines()[0]}); try a smaller params['dt_max'] or a softer params['young']"
+        ) from None
 
     u = np.arange(n_a + 1) / n_a
     v = np.linspace(0.0, 1.0, n_r)
