@@ -143,9 +143,9 @@ def main() -> None:
         print(json.dumps(rows[-1]), flush=True)
     print("\nchange from the previous row (cm): every point at rest (median, p90), the hem over the spin (median, p90), "
           "the spin's flare (median)")
-    print(f"{'resolution':>20}" + "".join(f"{c.replace('_cm', ''):>16}" for c in COLUMNS) + f"{'sim s':>8}{'GEMM u':>8}")
+    print(f"{'resolution':>20}" + "".join(f"{c.replace('_cm', ''):>21}" for c in COLUMNS) + f"{'sim s':>8}{'GEMM u':>8}")
     for r in rows:
-        print(f"{r['resolution']:>20}" + "".join(f"{r.get(c, float('nan')):>16.2f}" for c in COLUMNS)
+        print(f"{r['resolution']:>20}" + "".join(f"{r.get(c, float('nan')):>21.2f}" for c in COLUMNS)
               + f"{r['sim_s']:>8.1f}{r['sim_gemm_units']:>8}")
     if args.picture:
         before = [(np.load(f)["vertices"], np.load(f)["faces"]) for f in args.before]
