@@ -51,30 +51,34 @@ def ring_cameras(num_cameras: int, radius: float, height: float, target_height: 
 def eval_cameras(train_viewmats: np.ndarray, heldout_viewmats: np.ndarray, count: int, radius: float, height: float,
                  target_height: float, K: np.ndarray, elevation_deg: float = 40.0, min_sep_deg: float = 30.0):
     """Ks [count,3,3], viewmats [count,4,4] of held-out cameras for evaluation only, as far from the look-at point as
-    the ring's: half on the ring's height, half `elevation_deg` above the look-at point, each picked (every 5 degrees around) as far as possible from the
-    training cameras and the ones already picked, and none within `min_sep_deg` of a training camera (the angle between
-    the directions from the look-at point)."""
+    the ring's: half on the ring's height, half `elevation_deg` above the look-at point, each picked (every 5 degrees
+    around) as far as possible from the training cameras, the ring's held-out cameras and the ones already picked, and
+    none within `min_sep_deg` of a training camera (the angle between the directions from the look-at point)."""
+    import torch
+
+    from realityavatar.geometry import camera_centres
+
     if count < 0 or count % 2:
         raise ValueError(f"eval_cameras: expected an even count >= 0 (half at each elevation), got {count}")
     target = np.array([0.0, target_height, 0.0])
 
-    def direction(E):  # [...,4,4] world-to-camera -> unit directions from the target to the camera centres [...,3]
-        eye = -np.einsum("...ji,...j->...i", E[..., :3, :3], E[..., :3, 3])
-        d = eye - target
+    def directions_of(points):  # [P,3] -> unit directions from the target [P,3]
+        d = points - target
         return d / np.linalg.norm(d, axis=-1, keepdims=True)
+
+    def directions(viewmats):  # [C,4,4] world-to-camera -> unit directions from the target to the cameras [C,3]
+        return directions_of(camera_centres(torch.as_tensor(np.asarray(viewmats, np.float64))).numpy())
 
     az = np.radians(np.arange(0, 360, 5))
     dist = float(np.hypot(radius, height - target_height))  # the ring cameras' distance: the subject at their scale
-    elev = [np.arctan2(height - target_height, radius), np.radians(elevation_deg)]
-    rings = [target + dist * np.stack([np.cos(e) * np.sin(az), np.full_like(az, np.sin(e)), np.cos(e) * np.cos(az)], 1)
-             for e in elev]
-    taken = list(direction(np.asarray(train_viewmats)))
+    taken = list(directions(train_viewmats))
     n_train = len(taken)
-    taken += list(direction(np.asarray(heldout_viewmats)))
+    taken += list(directions(heldout_viewmats))
     views = []
-    for ring in rings:
-        cand = ring - target
-        cand /= np.linalg.norm(cand, axis=1, keepdims=True)
+    for e in (np.arctan2(height - target_height, radius), np.radians(elevation_deg)):
+        ring = target + dist * np.stack([np.cos(e) * np.sin(az), np.full_like(az, np.sin(e)), np.cos(e) * np.cos(az)], 1)
+        cand = directions_of(ring)  # [A,3]; from the points, as the scenes were built (it breaks the ties of equal
+        # separation, e.g. 35 and 85 degrees on the demo's ring)
         for _ in range(count // 2):
             sep = np.degrees(np.arccos(np.clip(cand @ np.stack(taken).T, -1, 1)))  # [A,taken]
             ok = sep[:, :n_train].min(1) >= min_sep_deg

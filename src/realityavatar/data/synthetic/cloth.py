@@ -19,8 +19,9 @@ _PELVIS, _LHIP, _RHIP, _LKNEE, _RKNEE, _SPINE2, _LANKLE, _RANKLE, _NECK = 0, 1, 
 
 # Defaults shared by both garments; lengths in metres, masses in kg, times in seconds.
 _COMMON = {
-    # 40 x 20: the drape moves < 1 cm (median) from here to 80 x 40, at 1/8 of its cost; at 20 x 10 the folds were the
-    # mesh's buckling (docs/research/2026-12-07-converged-cloth.md)
+    # 40 x 20: from here to 80 x 40 the rest drape moves 1.9 cm (median), less than a 1 mm change of the initial ripple
+    # moves it (3.3 cm), the spin's flare 1.1 cm, for about 6x the simulation; at 20 x 10 the folds were the mesh's
+    # buckling (benchmarks/cloth.py, docs/research/2026-12-07-converged-cloth.md)
     "n_around": 40,  # vertices per ring (the simulated tube; output adds one seam column)
     "n_rings": 20,  # rings from waist (pinned) to hem
     "waist_offset": 0.06,  # waist ring above the pelvis joint, along the body axis
@@ -39,7 +40,7 @@ _COMMON = {
     # neighbouring triangles touch at rest (1 cm: 49k self-contacts at 80 x 40, MuJoCo's arena overflowed).
     "cloth_radius": 0.005,
     # The cloth collides with itself (MuJoCo's "auto" midphase): without it folds pass through each other and the
-    # body shows through them; about 2x the simulation's time at 40 x 20.
+    # body shows through them; 3x the simulation's time at 40 x 20 with a 1 cm half-thickness (22 -> 68 s, the demo).
     "self_collision": True,
     "friction": 0.3,
     "contact_timeconst": 0.005,  # contact solref time constant (s): stiffer than MuJoCo's 0.02 so legs push cloth firmly
@@ -350,9 +351,20 @@ def simulate_garment(joints, joint_rots, fps, garment="skirt", params=None, seed
         d = d / np.linalg.norm(d, axis=-1, keepdims=True).clip(1e-9)
         return 0.5 * (a + b), _z_to_dir_quat(d.reshape(-1, 3)).reshape(d.shape[:-1] + (4,))
 
-    def step():
+    def mj(call, frame: int):
+        """MuJoCo's `call` (mj_step, mj_forward) at `frame`; a blow-up MuJoCo itself stops (a cloth so far out of
+        shape that its contacts overflow the arena) ends as check()'s does, naming the frame."""
+        try:
+            call(model, data)
+        except mujoco.FatalError as e:
+            raise RuntimeError(
+                f"simulate_garment: cloth simulation unstable at frame {frame} (MuJoCo stopped: "
+                f"{str(e).splitlines()[0]}); try a smaller params['dt_max'] or a softer params['young']"
+            ) from None
+
+    def step(frame: int):
         data.qfrc_applied[flex_dofs] = -drag * data.qvel[flex_dofs]
-        mujoco.mj_step(model, data)
+        mj(mujoco.mj_step, frame)
 
     pelvis = joints[:, _PELVIS]  # [F,3]
     q_pel = _quat_wxyz(R_pel)  # [F,4]
@@ -379,51 +391,43 @@ def simulate_garment(joints, joint_rots, fps, garment="skirt", params=None, seed
         # mj_step leaves positions computed before its integration; re-pose the waist at frame f exactly and
         # recompute positions so the stored cloth (pinned ring included) belongs to frame f, not one substep earlier.
         set_pose(pelvis[f], q_pel[f], v_prev, w_prev, cap_f_pos[f], cap_f_quat[f])
-        mujoco.mj_forward(model, data)
+        mj(mujoco.mj_forward, f)
         x = check(f).reshape(n_r, n_a, 3)
         out[f, :, :n_a], out[f, :, n_a] = x, x[:, 0]
 
     cap_f_pos, cap_f_quat = capsules(seg_a, seg_b)  # [F,C,3], [F,C,4] at the frames themselves
-    at = {"frame": 0}  # the frame being simulated, for the error of a blow-up that MuJoCo itself stops
-    try:
-        n_pre = round(p["preroll"] / dt)
-        for i in range(n_pre):
-            set_pose(pelvis[0], q_pel[0], zero, zero, cap_f_pos[0], cap_f_quat[0])
-            step()
-            if (i + 1) % n_sub == 0:
-                check(0, f" (pre-roll, {(i + 1) * dt:.2f} s)")
+    n_pre = round(p["preroll"] / dt)
+    for i in range(n_pre):
+        set_pose(pelvis[0], q_pel[0], zero, zero, cap_f_pos[0], cap_f_quat[0])
+        step(0)
+        if (i + 1) % n_sub == 0:
+            check(0, f" (pre-roll, {(i + 1) * dt:.2f} s)")
 
-        drag = vert_mass / p["drag_tau"]
-        out = np.empty((n_frames, n_r, n_a + 1, 3), np.float32)
-        v_prev, w_prev = zero, zero
-        record(0)
-        # Relative pelvis rotation per frame interval (must stay below pi: spins slower than fps/2 turns per second).
-        rel = (
-            Rotation.from_matrix(np.einsum("fji,fjk->fik", R_pel[:-1], R_pel[1:])).as_rotvec()
-            if n_frames > 1
-            else None
-        )
-        s_sub = np.arange(n_sub) / n_sub  # [S] substep fractions within a frame
-        for f in range(1, n_frames):
-            at["frame"] = f
-            v_prev = (pelvis[f] - pelvis[f - 1]) * fps
-            w_prev = rel[f - 1] * fps  # constant body-frame angular velocity over the frame
-            R = R_pel[f - 1] @ Rotation.from_rotvec(s_sub[:, None] * rel[f - 1]).as_matrix()  # [S,3,3] geodesic
-            quats = _quat_wxyz(R)
-            pos = pelvis[f - 1] + s_sub[:, None] * (pelvis[f] - pelvis[f - 1])  # [S,3]
-            lerp = s_sub[:, None, None]
-            cap_pos, cap_quat = capsules(
-                seg_a[f - 1] + lerp * (seg_a[f] - seg_a[f - 1]), seg_b[f - 1] + lerp * (seg_b[f] - seg_b[f - 1])
-            )  # [S,C,3], [S,C,4]
-            for k in range(n_sub):
-                set_pose(pos[k], quats[k], v_prev, w_prev, cap_pos[k], cap_quat[k])
-                step()
-            record(f)
-    except mujoco.FatalError as e:  # e.g. a cloth so far out of shape that its contacts overflow MuJoCo's arena
-        raise RuntimeError(
-            f"simulate_garment: cloth simulation unstable at frame {at['frame']} (MuJoCo stopped: "
-            f"{str(e).splitlines()[0]}); try a smaller params['dt_max'] or a softer params['young']"
-        ) from None
+    drag = vert_mass / p["drag_tau"]
+    out = np.empty((n_frames, n_r, n_a + 1, 3), np.float32)
+    v_prev, w_prev = zero, zero
+    record(0)
+    # Relative pelvis rotation per frame interval (must stay below pi: spins slower than fps/2 turns per second).
+    rel = (
+        Rotation.from_matrix(np.einsum("fji,fjk->fik", R_pel[:-1], R_pel[1:])).as_rotvec()
+        if n_frames > 1
+        else None
+    )
+    s_sub = np.arange(n_sub) / n_sub  # [S] substep fractions within a frame
+    for f in range(1, n_frames):
+        v_prev = (pelvis[f] - pelvis[f - 1]) * fps
+        w_prev = rel[f - 1] * fps  # constant body-frame angular velocity over the frame
+        R = R_pel[f - 1] @ Rotation.from_rotvec(s_sub[:, None] * rel[f - 1]).as_matrix()  # [S,3,3] geodesic
+        quats = _quat_wxyz(R)
+        pos = pelvis[f - 1] + s_sub[:, None] * (pelvis[f] - pelvis[f - 1])  # [S,3]
+        lerp = s_sub[:, None, None]
+        cap_pos, cap_quat = capsules(
+            seg_a[f - 1] + lerp * (seg_a[f] - seg_a[f - 1]), seg_b[f - 1] + lerp * (seg_b[f] - seg_b[f - 1])
+        )  # [S,C,3], [S,C,4]
+        for k in range(n_sub):
+            set_pose(pos[k], quats[k], v_prev, w_prev, cap_pos[k], cap_quat[k])
+            step(f)
+        record(f)
 
     u = np.arange(n_a + 1) / n_a
     v = np.linspace(0.0, 1.0, n_r)

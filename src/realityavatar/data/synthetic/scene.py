@@ -360,7 +360,7 @@ def _write(tmp: Path, p: dict, seed: int, phash: str, body, motion: Motion, Ks, 
                    "novel_frames": motion.num_novel},
         "frames": {"train": [0, motion.num_train], "novel_pose": [motion.num_train, F]},
         "cameras": {"train": train_ids, "novel_view": nv_ids, "novel_pose": all_ids,
-                    "eval_only": nv_ids[len(nv_ids) - p["eval_cameras"]:]},
+                    "eval_only": [c for c in nv_ids if c >= p["cameras"]]},
         "splits": {k: f"{name}-{v}" for k, v in SPLITS.items()},
         "versions": _versions(),
     }
