@@ -73,10 +73,12 @@ def orbit_camera(stage: Stage, pelvis: np.ndarray, cameras: list[dict], turns: f
 def render_sequence(avatar, table: PoseTable, cameras: list[dict], window_len: int, window_step: int,
                     frames_to_render=None) -> list[np.ndarray]:
     """Render frames of `table` (all, or `frames_to_render`; windows look back into the whole table) from each
-    camera (a fixed viewmat [4,4], or one per rendered frame [N,4,4]); returns uint8 frames [H, W*len(cameras), 3]."""
+    camera (a fixed viewmat [4,4], or one per rendered frame [N,4,4]); returns uint8 frames [H, W*len(cameras), 3].
+    A garment with state (sheet=physics) is simulated on the table's motion first."""
     frames = []
+    avatar.drive(table)
     for i, f in enumerate(table.frames if frames_to_render is None else frames_to_render):
-        posed = avatar.posed(*table.window(int(f), window_len, window_step))
+        posed = avatar.posed(*table.window(int(f), window_len, window_step), frame=int(f))
         tiles = []
         for cam in cameras:
             vm = cam["viewmat"] if cam["viewmat"].ndim == 2 else cam["viewmat"][i]

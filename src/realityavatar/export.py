@@ -88,15 +88,18 @@ def read_ply(path: str | Path) -> dict:
     }
 
 
-def gaussians_for_export(avatar, poses: torch.Tensor | None = None, transl: torch.Tensor | None = None) -> dict:
-    """`avatar.baked(poses, transl)` (model/avatar.py: canonical, or posed by one pose window, colour baked) as
-    numpy arrays: what `export_gaussians` writes and what `realityavatar-view` streams."""
-    return {k: v.detach().cpu().float().numpy() for k, v in avatar.baked(poses, transl).items()}
+def gaussians_for_export(avatar, poses: torch.Tensor | None = None, transl: torch.Tensor | None = None,
+                         frame: int | None = None) -> dict:
+    """`avatar.baked(poses, transl, frame)` (model/avatar.py: canonical, or posed by one pose window, colour baked) as
+    numpy arrays: what `export_gaussians` writes and what `realityavatar-view` streams. frame: the window's last
+    frame in the motion a garment with state was driven on (sheet=physics)."""
+    return {k: v.detach().cpu().float().numpy() for k, v in avatar.baked(poses, transl, frame).items()}
 
 
-def export_gaussians(avatar, out: Path, poses: torch.Tensor | None = None, transl: torch.Tensor | None = None) -> Path:
-    """Write `gaussians_for_export(avatar, poses, transl)` to the PLY `out`."""
-    return write_ply(out, **gaussians_for_export(avatar, poses, transl))
+def export_gaussians(avatar, out: Path, poses: torch.Tensor | None = None, transl: torch.Tensor | None = None,
+                     frame: int | None = None) -> Path:
+    """Write `gaussians_for_export(avatar, poses, transl, frame)` to the PLY `out`."""
+    return write_ply(out, **gaussians_for_export(avatar, poses, transl, frame))
 
 
 ARGS = {"run_dir", "frame", "frames", "poses", "fps", "up", "place", "out", "threads"}
@@ -131,11 +134,13 @@ def select_frames(available, frames: slice, source: str) -> list[int]:
 
 
 def export_frames(avatar, table, frame_ids: list[int], window_len: int, window_step: int, out_dir: Path) -> list[Path]:
-    """One PLY of posed Gaussians per frame id of `table` (a PoseTable; windows look back into the whole table)."""
+    """One PLY of posed Gaussians per frame id of `table` (a PoseTable; windows look back into the whole table; a
+    garment with state is simulated on the table's motion first)."""
     paths = []
+    avatar.drive(table)
     for f in frame_ids:
         poses, transl = table.window(int(f), window_len, window_step)
-        paths.append(export_gaussians(avatar, out_dir / f"posed_{int(f):06d}.ply", poses, transl))
+        paths.append(export_gaussians(avatar, out_dir / f"posed_{int(f):06d}.ply", poses, transl, int(f)))
     return paths
 
 
@@ -185,7 +190,7 @@ def main(argv: list[str] | None = None) -> int:
     else:
         dm = build_data(cfg, avatar.body)
         poses, transl = dm.window_for(dm.scene.poses, int(frame))
-        export_gaussians(avatar, out, poses, transl)
+        export_gaussians(avatar, out, poses, transl, int(frame))
     print(f"wrote {out}")
     return 0
 

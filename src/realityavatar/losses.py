@@ -253,6 +253,21 @@ class SheetSlideSmooth(LossTerm):
         return self.weight * v, {"sheet_slide": v.detach()}
 
 
+class GarmentTracking(LossTerm):
+    """The physics garment's tracking residual held near the simulated cloth (sheet=physics with residual: true
+    brings it): stretch x the squared relative change of the cloth's edge lengths from the simulated frame's, smooth
+    x the offsets' squared Laplacian over the mesh, temporal x their squared change to the next training frame."""
+
+    def __init__(self, stretch: float, smooth: float, temporal: float) -> None:
+        super().__init__()
+        self.weights = {"stretch": float(stretch), "smooth": float(smooth), "temporal": float(temporal)}
+
+    def forward(self, out: TrainingRender) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        terms = out.avatar.sheet.tracking_terms(out.posed["sheet_verts"], out.batch["frame_idx"])
+        total = sum(self.weights[k] * v for k, v in terms.items())
+        return total, {f"garment_{k}": v.detach() for k, v in terms.items()}
+
+
 def project_points(points: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """points [N,3] world, viewmat [4,4] world-to-camera (OpenCV), K [3,3] -> pixel coords [N,2], depth [N]."""
     cam = points @ viewmat[:3, :3].T + viewmat[:3, 3]  # [N,3]

@@ -124,6 +124,7 @@ class AvatarViewer:
         from realityavatar.export import gaussians_for_export
 
         self._gaussians_for = gaussians_for_export
+        self._driven = None  # the pose table the avatar's garment was last simulated on
         self.avatar, self.dm, self.run_dir = avatar, dm, Path(run_dir)
         self.motion = {"fps": poses_fps, "up": up, "place": place}  # how pose files are read (data/motion.py)
         fps = float(fps if fps is not None else dm.fps or 10.0)  # the run's frame rate: real time (10: configs before data.fps)
@@ -204,7 +205,10 @@ class AvatarViewer:
     def posed(self, seq: Timeline, index: int) -> dict:
         """The Gaussians of frame `seq.frames[index]` as export writes them: means, quats, scales, opacities, rgb."""
         poses, transl = seq.table.window(seq.frames[index], self.dm.window_len, self.dm.window_step)
-        return self._gaussians_for(self.avatar, poses, transl)
+        if self._driven is not seq.table:  # a garment with state (sheet=physics) runs on this timeline's motion
+            self.avatar.drive(seq.table)
+            self._driven = seq.table
+        return self._gaussians_for(self.avatar, poses, transl, int(seq.frames[index]))
 
     # ------------------------------------------------------------------ scene
     def _build_scene(self, frustum_scale: float) -> None:

@@ -81,7 +81,7 @@ def extreme_poses(module, dm, n: int = 48, seed: int = 0, show: int = 6) -> dict
     T = dm.window_len
     _, poses, transl = dm.pose_sequence("train")
     base, base_t = poses[0], transl[0]
-    windows, trans = [], []
+    windows, trans, renders = [], [], []
     for k in range(n):
         if k % 2 == 0:  # joint limits: every body joint rotated up to 1.6 rad, held over the window
             p = base.clone()
@@ -98,13 +98,30 @@ def extreme_poses(module, dm, n: int = 48, seed: int = 0, show: int = 6) -> dict
         windows.append(w)
         trans.append(base_t.expand(T, 3))
     poses_w, transl_w = torch.stack(windows), torch.stack(trans)
-    renders = render_poses(module, dm, poses_w[0:2 * show:2], transl_w[0:2 * show:2])  # the first joint-limit poses
-    posed = module.avatar.deform(module.avatar.pose_inputs(poses_w, transl_w))
-    joints = module.avatar.body.joints(poses_w[:, -1], transl_w[:, -1])  # [n,24,3]
+    # A garment with state (sheet=physics) is simulated into each pose: RAMP frames from the first training pose,
+    # then the window; a blow-up or cloth inside the body is counted, never rendered silently.
+    motions = [ramp_into(base, base_t, w, t) for w, t in zip(poses_w, transl_w)]
+    blowups, inside, parts = [], [], []
+    for k, (w, t, table) in enumerate(zip(poses_w, transl_w, motions)):
+        try:
+            record = module.avatar.drive(table)
+        except RuntimeError as e:
+            blowups.append({"pose": k, "error": str(e).splitlines()[0][:200]})
+            continue
+        inside += [k] if record["inside"] else []
+        parts.append(module.avatar.posed(w, t, frame=int(table.frames[-1])))
+        if k < 2 * show and k % 2 == 0:
+            renders.append(render_poses(module, dm, w[None], t[None], frame=int(table.frames[-1]))[0])
+    module.avatar.drive(dm.scene.poses)  # the dataset's motion again, for what follows
+    posed = {key: torch.cat([p[key] for p in parts]) for key in ("means", "scales")}
+    posed["opacities"] = parts[0]["opacities"]
+    keep = [k for k in range(n) if k not in {b["pose"] for b in blowups}]
+    joints = module.avatar.body.joints(poses_w[keep, -1], transl_w[keep, -1])  # [n,24,3]
     dist = torch.cdist(posed["means"], joints).min(-1).values  # [n,N] distance to the nearest joint
     finite = bool(torch.isfinite(posed["means"]).all() and torch.isfinite(posed["scales"]).all())
     canonical_scale = float(module.avatar.canonical_gaussians()["scales"].max())  # free Gaussians and a sheet's
     trained_scale = training_scale_max(module, dm)
+    renders = np.stack(renders)
     return {
         "poses": n,
         "finite": finite,
@@ -117,19 +134,37 @@ def extreme_poses(module, dm, n: int = 48, seed: int = 0, show: int = 6) -> dict
         "opacity_p99": float(posed["opacities"].quantile(0.99)),
         "max_dist_to_joint_m": float(dist.max()),
         "frac_gaussians_over_0.6m_from_joints": float((dist > 0.6).float().mean()),
+        "garment_blowups": blowups,
+        "garment_inside_body": inside,
         "_renders": renders,
     }
 
 
+RAMP = 10  # frames from the first training pose into an extreme pose's window (a garment with state)
+
+
+def ramp_into(base: torch.Tensor, base_t: torch.Tensor, window: torch.Tensor, transl: torch.Tensor):
+    """A motion into a pose window [T,24,3] / [T,3]: RAMP frames from the pose `base` [24,3] / `base_t` [3]
+    (axis-angles blended linearly), then the window's entries; a PoseTable of frames 0..RAMP+T-1."""
+    from realityavatar.data.poses import PoseTable
+
+    a = torch.linspace(0, 1, RAMP + 1)[:-1, None, None]
+    poses = torch.cat([(1 - a) * base + a * window[0], window])
+    trans = torch.cat([(1 - a[:, 0]) * base_t + a[:, 0] * transl[0], transl])
+    return PoseTable.from_sequence(poses, trans)
+
+
 @torch.no_grad()
-def render_poses(module, dm, poses_w: torch.Tensor, transl_w: torch.Tensor) -> np.ndarray:
+def render_poses(module, dm, poses_w: torch.Tensor, transl_w: torch.Tensor, frame: int = -1) -> np.ndarray:
     """Pose windows [K,T,24,3] / [K,T,3] rendered from the first held-out camera (else a training one), with the
-    mean appearance latent (frame_idx -1, as a novel pose): uint8 [K,H,W,3]."""
+    mean appearance latent (frame_idx -1, as a novel pose): uint8 [K,H,W,3]. frame: the windows' last frame in the
+    motion a garment with state was driven on."""
     ds = dm.datasets["novel_view" if "novel_view" in dm.datasets else "train"]
     batch = default_collate([ds[0]])
     out = []
     for w, t in zip(poses_w, transl_w):
-        b = {**batch, **module.avatar.pose_inputs(w[None], t[None]), "frame_idx": torch.full_like(batch["frame_idx"], -1)}
+        b = {**batch, **module.avatar.pose_inputs(w[None], t[None]), "frame_idx": torch.full_like(batch["frame_idx"], -1),
+             "frame": torch.full_like(batch["frame"], frame)}
         rgb = module.avatar.render_batch(b)[0][0].clamp(0, 1)
         out.append((rgb.numpy() * 255).round().astype(np.uint8))
     return np.stack(out)

@@ -36,6 +36,7 @@ from realityavatar.runtime import constant
 # Per-point entries of a posed dict, split between the sources and joined again in source order.
 PER_POINT = ("means", "quats", "scales", "rot", "f_mt", "weights", "x_e")
 POSE_INPUTS = ("pose_features", "bone_transforms")  # pose_inputs' keys: what deform reads of a batch
+FRAME_INPUTS = ("frame", "frame_idx")  # and, where a batch has them, its frames (sheet=physics: the cloth's frame)
 # The view directions `Avatar.baked` averages a Gaussian's colour over.
 AXES = ((1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0), (0, 0, 1), (0, 0, -1))
 
@@ -155,7 +156,7 @@ class Avatar(nn.Module):
         posed = {"means": means_o, "quats": quats_o, "scales": torch.exp(log_s_e), "rot": rot, "f_mt": out["f_mt"],
                  "weights": w, "x_e": x_e}
         chunks = {k: cut(v, sizes, 1) for k, v in posed.items()}
-        per_source = [s.splats({k: c[i] for k, c in chunks.items()}) for i, s in enumerate(self.sources)]
+        per_source = [s.splats({k: c[i] for k, c in chunks.items()}, inputs) for i, s in enumerate(self.sources)]
         posed = {k: v for part in per_source for k, v in part.items() if k not in PER_POINT}  # e.g. sheet_verts
         for k in PER_POINT:
             first = per_source[0][k]
@@ -191,11 +192,15 @@ class Avatar(nn.Module):
     def shade(self, posed: dict, viewmats: torch.Tensor, frame_idx: torch.Tensor) -> torch.Tensor:
         """View-dependent colour of every Gaussian for each sample's camera: [B,N,3]."""
         cam_centre = camera_centres(viewmats)  # [B,3]
+        # The Gaussians the colour model colours: all but the last `lit_points` (sheet=physics colours its own).
+        n = posed["means"].shape[1] - self.sheet.lit_points
         # The camera-to-Gaussian vector, canonicalised (each Gaussian's blended skinning rotation undone); the colour
         # model's SH basis normalises it (normalising before a rotation as well would only add operations).
-        d_c = (posed["rot"].transpose(-1, -2) @ (posed["means"] - cam_centre[:, None, :])[..., None]).squeeze(-1)
-        rgb = self.color(self.frame_features(frame_idx), d_c, posed["f_mt"], frame_idx)
-        return self.shading.apply(rgb, posed["x_e"], posed["rot"])  # x world-fixed light (shading=none: as it is)
+        rot, x_e = posed["rot"][:, :n], posed["x_e"][:, :n]
+        d_c = (rot.transpose(-1, -2) @ (posed["means"][:, :n] - cam_centre[:, None, :])[..., None]).squeeze(-1)
+        rgb = self.color(self.frame_features(frame_idx), d_c, posed["f_mt"][:, :n], frame_idx)
+        rgb = self.shading.apply(rgb, x_e, rot)  # x world-fixed light (shading=none: as it is)
+        return join([rgb, self.sheet.lit(posed, cam_centre).to(rgb)], 1)
 
     def splat(self, posed: dict, b: int, rgb: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor, W: int, H: int,
               check_finite: bool = True):
@@ -218,7 +223,8 @@ class Avatar(nn.Module):
             Ks = Ks * constant((supersample, supersample, 1.0), Ks)[:, None]
             W, H = W * supersample, H * supersample
         V = batch.get("views_per_frame", 1)  # data.views_per_step: V cameras of each frame, one pass of the networks
-        posed = views_of(self.deform({k: batch[k][::V] for k in POSE_INPUTS}, deform=deform), V)
+        inputs = {k: batch[k][::V] for k in (*POSE_INPUTS, *FRAME_INPUTS) if k in batch}
+        posed = views_of(self.deform(inputs, deform=deform), V)
         rgb = self.shade(posed, viewmats, batch["frame_idx"])  # [B,N,3]
         images, alphas, metas = [], [], []
         for b in range(0, posed["B"], V):  # one rasterizer call per frame, for its V cameras
@@ -233,11 +239,21 @@ class Avatar(nn.Module):
                             for x in (image, alpha))
         return image, alpha, metas, posed
 
-    def posed(self, poses: torch.Tensor, transl: torch.Tensor) -> dict:
+    def posed(self, poses: torch.Tensor, transl: torch.Tensor, frame: int | None = None) -> dict:
         """`deform` of one pose window poses [T,24,3], transl [T,3] from anywhere (moved to the avatar's device and
-        dtype): the posed Gaussians of its last frame, B=1."""
+        dtype): the posed Gaussians of its last frame, B=1. frame: that frame's id in the motion the garment was
+        driven on (sheet=physics: `drive`; the others ignore it)."""
         dev, dt = self.gaussians.means.device, self.gaussians.means.dtype
-        return self.deform(self.pose_inputs(poses[None].to(dev, dt), transl[None].to(dev, dt)))
+        inputs = self.pose_inputs(poses[None].to(dev, dt), transl[None].to(dev, dt))
+        if frame is not None:
+            inputs["frame"] = torch.tensor([int(frame)], device=dev)
+        return self.deform(inputs)
+
+    def drive(self, table) -> dict:
+        """Simulate a garment that has state (sheet=physics) on the motion of a PoseTable before its frames are
+        rendered with `posed(..., frame=f)`; the other garments need nothing. Returns the garment's record (frames
+        simulated, `inside`: frames with cloth inside the body)."""
+        return self.sheet.drive(self.body, table)
 
     @torch.no_grad()
     def render_view(self, posed: dict, viewmat: torch.Tensor, K: torch.Tensor, W: int, H: int) -> torch.Tensor:
@@ -249,14 +265,15 @@ class Avatar(nn.Module):
         return self.splat(posed, 0, rgb, vm, K[None].to(dev, dt), W, H)[0][0]
 
     @torch.no_grad()
-    def baked(self, poses: torch.Tensor | None = None, transl: torch.Tensor | None = None) -> dict:
+    def baked(self, poses: torch.Tensor | None = None, transl: torch.Tensor | None = None,
+              frame: int | None = None) -> dict:
         """Every rendered Gaussian with its colour baked, as export writes it and the viewer streams it: canonical
         (poses None) or posed by one pose window poses [T,24,3], transl [T,3]. Returns means [N,3], quats [N,4] wxyz,
         scales [N,3] (linear), opacities [N], and either rgb [N,3] in [0,1] or sh [N,K,3].
 
         `shade`'s colour without a camera: averaged over the six axis-aligned view directions, then lit
         (shading=irradiance: the light of that pose; canonical: the rest orientation). The SH colour model in
-        canonical space keeps its coefficients instead (lit, `shading.apply_sh`)."""
+        canonical space keeps its coefficients instead (lit, `shading.apply_sh`). frame: as `posed`'s."""
         dev, dt = self.gaussians.means.device, self.gaussians.means.dtype
         frame_idx = torch.full((1,), -1, dtype=torch.long, device=dev)
         feats = self.all_features()  # the free Gaussians, then a garment sheet's (sheet=skirt)
@@ -267,19 +284,22 @@ class Avatar(nn.Module):
             f_mt = feats.new_zeros(1, N, self.deformer.feature_dim)  # canonical: no motion-trend feature
             x_e = out["means"][None]
         else:
-            posed = self.posed(poses, transl)
+            posed = self.posed(poses, transl, frame)
             out = {k: posed[k][0] for k in ("means", "quats", "scales")} | {"opacities": posed["opacities"]}
             rot, f_mt, x_e, N = posed["rot"], posed["f_mt"], posed["x_e"], posed["means"].shape[1]
         sh_coeffs = getattr(self.color, "sh_coefficients", None)
-        if callable(sh_coeffs) and poses is None:
+        if callable(sh_coeffs) and poses is None and not self.sheet.lit_points:
             out["sh"] = self.shading.apply_sh(sh_coeffs(feats), x_e)  # lit by the rest orientation's light
             return out
+        N = N - self.sheet.lit_points  # the colour model's Gaussians (sheet=physics: its own colours follow)
+        rot, f_mt, x_e = rot[:, :N], f_mt[:, :N], x_e[:, :N]
         # One direction at a time: a [6,N,hidden] batch is slower on the CPU at 35k Gaussians (cache), not faster.
         rgb = 0
         for d in torch.tensor(AXES, dtype=dt, device=dev):
             d_c = (rot.transpose(-1, -2) @ d[:, None]).squeeze(-1)  # canonical view direction per Gaussian [1,N,3]
             rgb = rgb + self.color(feats, F.normalize(d_c.expand(1, N, 3), dim=-1), f_mt, frame_idx)[0]
         out["rgb"] = self.shading.apply((rgb / len(AXES))[None], x_e, rot)[0].clamp(0, 1)  # x world-fixed light
+        out["rgb"] = join([out["rgb"], self.sheet.baked_rgb().to(out["rgb"])])
         return out
 
 
@@ -295,7 +315,7 @@ def views_of(posed: dict, V: int) -> dict:
     if V == 1:
         return posed
     out = dict(posed, B=posed["B"] * V)
-    for k in (*PER_POINT, "sheet_verts"):
+    for k in (*PER_POINT, "sheet_verts", "garment_normals"):
         if k in posed:
             x = posed[k]
             out[k] = x[:, None].expand(x.shape[0], V, *x.shape[1:]).reshape(x.shape[0] * V, *x.shape[1:])

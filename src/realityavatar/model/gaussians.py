@@ -84,8 +84,8 @@ class CanonicalGaussians(nn.Module):
         """The decoder's offsets [B,N,3] are the Gaussians' whole motion before skinning."""
         return dx
 
-    def splats(self, posed: dict) -> dict:
-        """Each posed point is a Gaussian."""
+    def splats(self, posed: dict, inputs: dict) -> dict:
+        """Each posed point is a Gaussian (inputs: deform's, unused)."""
         return posed
 
     def canonical(self) -> dict:

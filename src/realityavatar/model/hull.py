@@ -80,6 +80,19 @@ def body_and_hull(body, views: HullViews, voxel: float, margin: float = 0.45,
     return verts, surf
 
 
+def sector_radius(cyl: tuple, height: float, band: float, quantile: float, reach: float = 0.8) -> float:
+    """Points in cylindrical coordinates cyl = (height h [n], radius r [n], azimuth [n]) -> the radius at `height`:
+    the `quantile` over 16 azimuth sectors of each sector's farthest point within `band` of it (and within `reach`
+    of the axis); 0 where no point is. A hull carved from a few cameras bulges between them: a lower quantile reads
+    the garment's radius rather than the bulges'."""
+    h, r, az = (np.asarray(x) for x in cyl)
+    bins = np.linspace(-np.pi, np.pi, 17)
+    sel = (np.abs(h - height) < band) & (r < reach)
+    sector = np.digitize(az[sel], bins[1:-1])
+    far = [float(r[sel][sector == k].max()) for k in range(16) if (sector == k).any()]
+    return float(np.quantile(far, quantile)) if far else 0.0
+
+
 def to_canonical(body, views: HullViews, x: torch.Tensor, nearest) -> torch.Tensor:
     """Points x [n,3] posed in the views' frame -> canonical space [n,3], by inverse LBS with the weights of each
     point's nearest body vertex (indices `nearest` [n])."""

@@ -14,7 +14,6 @@ control acts on the free Gaussians only.
 
 from __future__ import annotations
 
-import itertools
 import math
 
 import torch
@@ -108,6 +107,8 @@ class GarmentSheet(nn.Module):
             self.coeff = nn.Linear(int(cond_dim), self.num_basis)
         self.register_load_state_dict_pre_hook(self._take_layout_buffers)
 
+    lit_points = 0  # its Gaussians are coloured by the colour model (the physics garment's colour themselves)
+
     # tensors sized by the training data at build time: a module rebuilt from its checkpoint takes their shapes there
     SIZED_BY_DATA: tuple[str, ...] = ("posed_rest", "rest_pose")
 
@@ -160,7 +161,7 @@ class GarmentSheet(nn.Module):
         import numpy as np
         from scipy.spatial import cKDTree
 
-        from realityavatar.model.hull import body_and_hull, to_canonical
+        from realityavatar.model.hull import body_and_hull, sector_radius, to_canonical
 
         with torch.no_grad():
             pose, transl = views.pose.float(), views.transl.float()
@@ -169,7 +170,6 @@ class GarmentSheet(nn.Module):
             J = body.joints(pose, transl).cpu().double()
             origin, axis = J[0], F.normalize(J[12] - J[0], dim=0)
             e1, e2 = self._frame(origin, axis)
-            bins = torch.linspace(-math.pi, math.pi, 17, dtype=torch.float64)
 
             def cylindrical(pts: torch.Tensor):
                 rel = pts - origin
@@ -177,12 +177,7 @@ class GarmentSheet(nn.Module):
                 return h, (rel - h[:, None] * axis).norm(dim=-1), torch.atan2(rel @ e2, rel @ e1)
 
             def radius(pts_c, hj: float, band: float) -> float:
-                """Per height: the `quantile` over 16 azimuth sectors of each sector's farthest point."""
-                h, r, az = pts_c
-                sel = ((h - hj).abs() < band) & (r < 0.8)
-                far = [float(r[sel & (az >= a0) & (az < a1)].max()) for a0, a1 in itertools.pairwise(bins)
-                       if bool((sel & (az >= a0) & (az < a1)).any())]
-                return float(np.quantile(far, quantile)) if far else 0.0
+                return sector_radius(pts_c, hj, band, quantile)
 
             hull_c = cylindrical(torch.from_numpy(surf))
             # the hem: where the hull's radius steps in most (garment -> legs), searched 0.15-1.0 m below the top
@@ -251,7 +246,7 @@ class GarmentSheet(nn.Module):
         """The decoder's offsets of the vertices [B,P,3], plus the motion basis's (sheet.basis > 0)."""
         return dx + self.basis_offsets(h_t) if self.num_basis else dx
 
-    def splats(self, posed: dict) -> dict:
+    def splats(self, posed: dict, inputs: dict) -> dict:
         """The posed vertices (entries [B,P,...]) -> the sheet's Gaussians [B,M,...], which follow their cells: position,
         tangent frame and stretch from the posed vertices (`place`), the canonical-to-posed rotation of the cell's
         first corner, the rest interpolated bilinearly. sheet_verts: the posed vertices (the strain term's input)."""
@@ -280,6 +275,18 @@ class GarmentSheet(nn.Module):
     def colour_features(self, frame_idx: torch.Tensor) -> torch.Tensor:
         """The colour features every frame renders with [M,F] (SlidingSheet's depend on the frame)."""
         return self.features
+
+    def lit(self, posed: dict, cam_centre: torch.Tensor) -> torch.Tensor:
+        """Colours of the Gaussians that colour themselves [B,0,3]: none (the colour model colours these)."""
+        return posed["means"].new_zeros(posed["means"].shape[0], 0, 3)
+
+    def baked_rgb(self) -> torch.Tensor:
+        """Baked colours of the Gaussians that colour themselves [0,3]: none."""
+        return self.vertices.new_zeros(0, 3)
+
+    def drive(self, body: BodyModel, table) -> dict:
+        """A garment without state needs no simulation of a new motion: nothing simulated, no frame inside the body."""
+        return {"frames": 0, "inside": []}
 
     def loss_terms(self) -> dict:
         """Loss terms the sheet brings to training (build_avatar adds them to the configured ones): none."""
@@ -360,6 +367,7 @@ class NoSheet(nn.Module):
 
     num_points = 0
     num_basis = 0
+    lit_points = 0
     layout: dict = {}  # noqa: RUF012  (read-only: nothing laid out)
 
     def __init__(self, body: BodyModel | None = None, feature_dim: int = 0, **unused) -> None:
@@ -377,7 +385,7 @@ class NoSheet(nn.Module):
     def move(self, dx: torch.Tensor, h_t: torch.Tensor) -> torch.Tensor:
         return dx
 
-    def splats(self, posed: dict) -> dict:
+    def splats(self, posed: dict, inputs: dict) -> dict:
         return posed
 
     def opacities(self) -> torch.Tensor:
@@ -385,6 +393,18 @@ class NoSheet(nn.Module):
 
     def colour_features(self, frame_idx: torch.Tensor) -> torch.Tensor:
         return self.features
+
+    def lit(self, posed: dict, cam_centre: torch.Tensor) -> torch.Tensor:
+        """Colours of the Gaussians that colour themselves [B,0,3]: none (the colour model colours these)."""
+        return posed["means"].new_zeros(posed["means"].shape[0], 0, 3)
+
+    def baked_rgb(self) -> torch.Tensor:
+        """Baked colours of the Gaussians that colour themselves [0,3]: none."""
+        return self._empty3.new_zeros(0, 3)
+
+    def drive(self, body: BodyModel, table) -> dict:
+        """A garment without state needs no simulation of a new motion: nothing simulated, no frame inside the body."""
+        return {"frames": 0, "inside": []}
 
     def loss_terms(self) -> dict:
         return {}

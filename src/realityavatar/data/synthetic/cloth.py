@@ -259,7 +259,8 @@ def _capsule_segments(joints: np.ndarray) -> tuple[list[str], np.ndarray, np.nda
 
 
 def _build_xml(
-    pts: np.ndarray, tris: np.ndarray, n_pin: int, p: dict, caps: list[tuple[str, float, float]], dt: float
+    pts: np.ndarray, tris: np.ndarray, n_pin: int, p: dict, caps: list[tuple[str, float, float]], dt: float,
+    gravity=(0.0, -9.81, 0.0),
 ) -> str:
     point = " ".join(f"{x:.6f}" for x in pts.ravel())
     element = " ".join(str(int(i)) for i in tris.ravel())
@@ -271,7 +272,7 @@ def _build_xml(
     )
     return f"""
 <mujoco model="garment">
-  <option timestep="{dt:.8f}" gravity="0 -9.81 0" integrator="Euler" solver="CG" jacobian="sparse"/>
+  <option timestep="{dt:.8f}" gravity="{" ".join(f"{g:.6f}" for g in gravity)}" integrator="Euler" solver="CG" jacobian="sparse"/>
   <worldbody>
     {geoms}
     <body name="waist" gravcomp="1">
@@ -289,6 +290,125 @@ def _build_xml(
     </body>
   </worldbody>
 </mujoco>"""
+
+
+def drive_cloth(pts: np.ndarray, sim_tris: np.ndarray, n_pin: int, p: dict, radii: list[float], joints: np.ndarray,
+                joint_rots: np.ndarray, fps: float, limit: float, gravity=(0.0, -9.81, 0.0),
+                where: str = "simulate_garment") -> np.ndarray:
+    """The cloth `pts` [n,3] (the first pose's pelvis frame; the first `n_pin` vertices are the waist, pinned to the
+    pelvis), triangles `sim_tris`, material and solver settings `p` (garment_params' keys), simulated on the skeleton
+    joints [F,24,3] / joint_rots [F,24,3,3] at `fps`: the waist follows the pelvis (position + orientation,
+    geodesically interpolated over substeps); thighs, shins, hips and torso are kinematic capsules of `radii` (that
+    order). The first pose is held for p["preroll"] seconds before frame 0. Returns vertices [F,n,3] (float32,
+    world). A vertex farther than `limit` metres from the pelvis, MuJoCo's bad-acceleration warning or a blow-up
+    MuJoCo stops raise RuntimeError naming `where` and the frame. The simulated skirt of the scenes (simulate_garment)
+    and the model's garment (model/garment.py, its own mesh and fitted material) both run here."""
+    n_frames, n_pts = joints.shape[0], len(pts)
+    R_pel = joint_rots[:, _PELVIS]  # [F,3,3]
+
+    names, seg_a, seg_b = _capsule_segments(joints)
+    seg_len = np.linalg.norm(
+        seg_b[0] - seg_a[0], axis=-1
+    )  # [C]; bones are rigid, lengths from the first pose
+    caps = [(n, r, max(0.5 * float(L), 1e-3)) for n, r, L in zip(names, radii, seg_len)]
+    n_sub = max(1, math.ceil(1.0 / (fps * p["dt_max"])))
+    dt = 1.0 / (fps * n_sub)
+    model = mujoco.MjModel.from_xml_string(_build_xml(pts, sim_tris, n_pin, p, caps, dt, gravity))
+    data = mujoco.MjData(model)
+    flex_dofs = np.arange(
+        6, model.nv
+    )  # free joint of the waist first, then 3 slide dofs per free cloth vertex
+    vert_mass = model.body_mass[model.dof_bodyid[flex_dofs]]  # [nv-6]
+    drag = vert_mass / p["preroll_drag_tau"]
+    mocap_ids = [model.body_mocapid[model.body(n).id] for n in names]
+
+    def set_pose(pos, quat, v_world, w_local, cap_pos, cap_quat):
+        data.qpos[:3], data.qpos[3:7] = pos, quat
+        data.qvel[:3], data.qvel[3:6] = v_world, w_local
+        data.mocap_pos[mocap_ids] = cap_pos
+        data.mocap_quat[mocap_ids] = cap_quat
+
+    def capsules(a, b):
+        """Endpoints a, b: [S,C,3] -> centres [S,C,3], wxyz orientations [S,C,4]."""
+        d = b - a
+        d = d / np.linalg.norm(d, axis=-1, keepdims=True).clip(1e-9)
+        return 0.5 * (a + b), _z_to_dir_quat(d.reshape(-1, 3)).reshape(d.shape[:-1] + (4,))
+
+    def mj(call, frame: int):
+        """MuJoCo's `call` (mj_step, mj_forward) at `frame`; a blow-up MuJoCo itself stops (a cloth so far out of
+        shape that its contacts overflow the arena) ends as check()'s does, naming the frame."""
+        try:
+            call(model, data)
+        except mujoco.FatalError as e:
+            raise RuntimeError(
+                f"{where}: cloth simulation unstable at frame {frame} (MuJoCo stopped: "
+                f"{str(e).splitlines()[0]}); try a smaller params['dt_max'] or a softer params['young']"
+            ) from None
+
+    def step(frame: int):
+        data.qfrc_applied[flex_dofs] = -drag * data.qvel[flex_dofs]
+        mj(mujoco.mj_step, frame)
+
+    pelvis = joints[:, _PELVIS]  # [F,3]
+    q_pel = _quat_wxyz(R_pel)  # [F,4]
+    zero = np.zeros(3)
+    set_pose(pelvis[0], q_pel[0], zero, zero, *capsules(seg_a[0], seg_b[0]))
+    mujoco.mj_forward(model, data)
+    flex_start = model.flex_vertadr[0]
+
+    def check(frame: int, when: str = ""):
+        """Cloth vertices [n,3] of the current state; RuntimeError naming the frame if it diverged."""
+        x = data.flexvert_xpos[flex_start : flex_start + n_pts]
+        bad_warn = data.warning[mujoco.mjtWarning.mjWARN_BADQACC].number
+        dist = np.linalg.norm(x - pelvis[frame], axis=1).max() if np.isfinite(x).all() else np.inf
+        if bad_warn > 0 or not dist <= limit:
+            raise RuntimeError(
+                f"{where}: cloth simulation unstable at frame {frame}{when} (max vertex "
+                f"distance from the pelvis {dist:.3g} m, limit {limit:.2f} m; MuJoCo bad-acceleration "
+                f"warnings {bad_warn}); try a smaller params['dt_max'] or a softer params['young']"
+            )
+        return x.copy()
+
+    def record(f: int):
+        # mj_step leaves positions computed before its integration; re-pose the waist at frame f exactly and
+        # recompute positions so the stored cloth (pinned ring included) belongs to frame f, not one substep earlier.
+        set_pose(pelvis[f], q_pel[f], v_prev, w_prev, cap_f_pos[f], cap_f_quat[f])
+        mj(mujoco.mj_forward, f)
+        out[f] = check(f)
+
+    cap_f_pos, cap_f_quat = capsules(seg_a, seg_b)  # [F,C,3], [F,C,4] at the frames themselves
+    n_pre = round(p["preroll"] / dt)
+    for i in range(n_pre):
+        set_pose(pelvis[0], q_pel[0], zero, zero, cap_f_pos[0], cap_f_quat[0])
+        step(0)
+        if (i + 1) % n_sub == 0:
+            check(0, f" (pre-roll, {(i + 1) * dt:.2f} s)")
+    drag = vert_mass / p["drag_tau"]
+    out = np.empty((n_frames, n_pts, 3), np.float32)
+    v_prev, w_prev = zero, zero
+    record(0)
+    # Relative pelvis rotation per frame interval (must stay below pi: spins slower than fps/2 turns per second).
+    rel = (
+        Rotation.from_matrix(np.einsum("fji,fjk->fik", R_pel[:-1], R_pel[1:])).as_rotvec()
+        if n_frames > 1
+        else None
+    )
+    s_sub = np.arange(n_sub) / n_sub  # [S] substep fractions within a frame
+    for f in range(1, n_frames):
+        v_prev = (pelvis[f] - pelvis[f - 1]) * fps
+        w_prev = rel[f - 1] * fps  # constant body-frame angular velocity over the frame
+        R = R_pel[f - 1] @ Rotation.from_rotvec(s_sub[:, None] * rel[f - 1]).as_matrix()  # [S,3,3] geodesic
+        quats = _quat_wxyz(R)
+        pos = pelvis[f - 1] + s_sub[:, None] * (pelvis[f] - pelvis[f - 1])  # [S,3]
+        lerp = s_sub[:, None, None]
+        cap_pos, cap_quat = capsules(
+            seg_a[f - 1] + lerp * (seg_a[f] - seg_a[f - 1]), seg_b[f - 1] + lerp * (seg_b[f] - seg_b[f - 1])
+        )  # [S,C,3], [S,C,4]
+        for k in range(n_sub):
+            set_pose(pos[k], quats[k], v_prev, w_prev, cap_pos[k], cap_quat[k])
+            step(f)
+        record(f)
+    return out
 
 
 def simulate_garment(joints, joint_rots, fps, garment="skirt", params=None, seed=0) -> GarmentSequence:
@@ -321,113 +441,14 @@ def simulate_garment(joints, joint_rots, fps, garment="skirt", params=None, seed
         sim_tris = sim_tris[:, [0, 2, 1]]
         out_tris = out_tris[:, [0, 2, 1]]
 
-    names, seg_a, seg_b = _capsule_segments(joints)
     radii = [p["thigh_radius"]] * 2 + [p["shin_radius"]] * 2 + [p["hip_radius"], p["torso_radius"]]
-    seg_len = np.linalg.norm(
-        seg_b[0] - seg_a[0], axis=-1
-    )  # [C]; bones are rigid, lengths from the first pose
-    caps = [(n, r, max(0.5 * float(L), 1e-3)) for n, r, L in zip(names, radii, seg_len)]
-
+    limit = max(1.0, 1.5 * sizes["length"] + sizes["waist_radius"])
+    x = drive_cloth(pts, sim_tris, n_a, p, radii, joints, joint_rots, fps, limit)  # [F,n_r*n_a,3]
+    out = np.empty((n_frames, n_r, n_a + 1, 3), np.float32)
+    out[:, :, :n_a] = x.reshape(n_frames, n_r, n_a, 3)
+    out[:, :, n_a] = out[:, :, 0]
     n_sub = max(1, math.ceil(1.0 / (fps * p["dt_max"])))
     dt = 1.0 / (fps * n_sub)
-    model = mujoco.MjModel.from_xml_string(_build_xml(pts, sim_tris, n_a, p, caps, dt))
-    data = mujoco.MjData(model)
-    flex_dofs = np.arange(
-        6, model.nv
-    )  # free joint of the waist first, then 3 slide dofs per free cloth vertex
-    vert_mass = model.body_mass[model.dof_bodyid[flex_dofs]]  # [nv-6]
-    drag = vert_mass / p["preroll_drag_tau"]
-    mocap_ids = [model.body_mocapid[model.body(n).id] for n in names]
-
-    def set_pose(pos, quat, v_world, w_local, cap_pos, cap_quat):
-        data.qpos[:3], data.qpos[3:7] = pos, quat
-        data.qvel[:3], data.qvel[3:6] = v_world, w_local
-        data.mocap_pos[mocap_ids] = cap_pos
-        data.mocap_quat[mocap_ids] = cap_quat
-
-    def capsules(a, b):
-        """Endpoints a, b: [S,C,3] -> centres [S,C,3], wxyz orientations [S,C,4]."""
-        d = b - a
-        d = d / np.linalg.norm(d, axis=-1, keepdims=True).clip(1e-9)
-        return 0.5 * (a + b), _z_to_dir_quat(d.reshape(-1, 3)).reshape(d.shape[:-1] + (4,))
-
-    def mj(call, frame: int):
-        """MuJoCo's `call` (mj_step, mj_forward) at `frame`; a blow-up MuJoCo itself stops (a cloth so far out of
-        shape that its contacts overflow the arena) ends as check()'s does, naming the frame."""
-        try:
-            call(model, data)
-        except mujoco.FatalError as e:
-            raise RuntimeError(
-                f"simulate_garment: cloth simulation unstable at frame {frame} (MuJoCo stopped: "
-                f"{str(e).splitlines()[0]}); try a smaller params['dt_max'] or a softer params['young']"
-            ) from None
-
-    def step(frame: int):
-        data.qfrc_applied[flex_dofs] = -drag * data.qvel[flex_dofs]
-        mj(mujoco.mj_step, frame)
-
-    pelvis = joints[:, _PELVIS]  # [F,3]
-    q_pel = _quat_wxyz(R_pel)  # [F,4]
-    zero = np.zeros(3)
-    set_pose(pelvis[0], q_pel[0], zero, zero, *capsules(seg_a[0], seg_b[0]))
-    mujoco.mj_forward(model, data)
-    flex_start = model.flex_vertadr[0]
-    limit = max(1.0, 1.5 * sizes["length"] + sizes["waist_radius"])
-
-    def check(frame: int, when: str = ""):
-        """Cloth vertices [n_r*n_a,3] of the current state; RuntimeError naming the frame if it diverged."""
-        x = data.flexvert_xpos[flex_start : flex_start + n_a * n_r]
-        bad_warn = data.warning[mujoco.mjtWarning.mjWARN_BADQACC].number
-        dist = np.linalg.norm(x - pelvis[frame], axis=1).max() if np.isfinite(x).all() else np.inf
-        if bad_warn > 0 or not dist <= limit:
-            raise RuntimeError(
-                f"simulate_garment: cloth simulation unstable at frame {frame}{when} (max vertex "
-                f"distance from the pelvis {dist:.3g} m, limit {limit:.2f} m; MuJoCo bad-acceleration "
-                f"warnings {bad_warn}); try a smaller params['dt_max'] or a softer params['young']"
-            )
-        return x.copy()
-
-    def record(f: int):
-        # mj_step leaves positions computed before its integration; re-pose the waist at frame f exactly and
-        # recompute positions so the stored cloth (pinned ring included) belongs to frame f, not one substep earlier.
-        set_pose(pelvis[f], q_pel[f], v_prev, w_prev, cap_f_pos[f], cap_f_quat[f])
-        mj(mujoco.mj_forward, f)
-        x = check(f).reshape(n_r, n_a, 3)
-        out[f, :, :n_a], out[f, :, n_a] = x, x[:, 0]
-
-    cap_f_pos, cap_f_quat = capsules(seg_a, seg_b)  # [F,C,3], [F,C,4] at the frames themselves
-    n_pre = round(p["preroll"] / dt)
-    for i in range(n_pre):
-        set_pose(pelvis[0], q_pel[0], zero, zero, cap_f_pos[0], cap_f_quat[0])
-        step(0)
-        if (i + 1) % n_sub == 0:
-            check(0, f" (pre-roll, {(i + 1) * dt:.2f} s)")
-
-    drag = vert_mass / p["drag_tau"]
-    out = np.empty((n_frames, n_r, n_a + 1, 3), np.float32)
-    v_prev, w_prev = zero, zero
-    record(0)
-    # Relative pelvis rotation per frame interval (must stay below pi: spins slower than fps/2 turns per second).
-    rel = (
-        Rotation.from_matrix(np.einsum("fji,fjk->fik", R_pel[:-1], R_pel[1:])).as_rotvec()
-        if n_frames > 1
-        else None
-    )
-    s_sub = np.arange(n_sub) / n_sub  # [S] substep fractions within a frame
-    for f in range(1, n_frames):
-        v_prev = (pelvis[f] - pelvis[f - 1]) * fps
-        w_prev = rel[f - 1] * fps  # constant body-frame angular velocity over the frame
-        R = R_pel[f - 1] @ Rotation.from_rotvec(s_sub[:, None] * rel[f - 1]).as_matrix()  # [S,3,3] geodesic
-        quats = _quat_wxyz(R)
-        pos = pelvis[f - 1] + s_sub[:, None] * (pelvis[f] - pelvis[f - 1])  # [S,3]
-        lerp = s_sub[:, None, None]
-        cap_pos, cap_quat = capsules(
-            seg_a[f - 1] + lerp * (seg_a[f] - seg_a[f - 1]), seg_b[f - 1] + lerp * (seg_b[f] - seg_b[f - 1])
-        )  # [S,C,3], [S,C,4]
-        for k in range(n_sub):
-            set_pose(pos[k], quats[k], v_prev, w_prev, cap_pos[k], cap_quat[k])
-            step(f)
-        record(f)
 
     u = np.arange(n_a + 1) / n_a
     v = np.linspace(0.0, 1.0, n_r)
