@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 import torch
 
 import realityavatar.config  # noqa: F401  registers the resolvers the real tree's configs use
@@ -115,3 +116,25 @@ def test_oracle_pose_drape_maps_equal_windows_to_the_earliest_frame():
     rows = pose_driven_rows(dm, frames)
     # windows (t-4, t-2, t): frames 0-3 read rest only; 4-10 hold the turn; 11 reads 7, 9, 11: rest again
     assert rows == [0, 0, 0, 0, 4, 5, 6, 7, 8, 9, 10, 0, 12, 13]
+
+
+def test_cloth_of_reads_a_physics_runs_simulated_cloth(tmp_path):
+    """--cloth-of: the track of a sheet=physics checkpoint at the scene's frames; other folders are named."""
+
+    from realityavatar.analysis.oracle import run_cloth
+
+    track = torch.randn(6, 5, 3)
+    faces = torch.tensor([[0, 1, 2], [2, 3, 4]])
+    run = tmp_path / "run"
+    run.mkdir()
+    torch.save({"state_dict": {"avatar.sheet.track": track, "avatar.sheet.faces": faces,
+                               "avatar.sheet.track_frames": torch.arange(10, 16)}}, run / "last.ckpt")
+    V, F = run_cloth(run, [11, 12, 15])
+    assert torch.equal(V, track[[1, 2, 5]].double()) and torch.equal(F, faces)
+    with pytest.raises(ValueError, match="covers frames 10..15"):
+        run_cloth(run, [9, 10])
+    torch.save({"state_dict": {}}, run / "last.ckpt")
+    with pytest.raises(ValueError, match="not a sheet=physics run"):
+        run_cloth(run, [11])
+    with pytest.raises(FileNotFoundError, match="--cloth-of"):
+        run_cloth(tmp_path / "none", [11])

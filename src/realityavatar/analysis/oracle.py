@@ -2,7 +2,8 @@
 scored on the held-out images as a training run is (the ceiling a model that tracks the cloth perfectly reaches).
 
 Usage: python -m realityavatar.analysis.oracle [--data synthetic_demo] [--steps 3000] [--views train|all]
-       [--slide-cm S] [--drape true|pose] [--light exact|none] [--body 16000] [--garment 24000] [--out DIR] [config overrides ...]
+       [--slide-cm S] [--drape true|pose] [--light exact|none] [--cloth-of RUN] [--body 16000] [--garment 24000]
+       [--out DIR] [config overrides ...]
 
 Every Gaussian sits at a fixed triangle and barycentric point of the scene's posed body (the package's body model on
 the scene's poses, as the scene builder poses it) or of its simulated garment (<root>/<scene>-garment.npz), so in
@@ -18,6 +19,8 @@ window (what a pose-driven model reads: data.window_len poses data.window_step a
 that frame's cloth, so a drape the poses cannot tell apart (the demo's skirt settles after its stop into another
 drape than it started in, at the same pose) is the ceiling of a model driven by the pose window that tracks the cloth
 perfectly otherwise (docs/research/2026-11-28-garment-settled-drape.md). `--light none`: one unlit colour per Gaussian.
+`--cloth-of RUN`: the garment's Gaussians glued to a sheet=physics run's simulated cloth instead (its `track`, the
+simulation without the residual): the ceiling of that cloth's geometry (docs/research/2026-12-08-physics-garment.md).
 The simulator's meshes serve this oracle and diagnostics only, never training.
 Writes <out>/metrics.json (test/<split>/<phase>/<metric>, as a training run), per_frame.csv, phases.png and prints
 the table (docs/research/2026-11-28-garment-oracle-256.md).
@@ -83,6 +86,23 @@ def pose_driven_rows(dm, frames: list[int]) -> list[int]:
         else:
             out[row[f]] = row[match]
     return out
+
+
+def run_cloth(run: Path, frames: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
+    """A sheet=physics run's simulated cloth (its checkpoint's track, without the residual) at `frames`: vertices
+    [T,P,3] (float64), faces [F,3]."""
+    ckpt = run / "last.ckpt"
+    if not ckpt.is_file():
+        raise FileNotFoundError(f"{ckpt}: not found (--cloth-of takes a sheet=physics run folder)")
+    state = torch.load(ckpt, map_location="cpu", weights_only=False)["state_dict"]
+    if "avatar.sheet.track" not in state:
+        raise ValueError(f"{ckpt}: no simulated cloth (avatar.sheet.track): not a sheet=physics run")
+    first = state["avatar.sheet.track_frames"].long()
+    rows = torch.tensor(frames) - int(first[0])
+    if int(rows.min()) < 0 or int(rows.max()) >= len(first):
+        raise ValueError(f"{ckpt}: its cloth covers frames {int(first[0])}..{int(first[-1])}, the scene {frames[0]}.."
+                         f"{frames[-1]}")
+    return state["avatar.sheet.track"][rows].double(), state["avatar.sheet.faces"].long()
 
 
 def grid_locate(uv: torch.Tensor, cols: int, rows: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -203,6 +223,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--drape", choices=("true", "pose"), default="true",
                     help="the garment's cloth per frame: the true one, or the one of the earliest frame with the same pose window")
     ap.add_argument("--light", choices=("exact", "none"), default="exact")
+    ap.add_argument("--cloth-of", default=None, metavar="RUN",
+                    help="glue the garment's Gaussians to this sheet=physics run's simulated cloth, not the scene's")
     # defaults: ~0.9 cm apart on both meshes, about a pixel of the 256 px demo scene
     ap.add_argument("--body", type=int, default=16000, help="Gaussians on the body mesh")
     ap.add_argument("--garment", type=int, default=24000, help="Gaussians on the garment mesh")
@@ -211,16 +233,20 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", default=None, help="output folder (default outputs/oracle/<data>_<views>...)")
     ap.add_argument("overrides", nargs="*", help="more config overrides (data.image_scale=0.5, +render.eps2d=0.1, ...)")
     a = ap.parse_args(argv)
+    if a.cloth_of and a.slide_cm:
+        ap.error("--slide-cm slides along the scene's cloth: not with --cloth-of")
     set_threads(a.threads, "--threads")
     commit = git_commit()  # the code that runs: read before other sessions commit
     tag = (a.views + (f"_slide{a.slide_cm:g}cm" if a.slide_cm else "") + ("_unlit" if a.light == "none" else "")
-           + ("_posedrape" if a.drape == "pose" else ""))
+           + ("_posedrape" if a.drape == "pose" else "") + ("_modelcloth" if a.cloth_of else ""))
     out = Path(a.out or f"outputs/oracle/{a.data}_{tag}")
     cfg = compose([f"data={a.data}", *a.overrides])
     body = instantiate(cfg.body)
     dm = build_data(cfg, body)
     options = {k: v for k, v in cfg.render.items() if k != "background"}  # the scene's background is dm's
     frames, body_v, body_f, garm_v, garm_f, uv = scene_meshes(dm, body)
+    if a.cloth_of:
+        garm_v, garm_f = run_cloth(Path(a.cloth_of), frames)
     row = {f: i for i, f in enumerate(frames)}
     cols, rows = len(np.unique(uv[:, 0])), len(np.unique(uv[:, 1]))
     if a.drape == "pose":
@@ -281,6 +307,7 @@ def main(argv: list[str] | None = None) -> int:
                     tiles[rec_phase] = torch.cat([pred, b["image"][0]], 1)  # the first image of each phase
     metrics = {**summarise(records), "oracle": {
         "data": a.data, "overrides": a.overrides, "views": a.views, "slide_cm": a.slide_cm, "drape": a.drape, "light": a.light,
+        "cloth_of": a.cloth_of,
         "body": a.body, "garment": a.garment, "seed": a.seed, "ambient": model.ambient, "diffuse": model.diffuse},
         "commit": commit, "iterations": a.steps, "num_gaussians": int(model.pos.shape[1]),
         "train_seconds": round(fit_s, 1), "render_fps": len(records) / max(render_s, 1e-9),
