@@ -50,6 +50,9 @@ EFFECTS = {
     "sheet/skirt_slide": "**kept in `make demo`, measured gain**: +0.62 dB garment PSNR in the held-out spin over "
                          "`sheet=skirt` (box +0.36), other phases and novel pose within the seed spread (demo, 256², 3 seeds, "
                          f"[note]({RESEARCH}2026-11-29-garment-motion-and-flow.md))",
+    "sheet/physics": "garment PSNR −0.2 / −0.5 / +0.2 / +0.1 dB at rest / spin / after / settled against "
+                     "`sheet=none`, 0.7–1.5 dB below `sheet=skirt_slide`, NV −0.8 dB (demo, 256², 3 seeds, "
+                     f"[note]({RESEARCH}2026-12-08-physics-garment.md))",
     "density/default": f"2,000 initial Gaussians: NV / NP 29.63 / 28.87 against 29.43 / 28.59 off, 178 s against 94 s "
                        f"of training ({_BUDGET})",
     "density/off": f"the demo's choice: better at equal training time ({_BUDGET})",
