@@ -55,3 +55,29 @@ def test_stop_frames_of_a_capture_without_events_are_where_its_phases_stop(scene
     assert len(stops) == 1 and abs(stops[0] - events["spin_stop_frame"]) <= 2
     phases = dm.scene.poses.motion_phases(dm.scene.poses.frames, dm.fps)
     assert phases[stops[0]] == "after" and phases[stops[0] - 1] == "spin"
+
+
+def test_extreme_poses_simulate_a_physics_garment_into_each_pose(scenes_root):
+    """sheet=physics: each extreme pose is reached by a simulated motion (none blows up on the ci skirt), its renders
+    and statistics come from that cloth, and the dataset's motion is simulated again afterwards."""
+    from hydra.utils import instantiate
+
+    from realityavatar.analysis.stability import extreme_poses, ramp_into
+    from realityavatar.build import build_data, build_module
+    from realityavatar.config import compose
+    from tests.model.test_garment import FAST
+
+    cfg = compose(["data=synthetic_ci", "trainer=ci", "gaussians.num_points=300", "sheet=physics", *FAST])
+    body = instantiate(cfg.body)
+    dm = build_data(cfg, body)
+    module = build_module(cfg, body, dm.num_train_frames, dm.scene_extent, data=dm)
+    module.on_fit_start()
+    g = module.avatar.sheet
+    before = g.track.clone()
+    out = extreme_poses(module, dm, n=4, show=1)
+    assert out["finite"] and out["garment_blowups"] == [] and out["poses"] == 4
+    assert out["_renders"].shape[0] == 1
+    assert torch.equal(g.track_frames, torch.as_tensor(dm.scene.poses.frames)) and torch.allclose(g.track, before)
+    table = ramp_into(torch.zeros(24, 3), torch.zeros(3), torch.ones(3, 24, 3), torch.ones(3, 3))
+    assert len(table) == 13 and torch.equal(table.poses[-3:], torch.ones(3, 24, 3))
+    assert torch.equal(table.poses[0], torch.zeros(24, 3))
