@@ -314,8 +314,8 @@ def write_report(results: list[dict], out: Path, command: str) -> None:
         L.append(f"| {label} | {len(rs)} | {a[0]:.2f} ± {a[1]:.2f} | {b[0]:.2f} ± {b[1]:.2f} | {c[0]:.4f} ± {c[1]:.4f} | {d[0]:.4f} ± {d[1]:.4f} |")
     L += ["", "Flicker = mean |(pred_t − pred_{t−1}) − (gt_t − gt_{t−1})| over consecutive frames (lower is better).", "",
           "## Extreme unseen poses (joint limits ±1.6 rad, spins of 1–3 turns per window)", "",
-          "A garment with state (sheet=physics) is simulated into each pose: its blow-ups (the pose is left out of the "
-          "other columns) and the poses with cloth inside the body are counted.", "",
+          ("A garment with state (sheet=physics) is simulated into each pose: its blow-ups (the pose is left out of "
+           "the other columns) and the poses with cloth inside the body are counted."), "",
           "| variant | all finite | max scale (m) | scale growth vs canonical | max scale over the training frames (m) | growth vs training | opacity mean / p99 | max dist to a joint (m) | share > 0.6 m from joints | garment: blow-ups / inside the body |",
           "|---|---|---|---|---|---|---|---|---|---|"]
     for label, rs in by.items():

@@ -138,7 +138,7 @@ class Silhouettes:
 
 def surface_points(V: np.ndarray, tris: np.ndarray, per_tri: int) -> np.ndarray:
     """Points on every triangle of meshes V [F,P,3]: a fixed barycentric grid of ~per_tri points -> [F,n,3]."""
-    k = max(1, int(math.ceil((math.sqrt(8 * per_tri + 1) - 1) / 2)))
+    k = max(1, math.ceil((math.sqrt(8 * per_tri + 1) - 1) / 2))
     w = np.array([(i / k, j / k) for i in range(k + 1) for j in range(k + 1 - i)])
     bary = np.concatenate([1 - w.sum(1, keepdims=True), w], 1)  # [m,3]
     return np.einsum("mk,fnkc->fnmc", bary, V[:, tris]).reshape(V.shape[0], -1, 3)
@@ -212,8 +212,6 @@ class PhysicsGarment(nn.Module):
 
     # ------------------------------------------------------------------ building: shape, colliders, fit, track
     def _build(self, body: BodyModel, dm) -> None:
-        from realityavatar.data.poses import PoseTable
-
         t0 = time.perf_counter()
         ds = dm.datasets.get("train")
         if ds is None:
@@ -554,7 +552,7 @@ def estimate_shape(body: BodyModel, dm, up: np.ndarray, waist_offset: float, wai
     `flare_every`-th frame). Radii are a lower quantile over 16 azimuth sectors of each sector's farthest hull voxel
     (a hull carved from a few cameras bulges between them). Returns waist_radius, length (waist to hem along the
     cloth at the widest flare), hem_radius, depth, flare_frame."""
-    from realityavatar.model.hull import body_and_hull, hull_views, sector_radius
+    from realityavatar.model.hull import body_and_hull, cylindrical, hull_views, sector_radius
 
     ds = dm.datasets["train"]
     frames = sorted({r.frame for r in ds.records})
@@ -564,19 +562,10 @@ def estimate_shape(body: BodyModel, dm, up: np.ndarray, waist_offset: float, wai
     axis = J[NECK] - J[PELVIS]
     axis /= np.linalg.norm(axis)
 
-    def cyl(pts: np.ndarray, origin: np.ndarray, ax: np.ndarray):
-        rel = pts - origin
-        h = rel @ ax
-        radial = rel - h[:, None] * ax
-        e1 = np.cross(ax, [0.0, 0.0, 1.0] if abs(ax[2]) < 0.9 else [1.0, 0.0, 0.0])
-        e1 /= np.linalg.norm(e1)
-        e2 = np.cross(ax, e1)
-        return h, np.linalg.norm(radial, axis=1), np.arctan2(radial @ e2, radial @ e1)
-
     waist = J[PELVIS] + waist_offset * axis
-    body_c = cyl(verts, waist, axis)
+    body_c = cylindrical(verts, waist, axis)
     waist_r = sector_radius(body_c, 0.0, 0.03, 0.5) + waist_margin  # the median sector: not the arms
-    hull_c = cyl(surf, waist, axis)
+    hull_c = cylindrical(surf, waist, axis)
     heights = np.arange(-0.15, -1.0, -voxel)
     prof = np.array([sector_radius(hull_c, h, voxel, quantile) for h in heights])
     k = 3
@@ -592,7 +581,7 @@ def estimate_shape(body: BodyModel, dm, up: np.ndarray, waist_offset: float, wai
         ax /= np.linalg.norm(ax)
         origin = Jf[PELVIS] + waist_offset * ax
         _, s = body_and_hull(body, views, 2 * voxel, what="sheet=physics")
-        c = cyl(s, origin, ax)
+        c = cylindrical(s, origin, ax)
         hs = np.arange(-0.1, -depth - 0.1, -2 * voxel)
         r = np.array([sector_radius(c, h, 2 * voxel, quantile) for h in hs])
         if r.max() > best[0]:

@@ -80,6 +80,18 @@ def body_and_hull(body, views: HullViews, voxel: float, margin: float = 0.45,
     return verts, surf
 
 
+def cylindrical(pts, origin, axis) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Points [n,3] about the line through `origin` along the unit `axis` -> (height h [n], radius r [n], azimuth
+    [n]), the azimuth from e1 = axis x z (x where the axis is near z) towards e2 = axis x e1."""
+    pts, origin, axis = (np.asarray(x, np.float64) for x in (pts, origin, axis))
+    e1 = np.cross(axis, [0.0, 0.0, 1.0] if abs(axis[2]) < 0.9 else [1.0, 0.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(axis, e1)
+    rel = pts - origin
+    h = rel @ axis
+    return h, np.linalg.norm(rel - h[:, None] * axis, axis=1), np.arctan2(rel @ e2, rel @ e1)
+
+
 def sector_radius(cyl: tuple, height: float, band: float, quantile: float, reach: float = 0.8) -> float:
     """Points in cylindrical coordinates cyl = (height h [n], radius r [n], azimuth [n]) -> the radius at `height`:
     the `quantile` over 16 azimuth sectors of each sector's farthest point within `band` of it (and within `reach`

@@ -25,7 +25,26 @@ from realityavatar.geometry import matrix_to_quat
 from realityavatar.model.hull import hull_views
 
 
-class GarmentSheet(nn.Module):
+class Stateless:
+    """What a garment without state answers beside its Gaussians (model/avatar.py; model/garment.py's PhysicsGarment
+    answers otherwise): the colour model colours all its Gaussians, and a new motion needs no simulation."""
+
+    lit_points = 0  # Gaussians that colour themselves (the last ones of the avatar): none
+
+    def lit(self, posed: dict, cam_centre: torch.Tensor) -> torch.Tensor:
+        """Colours of the Gaussians that colour themselves [B,0,3]: none."""
+        return posed["means"].new_zeros(posed["means"].shape[0], 0, 3)
+
+    def baked_rgb(self) -> torch.Tensor:
+        """Baked colours of the Gaussians that colour themselves [0,3]: none."""
+        return self.opacities().new_zeros(0, 3)
+
+    def drive(self, body: BodyModel, table) -> dict:
+        """A garment without state needs no simulation of a new motion: nothing simulated, no frame inside the body."""
+        return {"frames": 0, "inside": []}
+
+
+class GarmentSheet(Stateless, nn.Module):
     """rows x cols cells, `per_cell` Gaussians each, on a surface of revolution around the hips and legs.
 
     profile="rest" (the config's default): the sheet is laid out in the rest frame of the training sequence (the
@@ -107,8 +126,6 @@ class GarmentSheet(nn.Module):
             self.coeff = nn.Linear(int(cond_dim), self.num_basis)
         self.register_load_state_dict_pre_hook(self._take_layout_buffers)
 
-    lit_points = 0  # its Gaussians are coloured by the colour model (the physics garment's colour themselves)
-
     # tensors sized by the training data at build time: a module rebuilt from its checkpoint takes their shapes there
     SIZED_BY_DATA: tuple[str, ...] = ("posed_rest", "rest_pose")
 
@@ -161,25 +178,18 @@ class GarmentSheet(nn.Module):
         import numpy as np
         from scipy.spatial import cKDTree
 
-        from realityavatar.model.hull import body_and_hull, sector_radius, to_canonical
+        from realityavatar.model.hull import body_and_hull, cylindrical, sector_radius, to_canonical
 
         with torch.no_grad():
             pose, transl = views.pose.float(), views.transl.float()
             verts_np, surf = body_and_hull(body, views, voxel, what="sheet.profile=rest")
-            verts = torch.from_numpy(verts_np)
             J = body.joints(pose, transl).cpu().double()
             origin, axis = J[0], F.normalize(J[12] - J[0], dim=0)
-            e1, e2 = self._frame(origin, axis)
-
-            def cylindrical(pts: torch.Tensor):
-                rel = pts - origin
-                h = rel @ axis
-                return h, (rel - h[:, None] * axis).norm(dim=-1), torch.atan2(rel @ e2, rel @ e1)
 
             def radius(pts_c, hj: float, band: float) -> float:
                 return sector_radius(pts_c, hj, band, quantile)
 
-            hull_c = cylindrical(torch.from_numpy(surf))
+            hull_c = cylindrical(surf, origin, axis)
             # the hem: where the hull's radius steps in most (garment -> legs), searched 0.15-1.0 m below the top
             fine = np.arange(top - 0.15, top - 1.0, -voxel)
             prof = np.array([radius(hull_c, x, voxel) for x in fine])
@@ -189,7 +199,7 @@ class GarmentSheet(nn.Module):
             bottom = float(fine[int(np.argmax(prof[:-k] - prof[k:]))])
             heights = torch.linspace(top, bottom, self.rows + 1, dtype=torch.float64)
             band = max(abs(top - bottom) / self.rows, voxel, 0.03)
-            shape_c = hull_c if radius_from == "hull" else cylindrical(verts)
+            shape_c = hull_c if radius_from == "hull" else cylindrical(verts_np, origin, axis)
             radii = torch.tensor([radius(shape_c, float(hj), band) + margin for hj in heights], dtype=torch.float64)
             posed = self._rings(origin, axis, heights, radii).reshape(-1, 3).float()
             canon = to_canonical(body, views, posed, cKDTree(verts_np).query(posed.numpy())[1])
@@ -276,18 +286,6 @@ class GarmentSheet(nn.Module):
         """The colour features every frame renders with [M,F] (SlidingSheet's depend on the frame)."""
         return self.features
 
-    def lit(self, posed: dict, cam_centre: torch.Tensor) -> torch.Tensor:
-        """Colours of the Gaussians that colour themselves [B,0,3]: none (the colour model colours these)."""
-        return posed["means"].new_zeros(posed["means"].shape[0], 0, 3)
-
-    def baked_rgb(self) -> torch.Tensor:
-        """Baked colours of the Gaussians that colour themselves [0,3]: none."""
-        return self.vertices.new_zeros(0, 3)
-
-    def drive(self, body: BodyModel, table) -> dict:
-        """A garment without state needs no simulation of a new motion: nothing simulated, no frame inside the body."""
-        return {"frames": 0, "inside": []}
-
     def loss_terms(self) -> dict:
         """Loss terms the sheet brings to training (build_avatar adds them to the configured ones): none."""
         return {}
@@ -362,12 +360,11 @@ class GarmentSheet(nn.Module):
         return f"rows={self.rows}, cols={self.cols}, per_cell={self.per_cell}, gaussians={self.num_points}"
 
 
-class NoSheet(nn.Module):
+class NoSheet(Stateless, nn.Module):
     """No garment sheet (`sheet=none`, the default): a source with no points and no Gaussians."""
 
     num_points = 0
     num_basis = 0
-    lit_points = 0
     layout: dict = {}  # noqa: RUF012  (read-only: nothing laid out)
 
     def __init__(self, body: BodyModel | None = None, feature_dim: int = 0, **unused) -> None:
@@ -393,18 +390,6 @@ class NoSheet(nn.Module):
 
     def colour_features(self, frame_idx: torch.Tensor) -> torch.Tensor:
         return self.features
-
-    def lit(self, posed: dict, cam_centre: torch.Tensor) -> torch.Tensor:
-        """Colours of the Gaussians that colour themselves [B,0,3]: none (the colour model colours these)."""
-        return posed["means"].new_zeros(posed["means"].shape[0], 0, 3)
-
-    def baked_rgb(self) -> torch.Tensor:
-        """Baked colours of the Gaussians that colour themselves [0,3]: none."""
-        return self._empty3.new_zeros(0, 3)
-
-    def drive(self, body: BodyModel, table) -> dict:
-        """A garment without state needs no simulation of a new motion: nothing simulated, no frame inside the body."""
-        return {"frames": 0, "inside": []}
 
     def loss_terms(self) -> dict:
         return {}
